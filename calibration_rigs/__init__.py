@@ -1,0 +1,1 @@
+"""Rig descriptions shipped with uwcam (YAML data files; installed as uwcam.calibration_rigs)."""

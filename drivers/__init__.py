@@ -1,0 +1,1 @@
+"""Camera, lamp and rangefinder drivers (installed as ``uwcam.drivers``)."""

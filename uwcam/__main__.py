@@ -1,0 +1,5 @@
+import sys
+
+from uwcam.cli import main
+
+sys.exit(main())

@@ -1,0 +1,272 @@
+"""The ``uwcam`` command line: calibrate, range (and more subcommands as they land)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from uwcam import __version__
+from uwcam.fileio import UserInputError
+from uwcam.optics.geometry import Intrinsics
+
+DEFAULT_RGB = ["R", "G", "B"]
+
+
+def parse_floats(text: str, what: str, count: int | None = None) -> list[float]:
+    """'1,2,3' → [1.0, 2.0, 3.0]; UserInputError saying what was expected."""
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise UserInputError(f"{what} must be comma-separated numbers, got '{text}'") from None
+    if count is not None and len(values) != count:
+        raise UserInputError(f"{what} needs {count} comma-separated numbers, got {len(values)} in '{text}'")
+    if not all(np.isfinite(values)):
+        raise UserInputError(f"{what} must be finite numbers, got '{text}'")
+    return values
+
+
+def parse_box(text: str, what: str) -> tuple[int, int, int, int]:
+    values = parse_floats(text, what, 4)
+    if any(v != int(v) for v in values) or values[2] <= 0 or values[3] <= 0 or values[0] < 0 or values[1] < 0:
+        raise UserInputError(f"{what} must be X,Y,WIDTH,HEIGHT in whole pixels with positive size, got '{text}'")
+    x, y, w, h = (int(v) for v in values)
+    return x, y, w, h
+
+
+def parse_channels(text: str | None, n: int) -> tuple[list[str], list[float | None]]:
+    """--channels R:675,G:575,B:475 or R,G,B → names and optional wavelengths (nm)."""
+    if text is None:
+        names = DEFAULT_RGB if n == 3 else [f"ch{k}" for k in range(n)]
+        return names, [None] * n
+    names, wavelengths = [], []
+    for item in text.split(","):
+        name, _, nm = item.partition(":")
+        names.append(name.strip())
+        if nm:
+            wl = parse_floats(nm, f"wavelength of channel {name}", 1)[0]
+            if wl <= 0:
+                raise UserInputError(f"wavelength of channel {name} must be positive nanometres, got {nm}")
+            wavelengths.append(wl)
+        else:
+            wavelengths.append(None)
+    if len(names) != n:
+        raise UserInputError(f"--channels names {len(names)} channels but the images have {n}")
+    if len(set(names)) != n or not all(names):
+        raise UserInputError(f"--channels needs {n} different, non-empty names, got '{text}'")
+    return names, wavelengths
+
+
+def default_saturation(dtype: np.dtype) -> float:
+    if np.issubdtype(dtype, np.integer):
+        return float(np.iinfo(dtype).max)
+    return float(np.finfo(np.float32).max)
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from uwcam.calibration import CalibrationInputs, calibrate, project_plate_box
+    from uwcam.imageio import read_frame
+    from uwcam.profile import save_profile
+    from uwcam.rig import load_rig, resolve_reflectance
+
+    out = Path(args.output)
+    if out.suffix.lower() not in (".yaml", ".yml"):
+        raise UserInputError(f"the profile {out} must be a .yaml file")
+    if not out.parent.exists():
+        raise UserInputError(f"output folder {out.parent} does not exist")
+    distances = args.distance or []
+    if len(distances) != len(args.images):
+        raise UserInputError(
+            f"got {len(args.images)} image(s) but {len(distances)} --distance value(s); give one --distance per image, in order"
+        )
+    for d in distances:
+        if not (np.isfinite(d) and d > 0):
+            raise UserInputError(f"--distance must be a positive number of metres, got {d}")
+    frames = [read_frame(p) for p in args.images]
+    n = frames[0].shape[-1]
+    for p, f in zip(args.images, frames):
+        if f.shape[-1] != n:
+            raise UserInputError(f"image {p} has {f.shape[-1]} channels but {args.images[0]} has {n}; use images from one camera")
+    names, wavelengths = parse_channels(args.channels, n)
+    intrinsics = Intrinsics(*parse_floats(args.intrinsics, "--intrinsics", 4)) if args.intrinsics else None
+    if intrinsics is not None and not (intrinsics.fx > 0 and intrinsics.fy > 0):
+        raise UserInputError("--intrinsics focal lengths FX and FY must be positive")
+    lamp = tuple(parse_floats(args.lamp_offset, "--lamp-offset", 3)) if args.lamp_offset else (0.0, 0.0, 0.0)
+
+    rig = load_rig(args.rig) if args.rig else None
+    target_reflectance = np.ones(n)
+    black_reflectance = None
+    description = "spectrally flat target"
+    if rig is not None:
+        target_reflectance = resolve_reflectance(rig.plate.reflectance, names, wavelengths, f"plate reflectance of rig {args.rig}")
+        description = f"rig {rig.name}"
+        if rig.plate.black_patch is not None:
+            black_reflectance = resolve_reflectance(rig.plate.black_patch.reflectance, names, wavelengths, f"black patch of rig {args.rig}")
+    if args.target_reflectance:
+        target_reflectance = np.array(parse_floats(args.target_reflectance, "--target-reflectance", n))
+        if np.any(target_reflectance <= 0):
+            raise UserInputError("--target-reflectance values must be positive")
+        description = f"target of reflectance {args.target_reflectance}"
+
+    target_box = parse_box(args.roi, "--roi") if args.roi else None
+    target_boxes = black_boxes = None
+    if target_box is None and rig is not None and rig.regions.target is not None:
+        target_box = rig.regions.target
+    if args.black_roi:
+        black_boxes = [parse_box(args.black_roi, "--black-roi")] * len(frames)
+    elif rig is not None and rig.regions.black is not None:
+        black_boxes = [rig.regions.black] * len(frames)
+    if rig is not None and intrinsics is not None:
+        # No pixel regions given: find plate and patch by projecting the rig's geometry,
+        # with the plate centred on the optical axis and square to it.
+        if target_box is None:
+            target_boxes = [project_plate_box((0.0, 0.0), rig.plate.size_m, d, intrinsics) for d in distances]
+        if black_boxes is None and rig.plate.black_patch is not None:
+            patch = rig.plate.black_patch
+            black_boxes = [project_plate_box(patch.centre_m, patch.size_m, d, intrinsics) for d in distances]
+    if black_boxes is not None and black_reflectance is None:
+        black_reflectance = np.zeros(n)
+
+    dark = None
+    if args.dark_level:
+        dark = np.array(parse_floats(args.dark_level, "--dark-level", n))
+    elif args.dark:
+        dark_frame = read_frame(args.dark)
+        if dark_frame.shape[-1] != n:
+            raise UserInputError(f"dark frame {args.dark} has {dark_frame.shape[-1]} channels but the images have {n}")
+        dark = dark_frame.reshape(-1, n).mean(axis=0)
+    reference = 0
+    if args.reference:
+        if args.reference not in names:
+            raise UserInputError(f"--reference must be one of the channels {','.join(names)}, got {args.reference}")
+        reference = names.index(args.reference)
+    saturation = args.saturation if args.saturation is not None else default_saturation(frames[0].dtype)
+    step = 1.0 if np.issubdtype(frames[0].dtype, np.integer) else 0.0
+    if args.lamp_radius is not None and args.lamp_radius < 0:
+        raise UserInputError("--lamp-radius must be zero (a point source) or a positive number of metres")
+
+    inputs = CalibrationInputs(
+        channel_names=names,
+        wavelengths_nm=wavelengths,
+        target_reflectance=target_reflectance,
+        black_reflectance=black_reflectance,
+        target_box=target_box,
+        target_boxes=target_boxes,
+        black_boxes=black_boxes,
+        lamp_position_m=lamp,  # type: ignore[arg-type]
+        intrinsics=intrinsics,
+        lamp_radius_m=args.lamp_radius,
+        dark_level=dark,
+        saturation_level=saturation,
+        quantisation_step=step,
+        reference=reference,
+        name=args.name or out.stem,
+        target_description=description,
+        image_names=[str(p) for p in args.images],
+    )
+    profile = calibrate(frames, distances, inputs)
+    save_profile(profile, out)
+    v = ", ".join(f"{c.name}−{profile.reference_channel} {c.attenuation_difference:+.4f}±{c.attenuation_difference_std:.4f}"
+                  for c in profile.channels if c.name != profile.reference_channel)
+    print(f"wrote {out}: attenuation differences (1/m) {v}; rms residual {profile.provenance.rms_residual:.2e}")
+    return 0
+
+
+def cmd_range(args: argparse.Namespace) -> int:
+    from uwcam.imageio import MAP_SUFFIXES, read_frame, write_map
+    from uwcam.profile import load_profile
+    from uwcam.ranging import RangeEstimator
+
+    outputs = [(args.output, "-o")] + [(p, f) for p, f in ((args.variance, "--variance"), (args.reasons, "--reasons")) if p]
+    for path, flag in outputs:
+        p = Path(path)
+        if p.suffix.lower() not in MAP_SUFFIXES:
+            raise UserInputError(f"{flag} {p} must end in .npy, .tif or .tiff")
+        if not p.parent.exists():
+            raise UserInputError(f"output folder {p.parent} of {flag} does not exist")
+    profile = load_profile(args.profile)
+    frame = read_frame(args.image)
+    pair = None
+    if args.pair:
+        pair = tuple(s.strip() for s in args.pair.split(","))
+        if len(pair) != 2:
+            raise UserInputError(f"--pair needs two channel names separated by a comma, got '{args.pair}'")
+    surface = None
+    if args.surface_reflectance:
+        surface = parse_floats(args.surface_reflectance, "--surface-reflectance", len(profile.channels))
+    bounds = (0.0, np.inf)
+    if args.path_bounds:
+        bounds = tuple(parse_floats(args.path_bounds, "--path-bounds", 2))
+        if not 0 <= bounds[0] < bounds[1]:
+            raise UserInputError(f"--path-bounds must be MIN,MAX metres with 0 ≤ MIN < MAX, got '{args.path_bounds}'")
+    estimator = RangeEstimator(profile, pair=pair, surface_reflectance=surface, path_length_bounds=bounds)  # type: ignore[arg-type]
+    result = estimator(frame)
+    write_map(args.output, result.range)
+    if args.variance:
+        write_map(args.variance, result.variance)
+    if args.reasons:
+        write_map(args.reasons, result.reasons)
+    valid = np.isfinite(result.range)
+    summary = f"{valid.mean():.1%} of pixels valid"
+    if valid.any():
+        summary += f", range {np.nanmin(result.range):.3f}–{np.nanmax(result.range):.3f} m"
+    print(f"wrote {args.output}: {summary}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="uwcam", description="Underwater ranging camera: calibrate, range, simulate, run.")
+    parser.add_argument("--version", action="version", version=f"uwcam {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    cal = sub.add_parser("calibrate", help="make a calibration profile from a target imaged at known distances")
+    cal.add_argument("images", nargs="+", metavar="IMAGE", help="target images (.npy, .tif, .png), one per distance")
+    cal.add_argument("--distance", type=float, action="append", metavar="D",
+                     help="camera-to-target distance along the optical axis in metres, one per image in order")
+    cal.add_argument("--target-reflectance", metavar="R1,R2,...", help="target reflectance per channel (default: spectrally flat)")
+    cal.add_argument("--rig", metavar="RIG.yaml", help="rig file describing the target (calibration_rigs/)")
+    cal.add_argument("--roi", metavar="X,Y,W,H", help="target region in pixels (default: the whole image)")
+    cal.add_argument("--black-roi", metavar="X,Y,W,H", help="black patch region in pixels, for the noise floor")
+    cal.add_argument("--channels", metavar="NAME[:NM],...", help="channel names, optionally with centre wavelengths (R:675,G:575,B:475)")
+    cal.add_argument("--reference", metavar="NAME", help="reference channel (default: the first)")
+    cal.add_argument("--lamp-offset", metavar="X,Y,Z", help="lamp position in metres, camera frame (x right, y down, z forward)")
+    cal.add_argument("--lamp-radius", type=float, metavar="R",
+                     help="effective lamp radius sqrt(A0/Ω) in metres (0: point source); enables absolute attenuation")
+    cal.add_argument("--intrinsics", metavar="FX,FY,CX,CY", help="pinhole intrinsics in pixels")
+    cal.add_argument("--dark", metavar="IMAGE", help="dark frame (lamp off, lens capped) to subtract")
+    cal.add_argument("--dark-level", metavar="D1,D2,...", help="dark level per channel in DN to subtract")
+    cal.add_argument("--saturation", type=float, metavar="DN", help="raw level at which pixels clip (default: the dtype's maximum)")
+    cal.add_argument("--name", help="name stored in the profile (default: the file's stem)")
+    cal.add_argument("-o", "--output", required=True, metavar="PROFILE.yaml", help="profile to write")
+    cal.set_defaults(func=cmd_calibrate)
+
+    rng = sub.add_parser("range", help="turn an image into a range map with a calibration profile")
+    rng.add_argument("profile", metavar="PROFILE.yaml")
+    rng.add_argument("image", metavar="IMAGE")
+    rng.add_argument("-o", "--output", required=True, metavar="RANGE.(npy|tif)", help="float32 camera range in metres, NaN invalid")
+    rng.add_argument("--variance", metavar="VAR.(npy|tif)", help="variance of the range in m²")
+    rng.add_argument("--reasons", metavar="REASONS.(npy|tif)", help="uint8 reason code per pixel (0 valid)")
+    rng.add_argument("--surface-reflectance", metavar="R1,R2,...", help="surface reflectance per channel, if it differs in hue from the target")
+    rng.add_argument("--pair", metavar="NAME,NAME", help="use one channel pair instead of fusing all channels")
+    rng.add_argument("--path-bounds", metavar="MIN,MAX", help="accepted lamp→surface→camera path length in metres")
+    rng.set_defaults(func=cmd_range)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args))
+    except UserInputError as exc:
+        print(f"uwcam {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,192 @@
+"""Calibration profiles: a versioned YAML file holding everything ranging needs.
+
+A profile stores, per channel, the attenuation difference c_k − c_ref (1/m), the log
+constant b_k = ln(K_k ρ_k / K_ref ρ_ref) of the calibration target, their
+uncertainties, the camera noise model and noise floor, plus the lamp position,
+optional intrinsics and where the calibration came from.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import os
+from typing import Annotated, Any, Literal
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from uwcam.fileio import UserInputError, atomic_write, explain_validation_error, load_yaml_mapping
+from uwcam.optics.geometry import Intrinsics
+
+PROFILE_FORMAT = "uwcam-calibration-profile"
+PROFILE_VERSION = 1
+
+# version → function taking the mapping of that version and returning version + 1.
+# Empty while there is one version; a new version adds its step here.
+_MIGRATIONS: dict[int, Any] = {}
+
+NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class ChannelCalibration(Strict):
+    """Calibration of one colour channel."""
+
+    name: Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z0-9_\-]+$")]
+    """Channel name, e.g. R, G, B or a band name."""
+    wavelength_nm: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
+    """Centre wavelength in nanometres, if known."""
+    attenuation_difference: Finite
+    """c_k − c_ref in 1/m (0 for the reference channel)."""
+    attenuation_difference_std: NonNegative = 0.0
+    """Standard uncertainty of attenuation_difference, 1/m."""
+    log_constant: Finite
+    """b_k = ln(K_k ρ_k / K_ref ρ_ref) for the calibration target (0 for the reference)."""
+    log_constant_std: NonNegative = 0.0
+    """Standard uncertainty of log_constant."""
+    attenuation: NonNegative | None = None
+    """Absolute beam attenuation c_k in 1/m, when a lamp spreading model was given."""
+    target_reflectance: Annotated[float, Field(gt=0, le=1)] = 1.0
+    """Reflectance of the calibration target in this channel (only ratios matter)."""
+    dark_level: NonNegative = 0.0
+    """Dark/black level in DN, subtracted from raw values before anything else."""
+    read_noise: NonNegative = 0.0
+    """Read noise, DN rms."""
+    shot_gain: NonNegative = 0.0
+    """Shot-noise variance per DN of signal (DN per photo-electron)."""
+    noise_floor: NonNegative = 0.0
+    """Dark-corrected signal in DN at or below which the channel carries no surface signal (0: not measured)."""
+
+
+class Provenance(Strict):
+    """Where a calibration came from."""
+
+    created: str
+    """ISO 8601 time the profile was made."""
+    method: str
+    """How attenuation differences were found."""
+    distances_m: list[Finite] = []
+    """Camera-to-target distances along the optical axis, metres."""
+    path_lengths_m: list[Finite] = []
+    """Mean lamp→target→camera path length over the target region, metres."""
+    images: list[str] = []
+    """The images used, in order."""
+    target: str = "spectrally flat target"
+    """What was imaged."""
+    roi: list[int] | None = None
+    """Target region x, y, width, height in pixels; None: the whole image."""
+    residuals: dict[str, list[float]] = {}
+    """Per channel, residual of ln(E_k/E_ref) at each distance after the fit."""
+    rms_residual: NonNegative = 0.0
+    """Root mean square of all residuals (natural-log units)."""
+
+
+class CalibrationProfile(Strict):
+    """Everything the intensity–range transform needs for one camera, lamp and water."""
+
+    format: Literal["uwcam-calibration-profile"] = PROFILE_FORMAT
+    version: Literal[1] = PROFILE_VERSION
+    name: Annotated[str, Field(min_length=1)]
+    """Human-readable name of this calibration."""
+    reference_channel: str
+    """Name of the channel whose attenuation and constant the others are relative to."""
+    channels: Annotated[list[ChannelCalibration], Field(min_length=2)]
+    """Per-channel calibration in the order the camera delivers channels."""
+    saturation_level: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+    """Raw value (DN) at or above which a pixel is clipped."""
+    quantisation_step: NonNegative = 1.0
+    """Size of one code in DN (0 for float data)."""
+    lamp_position_m: tuple[Finite, Finite, Finite] = (0.0, 0.0, 0.0)
+    """Lamp position in the camera frame (x right, y down, z forward), metres."""
+    lamp_radius_m: NonNegative | None = None
+    """Effective lamp radius sqrt(A0/Ω) in metres used for absolute attenuation, if any."""
+    intrinsics: dict[str, Annotated[float, Field(allow_inf_nan=False)]] | None = None
+    """Pinhole intrinsics fx, fy, cx, cy in pixels."""
+    provenance: Provenance
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "CalibrationProfile":
+        names = [c.name for c in self.channels]
+        if len(set(names)) != len(names):
+            raise ValueError(f"channel names must be unique, got {names}")
+        if self.reference_channel not in names:
+            raise ValueError(f"reference_channel '{self.reference_channel}' is not one of the channels {names}")
+        ref = self.channels[names.index(self.reference_channel)]
+        if ref.attenuation_difference != 0 or ref.log_constant != 0:
+            raise ValueError("the reference channel must have attenuation_difference 0 and log_constant 0")
+        if len({c.attenuation_difference for c in self.channels}) < 2:
+            raise ValueError("all channels have the same attenuation_difference, so no range can be computed")
+        if self.intrinsics is not None:
+            if set(self.intrinsics) != {"fx", "fy", "cx", "cy"}:
+                raise ValueError(f"intrinsics need exactly fx, fy, cx, cy, got {sorted(self.intrinsics)}")
+            if not (self.intrinsics["fx"] > 0 and self.intrinsics["fy"] > 0):
+                raise ValueError("intrinsics fx and fy must be positive")
+        return self
+
+    # Convenience views as arrays, in channel order.
+    @property
+    def channel_names(self) -> list[str]:
+        return [c.name for c in self.channels]
+
+    @property
+    def reference_index(self) -> int:
+        return self.channel_names.index(self.reference_channel)
+
+    def array(self, field: str) -> np.ndarray:
+        """One per-channel field as a float64 array of shape (N,)."""
+        return np.array([getattr(c, field) for c in self.channels], dtype=np.float64)
+
+    def camera_intrinsics(self) -> Intrinsics | None:
+        return None if self.intrinsics is None else Intrinsics(**self.intrinsics)
+
+
+def _migrate(data: dict[str, Any], source: str) -> dict[str, Any]:
+    version = data.get("version")
+    if not isinstance(version, int) or isinstance(version, bool):
+        raise UserInputError(f"{source}: key 'version' must be an integer profile version (this uwcam writes {PROFILE_VERSION})")
+    if version > PROFILE_VERSION:
+        raise UserInputError(
+            f"{source}: profile version {version} is newer than this uwcam understands ({PROFILE_VERSION}); upgrade uwcam"
+        )
+    while version < PROFILE_VERSION:
+        if version not in _MIGRATIONS:
+            raise UserInputError(f"{source}: profile version {version} is too old to migrate; recalibrate")
+        data = _MIGRATIONS[version](data)
+        version = data["version"]
+    return data
+
+
+def profile_from_mapping(data: dict[str, Any], source: str = "calibration profile") -> CalibrationProfile:
+    """Validate a mapping (e.g. an uploaded profile) into a profile; UserInputError on any problem."""
+    if data.get("format") != PROFILE_FORMAT:
+        raise UserInputError(f"{source}: key 'format' must be '{PROFILE_FORMAT}'; is this a uwcam calibration profile?")
+    data = _migrate(dict(data), source)
+    try:
+        return CalibrationProfile.model_validate(data)
+    except ValidationError as exc:
+        raise UserInputError(explain_validation_error(exc, source)) from None
+
+
+def load_profile(path: str | os.PathLike[str]) -> CalibrationProfile:
+    """Load and validate a profile; UserInputError names the file and the key at fault."""
+    return profile_from_mapping(load_yaml_mapping(path, "calibration profile"), f"calibration profile {path}")
+
+
+def profile_to_yaml(profile: CalibrationProfile) -> str:
+    data = profile.model_dump(mode="json")
+    return yaml.safe_dump(data, sort_keys=False, allow_unicode=True)
+
+
+def save_profile(profile: CalibrationProfile, path: str | os.PathLike[str]) -> None:
+    """Write atomically: the file is either the old one or the complete new one."""
+    with atomic_write(path, "w") as fh:
+        fh.write(profile_to_yaml(profile))
+
+
+def now_iso() -> str:
+    return dt.datetime.now(dt.timezone.utc).replace(microsecond=0).isoformat()

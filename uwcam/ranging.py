@@ -1,0 +1,141 @@
+"""Frame → range map, variance map and reason map, from a calibration profile.
+
+:class:`RangeEstimator` turns a profile into the per-channel quantities of DESIGN.md §5
+once (attenuation differences, log constants corrected for the surface's hue, lookup
+tables for integer sensors) and then processes frames in one compiled pass.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from uwcam.fileio import UserInputError
+from uwcam.optics import kernels
+from uwcam.optics.noise import signal_variance
+from uwcam.optics.validity import ChannelState, channel_states
+from uwcam.profile import CalibrationProfile
+
+# A channel state the kernel neither uses nor counts (channels outside a chosen pair).
+_IGNORED = 4
+
+
+@dataclass(frozen=True)
+class RangeResult:
+    """Outputs for one frame, each (H, W)."""
+
+    range: NDArray[np.float32]
+    """Camera range d_c in metres along each pixel's ray; NaN where invalid."""
+    variance: NDArray[np.float32]
+    """Variance of ``range`` in m²; NaN where invalid."""
+    reasons: NDArray[np.uint8]
+    """:class:`uwcam.optics.validity.Reason` code per pixel."""
+
+
+class RangeEstimator:
+    """Computes range maps for frames shaped (H, W, N) with N the profile's channel count."""
+
+    def __init__(
+        self,
+        profile: CalibrationProfile,
+        *,
+        pair: tuple[str, str] | None = None,
+        surface_reflectance: NDArray | list[float] | None = None,
+        backscatter_level: NDArray | list[float] | None = None,
+        path_length_bounds: tuple[float, float] = (0.0, np.inf),
+    ) -> None:
+        """pair: two channel names for single-pair ranging (default: fuse all channels).
+        surface_reflectance: (N,) reflectance of the imaged surface, when it differs in hue
+        from the calibration target (only ratios matter). backscatter_level: (N,) signal
+        (DN, dark-corrected) of open water; pixels not above it carry no surface signal.
+        path_length_bounds: (min, max) accepted path length d_T in metres."""
+        self.profile = profile
+        names = profile.channel_names
+        n = len(names)
+        self.n_channels = n
+        self.dark = profile.array("dark_level")
+        self.floor = profile.array("noise_floor")
+        self.read_noise = profile.array("read_noise")
+        self.shot_gain = profile.array("shot_gain")
+        self.backscatter = None if backscatter_level is None else np.asarray(backscatter_level, dtype=np.float64)
+        v = profile.array("attenuation_difference")
+        b = profile.array("log_constant")
+        if surface_reflectance is not None:
+            rho_s = np.asarray(surface_reflectance, dtype=np.float64)
+            if rho_s.shape != (n,) or np.any(rho_s <= 0):
+                raise UserInputError(f"surface reflectance needs {n} positive values ({','.join(names)}), got {list(rho_s)}")
+            # U_ij(surface) = U_ij(target)·(ρ_j/ρ_i)(surface)/(ρ_j/ρ_i)(target)  (DESIGN.md §3)
+            b = b + np.log(rho_s / rho_s[0]) - np.log(profile.array("target_reflectance") / profile.array("target_reflectance")[0])
+        self.log_constant = b
+        self.active = np.ones(n, dtype=bool)
+        if pair is not None:
+            unknown = [p for p in pair if p not in names]
+            if unknown or len(set(pair)) != 2:
+                raise UserInputError(f"--pair needs two different channel names from {','.join(names)}, got {','.join(pair)}")
+            self.active[:] = False
+            self.active[[names.index(p) for p in pair]] = True
+            if v[self.active][0] == v[self.active][1]:
+                raise UserInputError(f"channels {pair[0]} and {pair[1]} have equal attenuation, so the pair carries no range")
+        self.attenuation = v - v.mean()  # centred: only differences matter, and sums stay well conditioned
+        self.bounds = np.array(path_length_bounds, dtype=np.float64)
+        self._geometry_cache: dict[tuple[int, int], NDArray] = {}
+        self._tables: dict[int, tuple[NDArray, NDArray]] = {}
+
+    # Geometry parameters for the kernel: [mode, Sx, Sy, Sz, |S|, fx, fy, cx, cy].
+    def _geometry(self) -> NDArray[np.float64]:
+        s = np.array(self.profile.lamp_position_m, dtype=np.float64)
+        intr = self.profile.camera_intrinsics()
+        if not np.any(s):
+            mode = kernels.EQUIDISTANT
+        elif intr is None:
+            mode = kernels.LAMP_ON_AXIS_RAY
+        else:
+            mode = kernels.LAMP_PIXEL_RAYS
+        f = (intr.fx, intr.fy, intr.cx, intr.cy) if intr else (1.0, 1.0, 0.0, 0.0)
+        return np.array([mode, *s, np.linalg.norm(s), *f], dtype=np.float64)
+
+    def channel_terms(self, raw: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+        """y = ln E − b, weight E²/σ² and ChannelState for raw values (any shape (..., N))."""
+        e = np.asarray(raw, dtype=np.float64) - self.dark
+        state = channel_states(raw, e, self.floor, self.profile.saturation_level, self.backscatter)
+        state[..., ~self.active] = _IGNORED
+        ok = state == ChannelState.USABLE
+        with np.errstate(divide="ignore", invalid="ignore"):
+            var = signal_variance(e, self.read_noise, self.shot_gain, self.profile.quantisation_step)
+            weight = np.where(ok, e * e / var, 0.0)
+            y = np.where(ok, np.log(np.where(ok, e, 1.0)) - self.log_constant, 0.0)
+        return y, weight, state.astype(np.uint8)
+
+    def _lookup_tables(self, dtype: np.dtype) -> tuple[NDArray, NDArray]:
+        """Per-channel tables over every code of an integer dtype: (N, L, 2) float32 and (N, L) uint8."""
+        bits = np.dtype(dtype).itemsize * 8
+        if bits not in self._tables:
+            codes = np.arange(2**bits, dtype=np.float64)[:, None].repeat(self.n_channels, axis=1)
+            y, w, state = self.channel_terms(codes)
+            table = np.stack([y.T, w.T], axis=-1).astype(np.float32)
+            self._tables[bits] = (np.ascontiguousarray(table), np.ascontiguousarray(state.T))
+        return self._tables[bits]
+
+    def __call__(self, frame: NDArray, out: RangeResult | None = None) -> RangeResult:
+        """Range, variance and reasons for one frame (H, W, N); ``out`` reuses output arrays."""
+        if frame.ndim != 3 or frame.shape[-1] != self.n_channels:
+            got = frame.shape[-1] if frame.ndim == 3 else 1
+            raise UserInputError(
+                f"the image has {got} channel(s) but the calibration profile has {self.n_channels} "
+                f"({','.join(self.profile.channel_names)}); use a profile made with this camera"
+            )
+        h, w = frame.shape[:2]
+        if out is None:
+            out = RangeResult(np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w), np.uint8))
+        geo = self._geometry()
+        if frame.dtype in (np.uint8, np.uint16):
+            table, states = self._lookup_tables(frame.dtype)
+            kernels.fuse_lookup(frame, table, states, self.attenuation, geo, self.bounds, out.range, out.variance, out.reasons)
+        elif np.issubdtype(frame.dtype, np.integer) or np.issubdtype(frame.dtype, np.floating):
+            y, weight, state = self.channel_terms(frame)
+            kernels.fuse_arrays(y, weight, state, self.attenuation, geo, self.bounds, out.range, out.variance, out.reasons)
+        else:
+            raise UserInputError(f"unsupported pixel type {frame.dtype}; give uint8, uint16 or float images")
+        return out
