@@ -80,10 +80,15 @@ class RangeEstimator:
                 raise UserInputError(f"channels {pair[0]} and {pair[1]} have equal attenuation, so the pair carries no range")
         self.attenuation = v - v.mean()  # centred: only differences matter, and sums stay well conditioned
         self.bounds = np.array(path_length_bounds, dtype=np.float64)
-        self._geometry_cache: dict[tuple[int, int], NDArray] = {}
         self._tables: dict[int, tuple[NDArray, NDArray]] = {}
+        # Kernel constants: attenuations as a tuple (the channel loop unrolls), one bit per
+        # distinct attenuation value, and the geometry.
+        self._c = tuple(float(x) for x in self.attenuation)
+        distinct = sorted(set(self._c))
+        self._bits = tuple(1 << distinct.index(x) for x in self._c)
+        self._geo = self._geometry()
 
-    # Geometry parameters for the kernel: [mode, Sx, Sy, Sz, |S|, fx, fy, cx, cy].
+    # Geometry parameters for the kernel: [mode, Sx, Sy, Sz, |S|, 1/fx, 1/fy, cx, cy].
     def _geometry(self) -> NDArray[np.float64]:
         s = np.array(self.profile.lamp_position_m, dtype=np.float64)
         intr = self.profile.camera_intrinsics()
@@ -93,7 +98,7 @@ class RangeEstimator:
             mode = kernels.LAMP_ON_AXIS_RAY
         else:
             mode = kernels.LAMP_PIXEL_RAYS
-        f = (intr.fx, intr.fy, intr.cx, intr.cy) if intr else (1.0, 1.0, 0.0, 0.0)
+        f = (1.0 / intr.fx, 1.0 / intr.fy, intr.cx, intr.cy) if intr else (1.0, 1.0, 0.0, 0.0)
         return np.array([mode, *s, np.linalg.norm(s), *f], dtype=np.float64)
 
     def channel_terms(self, raw: NDArray) -> tuple[NDArray, NDArray, NDArray]:
@@ -104,6 +109,8 @@ class RangeEstimator:
         ok = state == ChannelState.USABLE
         with np.errstate(divide="ignore", invalid="ignore"):
             var = signal_variance(e, self.read_noise, self.shot_gain, self.profile.quantisation_step)
+            # A profile without any noise model (float data, nothing measured) counts as 1 DN of noise.
+            var = np.where(var > 0, var, 1.0)
             weight = np.where(ok, e * e / var, 0.0)
             y = np.where(ok, np.log(np.where(ok, e, 1.0)) - self.log_constant, 0.0)
         return y, weight, state.astype(np.uint8)
@@ -114,6 +121,8 @@ class RangeEstimator:
         if bits not in self._tables:
             codes = np.arange(2**bits, dtype=np.float64)[:, None].repeat(self.n_channels, axis=1)
             y, w, state = self.channel_terms(codes)
+            # A common offset of y changes nothing; removing it keeps float32 digits for the differences.
+            y = np.where(w > 0, y - np.median(y[w > 0]) if np.any(w > 0) else y, 0.0)
             table = np.stack([y.T, w.T], axis=-1).astype(np.float32)
             self._tables[bits] = (np.ascontiguousarray(table), np.ascontiguousarray(state.T))
         return self._tables[bits]
@@ -129,13 +138,13 @@ class RangeEstimator:
         h, w = frame.shape[:2]
         if out is None:
             out = RangeResult(np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w), np.uint8))
-        geo = self._geometry()
         if frame.dtype in (np.uint8, np.uint16):
             table, states = self._lookup_tables(frame.dtype)
-            kernels.fuse_lookup(frame, table, states, self.attenuation, geo, self.bounds, out.range, out.variance, out.reasons)
+            args = (kernels.fetch_lookup, kernels.state_lookup, frame, table, states)
         elif np.issubdtype(frame.dtype, np.integer) or np.issubdtype(frame.dtype, np.floating):
             y, weight, state = self.channel_terms(frame)
-            kernels.fuse_arrays(y, weight, state, self.attenuation, geo, self.bounds, out.range, out.variance, out.reasons)
+            args = (kernels.fetch_arrays, kernels.state_arrays, y, weight, state)
         else:
             raise UserInputError(f"unsupported pixel type {frame.dtype}; give uint8, uint16 or float images")
+        kernels.fuse(*args, self._c, self._bits, self._geo, self.bounds, out.range, out.variance, out.reasons)
         return out
