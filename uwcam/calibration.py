@@ -14,11 +14,11 @@ from numpy.typing import ArrayLike, NDArray
 
 from uwcam.fileio import UserInputError
 from uwcam.optics.geometry import Intrinsics, pixel_rays, plane_camera_range
-from uwcam.profile import CalibrationProfile, ChannelCalibration, Provenance, now_iso
+from uwcam.profile import BackscatterSamples, CalibrationProfile, ChannelCalibration, Provenance, now_iso
 
 # A target region with more clipped pixels than this is refused rather than averaged.
 MAX_SATURATED_FRACTION = 0.01
-# Noise floor = black-patch level (after removing its own reflected light) + this many σ.
+# Noise floor = backscatter at the black patch + this many σ of its pixel noise.
 FLOOR_SIGMAS = 3.0
 # Side of the box average applied before taking logs of the target (pixels).
 SMOOTHING = 5
@@ -230,24 +230,29 @@ def fit_noise_model(
     return np.sqrt(read2), gain
 
 
-def noise_floor_from_black_patch(
-    black: list[RegionStatistics], surround_means: ArrayLike, black_to_plate_reflectance: ArrayLike
+def backscatter_at_black_patch(
+    black_mean: ArrayLike, surround_mean: ArrayLike, black_reflectance: ArrayLike, plate_reflectance: ArrayLike
 ) -> NDArray[np.float64]:
-    """Noise floor per channel (DN, dark-corrected) from the black patch of each image.
+    """Backscatter (DN, dark-corrected) in front of a plate, per channel, from its black patch.
 
-    The patch still reflects a little lamp light: ρ_black/ρ_plate of the plate's signal
-    right around it (``surround_means``, (n, N)), since illumination varies over a
-    plate. What remains is dark residual plus backscatter of the water in front of the
-    plate. Floor = that level + FLOOR_SIGMAS·σ, the largest over the images (the
-    farthest plate sees the most backscatter).
+    The patch and the plate right around it see the same water and the same lamp light X:
+    black = bs + ρ_black·X and surround = bs + ρ_plate·X, so X = (surround − black)/(ρ_plate − ρ_black)
+    and bs = black − ρ_black·X. Clipped at 0.
     """
-    plate = np.asarray(surround_means, dtype=np.float64)
-    ratio = np.asarray(black_to_plate_reflectance, dtype=np.float64)
-    floors = [
-        np.maximum(stats.mean - ratio * plate[i], 0.0) + FLOOR_SIGMAS * np.sqrt(np.nan_to_num(stats.noise_variance))
-        for i, stats in enumerate(black)
-    ]
-    return np.max(floors, axis=0)
+    black = np.asarray(black_mean, dtype=np.float64)
+    surround = np.asarray(surround_mean, dtype=np.float64)
+    rho_b = np.asarray(black_reflectance, dtype=np.float64)
+    rho_p = np.asarray(plate_reflectance, dtype=np.float64)
+    lit = (surround - black) / (rho_p - rho_b)
+    return np.maximum(black - rho_b * lit, 0.0)
+
+
+def noise_floor_from_black_patch(backscatter: ArrayLike, black_noise_variance: ArrayLike) -> NDArray[np.float64]:
+    """Noise floor per channel (DN, dark-corrected): backscatter + FLOOR_SIGMAS·σ of the black patch,
+    the largest over the images (n, N) (the farthest plate sees the most backscatter)."""
+    bs = np.asarray(backscatter, dtype=np.float64)
+    sigma = np.sqrt(np.nan_to_num(np.asarray(black_noise_variance, dtype=np.float64)))
+    return np.max(bs + FLOOR_SIGMAS * sigma, axis=0)
 
 
 def surrounding_box(box: Box, shape: tuple[int, int]) -> Box:
@@ -327,11 +332,12 @@ def calibrate(frames: list[NDArray], distances_m: list[float], inputs: Calibrati
     lamp = np.asarray(inputs.lamp_position_m, dtype=np.float64)
     rays = pixel_rays(inputs.intrinsics, *shape) if inputs.intrinsics is not None else None
 
-    target_stats, black_stats, black_surround = [], [], []
+    target_stats, black_stats, black_surround, backscatters = [], [], [], []
     log_signal, log_spread_corrected, path_lengths = [], [], []
     for i, (frame, distance, label) in enumerate(zip(frames, distances_m, names)):
         box = inputs.target_boxes[i] if inputs.target_boxes else inputs.target_box
         target = box_mask(shape, box, f"target region of {label}")
+        backscatter = np.zeros(n_ch)
         if inputs.black_boxes:
             black = box_mask(shape, inputs.black_boxes[i], f"black patch region of {label}")
             target &= ~black
@@ -340,6 +346,10 @@ def calibrate(frames: list[NDArray], distances_m: list[float], inputs: Calibrati
             if not surround.any():
                 raise UserInputError(f"the black patch of {label} is not surrounded by target pixels; check the regions")
             black_surround.append(region_statistics(frame, surround, dark).mean)
+            if inputs.black_reflectance is not None:
+                backscatter = backscatter_at_black_patch(black_stats[-1].mean, black_surround[-1],
+                                                         inputs.black_reflectance, inputs.target_reflectance)
+        backscatters.append(backscatter)
         clipped = np.any(np.asarray(frame) >= inputs.saturation_level, axis=-1)
         frac = (np.asarray(frame)[target] >= inputs.saturation_level).mean(axis=0)
         if frac.max() > MAX_SATURATED_FRACTION:
@@ -357,7 +367,9 @@ def calibrate(frames: list[NDArray], distances_m: list[float], inputs: Calibrati
                 "check the lamp, the exposure and that the target is in the region"
             )
         target_stats.append(stats)
-        ln_e, pixels = smoothed_log_signal(frame, usable, dark)
+        # The plate's own light only: the water in front of it adds the same backscatter to
+        # plate and patch (taken as uniform over the plate).
+        ln_e, pixels = smoothed_log_signal(frame, usable, dark + backscatter)
         # Path length per pixel: plate square to the axis at `distance`.
         u = rays[pixels] if rays is not None else np.array([[0.0, 0.0, 1.0]])
         dc = plane_camera_range(distance, u)
@@ -379,8 +391,17 @@ def calibrate(frames: list[NDArray], distances_m: list[float], inputs: Calibrati
     # b_k was measured on the target; store the target's reflectance so a surface of another
     # hue can be corrected later (DESIGN.md §3).
     read_noise, shot_gain = fit_noise_model(means, noise, inputs.quantisation_step)
+    backscatter_samples = None
     if inputs.black_boxes and inputs.black_reflectance is not None:
-        floor = noise_floor_from_black_patch(black_stats, black_surround, inputs.black_reflectance / inputs.target_reflectance)
+        black_var = np.array([b.noise_variance for b in black_stats])
+        floor = noise_floor_from_black_patch(backscatters, black_var)
+        centres = [(x + w / 2 - 0.5, y + h / 2 - 0.5) for x, y, w, h in inputs.black_boxes]
+        backscatter_samples = BackscatterSamples(
+            distances_m=[float(d) for d in distances_m],
+            patch_pixels=centres,
+            levels={inputs.channel_names[k]: [float(b[k]) for b in backscatters] for k in range(n_ch)},
+            noise_sigma={inputs.channel_names[k]: float(np.sqrt(np.nanmax(black_var[:, k]))) for k in range(n_ch)},
+        )
     else:
         floor = np.zeros(n_ch)
     absolute: tuple[NDArray, NDArray] | None = None
@@ -426,5 +447,6 @@ def calibrate(frames: list[NDArray], distances_m: list[float], inputs: Calibrati
         lamp_position_m=tuple(float(v) for v in lamp),
         lamp_radius_m=inputs.lamp_radius_m,
         intrinsics=None if intr is None else {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy},
+        backscatter=backscatter_samples,
         provenance=provenance,
     )

@@ -1,4 +1,4 @@
-"""The ``uwcam`` command line: calibrate, range (and more subcommands as they land)."""
+"""The ``uwcam`` command line: calibrate, range, simulate."""
 
 from __future__ import annotations
 
@@ -96,7 +96,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         raise UserInputError("--intrinsics focal lengths FX and FY must be positive")
     lamp = tuple(parse_floats(args.lamp_offset, "--lamp-offset", 3)) if args.lamp_offset else (0.0, 0.0, 0.0)
 
-    rig = load_rig(args.rig) if args.rig else None
+    rig = load_rig(resolve_rig_path(args.rig)) if args.rig else None
     target_reflectance = np.ones(n)
     black_reflectance = None
     description = "spectrally flat target"
@@ -178,7 +178,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 def cmd_range(args: argparse.Namespace) -> int:
     from uwcam.imageio import MAP_SUFFIXES, read_frame, write_map
     from uwcam.profile import load_profile
-    from uwcam.ranging import RangeEstimator
+    from uwcam.ranging import RangeEstimator, smooth_range_map
 
     outputs = [(args.output, "-o")] + [(p, f) for p, f in ((args.variance, "--variance"), (args.reasons, "--reasons")) if p]
     for path, flag in outputs:
@@ -202,8 +202,19 @@ def cmd_range(args: argparse.Namespace) -> int:
         bounds = tuple(parse_floats(args.path_bounds, "--path-bounds", 2))
         if not 0 <= bounds[0] < bounds[1]:
             raise UserInputError(f"--path-bounds must be MIN,MAX metres with 0 ≤ MIN < MAX, got '{args.path_bounds}'")
-    estimator = RangeEstimator(profile, pair=pair, surface_reflectance=surface, path_length_bounds=bounds)  # type: ignore[arg-type]
-    result = estimator(frame)
+    options = dict(pair=pair, surface_reflectance=surface, path_length_bounds=bounds)
+    if args.compensate_backscatter:
+        from uwcam.backscatter import BackscatterModel, compensated_range
+
+        open_water = read_frame(args.open_water) if args.open_water else None
+        model = BackscatterModel.from_profile(profile, open_water, frame.shape[:2])
+        result = compensated_range(profile, frame, model, **options)  # type: ignore[arg-type]
+    else:
+        if args.open_water:
+            raise UserInputError("--open-water is used by --compensate-backscatter; add that flag")
+        result = RangeEstimator(profile, **options)(frame)  # type: ignore[arg-type]
+    if args.smooth:
+        result = smooth_range_map(result, args.smooth)
     write_map(args.output, result.range)
     if args.variance:
         write_map(args.variance, result.variance)
@@ -214,6 +225,101 @@ def cmd_range(args: argparse.Namespace) -> int:
     if valid.any():
         summary += f", range {np.nanmin(result.range):.3f}–{np.nanmax(result.range):.3f} m"
     print(f"wrote {args.output}: {summary}")
+    return 0
+
+
+def resolve_rig_path(text: str) -> Path:
+    """A rig file path, or the name of a rig shipped with uwcam (e.g. grey-plate)."""
+    from uwcam.rig import builtin_rig_path
+
+    path = Path(text)
+    if path.exists() or path.suffix in (".yaml", ".yml") or "/" in text:
+        return path
+    return builtin_rig_path(text)
+
+
+def parse_per_channel(text: str | None, what: str, n: int) -> np.ndarray | None:
+    """One number for every channel, or N comma-separated numbers."""
+    if text is None:
+        return None
+    values = parse_floats(text, what)
+    if len(values) not in (1, n):
+        raise UserInputError(f"{what} takes one value or {n} comma-separated values (one per channel), got '{text}'")
+    if any(v < 0 for v in values):
+        raise UserInputError(f"{what} must not be negative, got '{text}'")
+    return np.broadcast_to(np.array(values), (n,)).copy()
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from uwcam.imageio import IMAGE_SUFFIXES, write_frame
+    from uwcam.rig import load_rig
+    from uwcam.simulation import SCENES, WATER_PRESETS, Ambient, CameraModel, Channels, Lamp, SimulatedWorld, water_preset
+
+    if args.list:
+        print("scenes:")
+        for name, text in SCENES.items():
+            print(f"  {name:14s} {text}")
+        print("water presets:")
+        for name, text in WATER_PRESETS.items():
+            print(f"  {name:14s} {text}")
+        return 0
+    if args.scene is None or args.range is None or args.output is None:
+        raise UserInputError("simulate needs --scene NAME, --range METRES and -o FRAME (or --list to see scenes and water)")
+    out = Path(args.output)
+    if out.suffix.lower() not in IMAGE_SUFFIXES:
+        raise UserInputError(f"the frame {out} must end in {', '.join(IMAGE_SUFFIXES)}")
+    for path in (out, Path(args.truth) if args.truth else None):
+        if path is not None and not path.parent.exists():
+            raise UserInputError(f"output folder {path.parent} does not exist")
+    if args.truth and Path(args.truth).suffix.lower() != ".npy":
+        raise UserInputError(f"--truth {args.truth} must be a .npy file")
+    if not (np.isfinite(args.range) and args.range > 0):
+        raise UserInputError(f"--range must be a positive number of metres, got {args.range}")
+    try:
+        width, height = (int(v) for v in args.size.lower().split("x"))
+    except ValueError:
+        raise UserInputError(f"--size must be WIDTHxHEIGHT in pixels, e.g. 640x480, got '{args.size}'") from None
+    names, wavelengths = parse_channels(args.channels or "R:675,G:575,B:475", len((args.channels or "R,G,B").split(",")))
+    if any(w is None for w in wavelengths):
+        raise UserInputError("simulated channels need centre wavelengths: --channels NAME:NM,... (e.g. R:675,G:575,B:475)")
+    n = len(names)
+    channels = Channels(tuple(names), tuple(float(w) for w in wavelengths))  # type: ignore[arg-type]
+    water = water_preset(args.water, list(channels.wavelengths_nm)).with_overrides(
+        forward_blur=args.forward_blur,
+        scatter_attenuation=parse_per_channel(args.scatter_attenuation, "--scatter-attenuation", n),
+        backscatter=parse_per_channel(args.backscatter, "--backscatter", n),
+        attenuation=parse_per_channel(args.attenuation, "--attenuation", n),
+    )
+    lamp = Lamp(position=tuple(parse_floats(args.lamp_offset, "--lamp-offset", 3)) if args.lamp_offset else (0.0, 0.0, 0.0),
+                on=not args.lamp_off)
+    ambient = None
+    if args.ambient:
+        ambient = Ambient(tuple(parse_per_channel(args.ambient, "--ambient", n)))  # type: ignore[arg-type]
+    rig = load_rig(resolve_rig_path(args.rig)) if args.rig else None
+    if args.slabs < 1:
+        raise UserInputError(f"--slabs must be at least 1, got {args.slabs}")
+    world = SimulatedWorld(
+        scene=args.scene, distance=args.range, size=(width, height), fov_deg=args.fov, channels=channels, water=water,
+        lamp=lamp, camera=CameraModel(bits=args.bits, peak_code=args.peak), ambient=ambient, slabs=args.slabs,
+        gate_width=args.gate_width if args.gated else None, rig=rig, seed=args.seed, material=args.material,
+        fixed_exposure=args.exposure,
+    )
+    if args.exposure is not None and not args.exposure > 0:
+        raise UserInputError(f"--exposure must be positive, got {args.exposure}")
+    if args.exposure is None and args.lamp_off:
+        raise UserInputError("a lamp-off frame needs the lamp-on frame's --exposure (printed when you simulate it)")
+    frame = world.noise_free_frame() if args.noise_free else world.frame(0, lamp_on=not args.lamp_off)
+    if args.noise_free and out.suffix.lower() == ".png":
+        raise UserInputError("a --noise-free frame is float32: write it as .npy or .tif")
+    write_frame(out, frame)
+    if args.truth:
+        from uwcam.imageio import write_map
+
+        write_map(args.truth, world.camera_range.astype(np.float32))
+    intr = world.intrinsics
+    print(f"wrote {out}: {args.scene} at {args.range:g} m in {water.name}, {width}x{height}x{n} {frame.dtype}")
+    print(f"intrinsics {intr.fx:.6g},{intr.fy:.6g},{intr.cx:.6g},{intr.cy:.6g}")
+    print(f"dark level {world.camera.dark_level_dn:.6g} DN; saturation {world.camera.max_code} DN; exposure {world.exposure:.6g}")
     return 0
 
 
@@ -252,7 +358,41 @@ def build_parser() -> argparse.ArgumentParser:
     rng.add_argument("--surface-reflectance", metavar="R1,R2,...", help="surface reflectance per channel, if it differs in hue from the target")
     rng.add_argument("--pair", metavar="NAME,NAME", help="use one channel pair instead of fusing all channels")
     rng.add_argument("--path-bounds", metavar="MIN,MAX", help="accepted lamp→surface→camera path length in metres")
+    rng.add_argument("--smooth", choices=("mean", "median"), help="3×3 smoothing of the range map over valid pixels")
+    rng.add_argument("--compensate-backscatter", action="store_true",
+                     help="subtract modelled backscatter and iterate (needs a profile calibrated with a black patch)")
+    rng.add_argument("--open-water", metavar="IMAGE", help="lamp-lit frame of open water: the backscatter pattern")
     rng.set_defaults(func=cmd_range)
+
+    sim = sub.add_parser("simulate", help="render a physically modelled underwater frame (and its ground truth)")
+    sim.add_argument("--list", action="store_true", help="list scenes and water presets")
+    sim.add_argument("--scene", metavar="NAME", help="seabed, brick, pipe, ball, ring, tilted-plane, plate or open-water")
+    sim.add_argument("--range", type=float, metavar="METRES", help="camera-to-seabed (or plate) distance along the optical axis")
+    sim.add_argument("--water", default="jerlov-II", metavar="PRESET", help="water preset (default jerlov-II; see --list)")
+    sim.add_argument("--attenuation", metavar="C[,C,...]", help="override beam attenuation c, 1/m")
+    sim.add_argument("--forward-blur", type=float, metavar="B", help="forward-scatter blur B (OTF exp(−B·d·f))")
+    sim.add_argument("--scatter-attenuation", metavar="G[,G,...]", help="attenuation of forward-scattered light G, 1/m")
+    sim.add_argument("--backscatter", metavar="BETA[,BETA,...]", help="backscatter β, 1/(m·sr)")
+    sim.add_argument("--gated", action="store_true", help="range gating: only water just in front of the surface scatters back")
+    sim.add_argument("--gate-width", type=float, default=0.05, metavar="M", help="depth of the range gate (default 0.05 m)")
+    sim.add_argument("--slabs", type=int, default=32, help="water-column slabs for backscatter (default 32)")
+    sim.add_argument("--bits", type=int, default=16, choices=(8, 12, 16), help="sensor bit depth (default 16)")
+    sim.add_argument("--size", default="640x480", metavar="WxH", help="image size (default 640x480)")
+    sim.add_argument("--fov", type=float, default=60.0, metavar="DEG", help="horizontal field of view (default 60)")
+    sim.add_argument("--channels", metavar="NAME:NM,...", help="channel names and centre wavelengths (default R:675,G:575,B:475)")
+    sim.add_argument("--lamp-offset", metavar="X,Y,Z", help="lamp position in metres, camera frame (default at the camera)")
+    sim.add_argument("--lamp-off", action="store_true", help="lamp off: dark current, noise and any ambient light only")
+    sim.add_argument("--ambient", metavar="I[,I,...]", help="daylight from above, relative to the lamp")
+    sim.add_argument("--peak", type=float, metavar="DN",
+                     help="auto-exposure target for the brightest pixel (default 226 at 8 bits, 4077 at 12, 65250 at 16)")
+    sim.add_argument("--exposure", type=float, help="fix the exposure (electrons per unit radiance) instead of auto-exposure")
+    sim.add_argument("--rig", metavar="RIG", help="rig file or built-in rig name for --scene plate (default grey-plate)")
+    sim.add_argument("--material", metavar="NAME", help="give every surface one material (sand, brick, pipe, ball, ring, grey)")
+    sim.add_argument("--noise-free", action="store_true", help="write the expected value (float32 DN) without noise")
+    sim.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    sim.add_argument("-o", "--output", metavar="FRAME.(tif|npy|png)")
+    sim.add_argument("--truth", metavar="TRUTH.npy", help="write camera range per pixel (m, NaN where no surface)")
+    sim.set_defaults(func=cmd_simulate)
     return parser
 
 

@@ -86,6 +86,21 @@ class Provenance(Strict):
     """Root mean square of all residuals (natural-log units)."""
 
 
+class BackscatterSamples(Strict):
+    """Backscatter measured at the calibration plate's black patch, for compensation in ranging."""
+
+    distances_m: Annotated[list[Annotated[float, Field(gt=0, allow_inf_nan=False)]], Field(min_length=1)]
+    """Depth (camera z) of the plate in each calibration image, metres."""
+    patch_pixels: list[tuple[float, float]]
+    """Pixel (x, y) at the centre of the black patch in each image."""
+    levels: dict[str, list[NonNegative]]
+    """Per channel, dark-corrected backscatter (DN) at the patch in each image."""
+    noise_sigma: dict[str, NonNegative]
+    """Per channel, pixel noise σ (DN) at the black patch: the floor once backscatter is subtracted is 3σ."""
+    exposure_scale: list[Annotated[float, Field(gt=0)]] = []
+    """Relative exposure of each image (levels are divided by it); 1 when exposure was fixed."""
+
+
 class CalibrationProfile(Strict):
     """Everything the intensity–range transform needs for one camera, lamp and water."""
 
@@ -107,6 +122,8 @@ class CalibrationProfile(Strict):
     """Effective lamp radius sqrt(A0/Ω) in metres used for absolute attenuation, if any."""
     intrinsics: dict[str, Annotated[float, Field(allow_inf_nan=False)]] | None = None
     """Pinhole intrinsics fx, fy, cx, cy in pixels."""
+    backscatter: BackscatterSamples | None = None
+    """Backscatter measured during calibration (when the target had a black patch)."""
     provenance: Provenance
 
     @model_validator(mode="after")
@@ -121,6 +138,13 @@ class CalibrationProfile(Strict):
             raise ValueError("the reference channel must have attenuation_difference 0 and log_constant 0")
         if len({c.attenuation_difference for c in self.channels}) < 2:
             raise ValueError("all channels have the same attenuation_difference, so no range can be computed")
+        if self.backscatter is not None:
+            bs = self.backscatter
+            n = len(bs.distances_m)
+            if set(bs.levels) != set(names) or set(bs.noise_sigma) != set(names):
+                raise ValueError(f"backscatter levels and noise_sigma need one entry per channel {names}")
+            if len(bs.patch_pixels) != n or any(len(v) != n for v in bs.levels.values()):
+                raise ValueError(f"backscatter needs {n} patch_pixels and {n} levels per channel, one per distance")
         if self.intrinsics is not None:
             if set(self.intrinsics) != {"fx", "fy", "cx", "cy"}:
                 raise ValueError(f"intrinsics need exactly fx, fy, cx, cy, got {sorted(self.intrinsics)}")

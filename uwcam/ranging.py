@@ -20,6 +20,8 @@ from uwcam.profile import CalibrationProfile
 
 # A channel state the kernel neither uses nor counts (channels outside a chosen pair).
 _IGNORED = 4
+# With a known background subtracted, a channel needs this many σ of signal to be used.
+BACKGROUND_SIGMAS = 3.0
 
 
 @dataclass(frozen=True)
@@ -101,16 +103,27 @@ class RangeEstimator:
         f = (1.0 / intr.fx, 1.0 / intr.fy, intr.cx, intr.cy) if intr else (1.0, 1.0, 0.0, 0.0)
         return np.array([mode, *s, np.linalg.norm(s), *f], dtype=np.float64)
 
-    def channel_terms(self, raw: NDArray) -> tuple[NDArray, NDArray, NDArray]:
-        """y = ln E − b, weight E²/σ² and ChannelState for raw values (any shape (..., N))."""
+    def channel_terms(self, raw: NDArray, background: NDArray | None = None) -> tuple[NDArray, NDArray, NDArray]:
+        """y = ln E − b, weight E²/σ² and ChannelState for raw values (any shape (..., N)).
+
+        background: light (DN, dark-corrected, same shape) known not to come from the surface,
+        such as modelled backscatter. It is subtracted from E but still counts in the shot
+        noise, and a channel whose remaining signal is not 3σ above it is not usable.
+        """
         e = np.asarray(raw, dtype=np.float64) - self.dark
+        if background is not None:
+            e = e - background
         state = channel_states(raw, e, self.floor, self.profile.saturation_level, self.backscatter)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            total = e if background is None else e + background
+            var = signal_variance(total, self.read_noise, self.shot_gain, self.profile.quantisation_step)
+            # A profile without any noise model (float data, nothing measured) counts as 1 DN of noise.
+            var = np.where(var > 0, var, 1.0)
+            if background is not None:
+                state[(state == ChannelState.USABLE) & (e <= BACKGROUND_SIGMAS * np.sqrt(var))] = ChannelState.BACKSCATTER_ONLY
         state[..., ~self.active] = _IGNORED
         ok = state == ChannelState.USABLE
         with np.errstate(divide="ignore", invalid="ignore"):
-            var = signal_variance(e, self.read_noise, self.shot_gain, self.profile.quantisation_step)
-            # A profile without any noise model (float data, nothing measured) counts as 1 DN of noise.
-            var = np.where(var > 0, var, 1.0)
             weight = np.where(ok, e * e / var, 0.0)
             y = np.where(ok, np.log(np.where(ok, e, 1.0)) - self.log_constant, 0.0)
         return y, weight, state.astype(np.uint8)
@@ -127,8 +140,11 @@ class RangeEstimator:
             self._tables[bits] = (np.ascontiguousarray(table), np.ascontiguousarray(state.T))
         return self._tables[bits]
 
-    def __call__(self, frame: NDArray, out: RangeResult | None = None) -> RangeResult:
-        """Range, variance and reasons for one frame (H, W, N); ``out`` reuses output arrays."""
+    def __call__(self, frame: NDArray, out: RangeResult | None = None, background: NDArray | None = None) -> RangeResult:
+        """Range, variance and reasons for one frame (H, W, N); ``out`` reuses output arrays.
+
+        background: (H, W, N) light in DN not from the surface (see :meth:`channel_terms`).
+        """
         if frame.ndim != 3 or frame.shape[-1] != self.n_channels:
             got = frame.shape[-1] if frame.ndim == 3 else 1
             raise UserInputError(
@@ -138,7 +154,10 @@ class RangeEstimator:
         h, w = frame.shape[:2]
         if out is None:
             out = RangeResult(np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w), np.uint8))
-        if frame.dtype in (np.uint8, np.uint16):
+        if background is not None:
+            y, weight, state = self.channel_terms(frame, background)
+            args = (kernels.fetch_arrays, kernels.state_arrays, y, weight, state)
+        elif frame.dtype in (np.uint8, np.uint16):
             table, states = self._lookup_tables(frame.dtype)
             args = (kernels.fetch_lookup, kernels.state_lookup, frame, table, states)
         elif np.issubdtype(frame.dtype, np.integer) or np.issubdtype(frame.dtype, np.floating):
@@ -148,3 +167,36 @@ class RangeEstimator:
             raise UserInputError(f"unsupported pixel type {frame.dtype}; give uint8, uint16 or float images")
         kernels.fuse(*args, self._c, self._bits, self._geo, self.bounds, out.range, out.variance, out.reasons)
         return out
+
+
+def smooth_range_map(result: RangeResult, kind: str = "mean") -> RangeResult:
+    """3×3 smoothing of a range map over valid neighbours only (DESIGN.md §7).
+
+    kind "mean": average of the valid pixels in each 3×3 window, variance divided by their
+    count (neighbouring noise is independent); "median": their median, variance kept.
+    Invalid pixels stay invalid with their reasons, and never leak into valid ones.
+    """
+    if kind not in ("mean", "median"):
+        raise UserInputError(f"smoothing must be 'mean' or 'median', got '{kind}'")
+    r = result.range.astype(np.float64)
+    valid = np.isfinite(r)
+    padded = np.pad(np.where(valid, r, np.nan), 1, constant_values=np.nan)
+    h, w = r.shape
+    windows = np.stack([padded[dy : dy + h, dx : dx + w] for dy in range(3) for dx in range(3)])
+    count = np.isfinite(windows).sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        if kind == "mean":
+            smoothed = np.nansum(windows, axis=0) / count
+            variance = result.variance / np.maximum(count, 1)
+        else:
+            import warnings
+
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows
+                smoothed = np.nanmedian(windows, axis=0)
+            variance = result.variance
+    return RangeResult(
+        np.where(valid, smoothed, np.nan).astype(np.float32),
+        np.where(valid, variance, np.nan).astype(np.float32),
+        result.reasons.copy(),
+    )

@@ -1,0 +1,180 @@
+"""Backscatter compensation: subtract the water's own light before ranging, iteratively.
+
+Backscatter adds light that never reached the surface, more of it the farther the surface
+(the lit water column in front of it is longer) and most where lamp beam and view overlap.
+Its spectrum is not the surface's, so it biases the colour ratio toward the water's colour.
+
+Model:
+  bs_k(p, z) = S_k(p) · F_k(p, z)
+* F_k(p, z): the share of pixel p's open-water backscatter that comes from water closer than
+  depth z. When the profile knows the absolute attenuation c_k and the lamp's effective radius
+  r (calibrate with --lamp-radius), F follows the physics of the lit column along the pixel's
+  ray: ∫ (r/(d_s + r))² exp(−c_k (d_s + t)) dt up to z, over the same integral to infinity
+  (the beam pattern is taken as even across the view; its shape is in S). Otherwise F is
+  interpolated between the backscatter measured at the calibration plate's black patch at
+  each plate distance (0 at the camera) and held beyond the last.
+* S_k(p): the open-water backscatter, from a lamp-lit frame of open water (nothing in range)
+  smoothed; without one, the patch measurements scaled by F.
+
+Ranging then iterates: range → backscatter at that range → subtract → range, starting from the
+uncompensated range. Pixels still without a range use the open-water (or plateau) level.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from uwcam.fileio import UserInputError
+from uwcam.optics.geometry import pixel_rays
+from uwcam.profile import CalibrationProfile
+from uwcam.ranging import RangeEstimator, RangeResult
+
+# Side of the box average that takes the noise out of an open-water frame (pixels).
+OPEN_WATER_SMOOTHING = 15
+
+
+# Depth samples of the physical model and the coarse pixel grid it is evaluated on.
+_DEPTH_SAMPLES = 96
+_GRID_STEP = 16
+_PORT = 0.05  # water starts at the camera port, metres
+
+
+def _column_shares(rays: NDArray, lamp: NDArray, radius: float, attenuation: NDArray, depths: NDArray) -> NDArray:
+    """(P, T, N) share of each ray's lit-column backscatter closer than each depth (T,)."""
+    z = np.geomspace(_PORT, max(depths[-1], _PORT * 2), _DEPTH_SAMPLES * 4)
+    t = z[None, :] / rays[:, 2:3]  # (P, Z) distance along each ray
+    ds = np.linalg.norm(t[..., None] * rays[:, None, :] - lamp, axis=-1)
+    spread = (radius / (ds + radius)) ** 2
+    dt = np.gradient(t, axis=1)
+    shares = []
+    for c in attenuation:
+        f = spread * np.exp(-c * (ds + t)) * dt
+        cum = np.cumsum(f, axis=1)
+        cum /= cum[:, -1:]
+        shares.append(np.stack([np.interp(depths, z, row) for row in cum]))
+    return np.stack(shares, axis=-1)
+
+
+@dataclass(frozen=True)
+class BackscatterModel:
+    """bs_k(p, z) = pattern[p, k] · F_k(p, z); F tabulated over depths on a coarse grid."""
+
+    depths: NDArray[np.float64]
+    """(T,) depth samples, metres."""
+    shares: NDArray[np.float64]
+    """(gh, gw, T, N) F at the grid points, or (1, 1, T, N) when uniform over the image."""
+    pattern: NDArray[np.float64]
+    """(H, W, N) open-water backscatter in DN, or (1, 1, N)."""
+    grid_step: int
+
+    @classmethod
+    def from_profile(cls, profile: CalibrationProfile, open_water: NDArray | None = None,
+                     shape: tuple[int, int] | None = None) -> "BackscatterModel":
+        """From the profile's backscatter measurements and an optional lamp-lit open-water frame (H, W, N) raw.
+        shape: (H, W) of the frames to be ranged, when no open-water frame gives it."""
+        if profile.backscatter is None:
+            raise UserInputError(
+                "the calibration profile has no backscatter measurements; calibrate with a rig that has a black patch "
+                "(e.g. --rig grey-plate) to compensate backscatter"
+            )
+        bs = profile.backscatter
+        names = profile.channel_names
+        n = len(names)
+        measured_depths = np.array(bs.distances_m)
+        levels = np.array([bs.levels[k] for k in names]).T  # (n, N)
+        order = np.argsort(measured_depths)
+        measured_depths, levels = measured_depths[order], levels[order]
+        patches = np.array(bs.patch_pixels)[order]
+        c = profile.array("attenuation") if all(ch.attenuation is not None for ch in profile.channels) else None
+        intr = profile.camera_intrinsics()
+        physical = c is not None and profile.lamp_radius_m is not None and intr is not None
+        if open_water is not None:
+            if open_water.ndim != 3 or open_water.shape[-1] != n:
+                raise UserInputError(f"the open-water frame must have {n} channels like the profile")
+            shape = open_water.shape[:2]
+        depths = np.geomspace(_PORT, 200.0, _DEPTH_SAMPLES)
+        if physical:
+            h, w = shape if shape is not None else (int(2 * intr.cy + 1), int(2 * intr.cx + 1))
+            gy = np.minimum(np.arange(0, h + _GRID_STEP, _GRID_STEP), h - 1)
+            gx = np.minimum(np.arange(0, w + _GRID_STEP, _GRID_STEP), w - 1)
+            rays = pixel_rays(intr, h, w)[np.ix_(gy, gx)].reshape(-1, 3)
+            lamp = np.array(profile.lamp_position_m)
+            shares = _column_shares(rays, lamp, profile.lamp_radius_m, c, depths).reshape(len(gy), len(gx), len(depths), n)
+            step = _GRID_STEP
+        else:
+            at = np.concatenate([[0.0], measured_depths])
+            shares = np.stack([np.interp(depths, at, np.concatenate([[0.0], levels[:, k] / levels[-1, k]]))
+                               if levels[-1, k] > 0 else np.zeros_like(depths) for k in range(n)], axis=-1)[None, None]
+            step = 0
+        model = cls(depths, shares, np.ones((1, 1, n)), step)
+        if open_water is not None:
+            water = open_water.astype(np.float64) - profile.array("dark_level")
+            pattern = np.maximum(cv2.blur(water, (OPEN_WATER_SMOOTHING, OPEN_WATER_SMOOTHING), borderType=cv2.BORDER_REFLECT), 0.0)
+            return cls(depths, shares, pattern, step)
+        # No open-water frame: scale F so the model meets the last patch measurement, uniform in space.
+        x, y = patches[-1]
+        at_patch = model.fraction(np.array([[measured_depths[-1]]]), np.array([[y]]), np.array([[x]]))[0, 0]
+        scale = np.where(at_patch > 0, levels[-1] / np.where(at_patch > 0, at_patch, 1.0), 0.0)
+        return cls(depths, shares, scale[None, None, :], step)
+
+    def fraction(self, depth: NDArray, rows: NDArray | None = None, cols: NDArray | None = None) -> NDArray[np.float64]:
+        """F at surface depths (H, W) metres → (H, W, N); NaN depth (no range) counts as open water."""
+        z = np.asarray(depth, dtype=np.float64)
+        z = np.where(np.isnan(z), self.depths[-1], np.clip(z, self.depths[0], self.depths[-1]))
+        pos = np.interp(np.log(z), np.log(self.depths), np.arange(len(self.depths)))
+        i0 = np.minimum(pos.astype(int), len(self.depths) - 2)
+        f = pos - i0
+        if self.grid_step == 0:
+            table = self.shares[0, 0]
+            return table[i0] * (1 - f)[..., None] + table[i0 + 1] * f[..., None]
+        h, w = z.shape
+        if rows is None:
+            rows, cols = np.mgrid[0:h, 0:w]
+        gh, gw, n_depths, n = self.shares.shape
+        flat = self.shares.reshape(gh * gw * n_depths, n)
+        gy, gx = rows / self.grid_step, cols / self.grid_step
+        y0 = np.minimum(gy.astype(int), gh - 2)
+        x0 = np.minimum(gx.astype(int), gw - 2)
+        fy, fx = gy - y0, gx - x0
+        out = np.zeros((*z.shape, n))
+        for dy, wy in ((0, 1 - fy), (1, fy)):
+            for dx, wx in ((0, 1 - fx), (1, fx)):
+                base = ((y0 + dy) * gw + (x0 + dx)) * n_depths + i0
+                out += (wy * wx * (1 - f))[..., None] * flat[base] + (wy * wx * f)[..., None] * flat[base + 1]
+        return out
+
+    def level(self, depth: NDArray) -> NDArray[np.float64]:
+        """Backscatter (DN, dark-corrected) for surfaces at ``depth`` (H, W) metres → (H, W, N)."""
+        return self.pattern * self.fraction(depth)
+
+
+def compensated_range(
+    profile: CalibrationProfile,
+    frame: NDArray,
+    model: BackscatterModel,
+    iterations: int = 3,
+    **estimator_options,
+) -> RangeResult:
+    """Range of ``frame`` with backscatter subtracted, iterating range ↔ backscatter.
+
+    Once backscatter is subtracted, the floor that stays is the black patch's own noise
+    (3σ), not backscatter + 3σ.
+    """
+    if frame.ndim != 3 or frame.shape[-1] != len(profile.channels):
+        raise UserInputError(f"the image must have {len(profile.channels)} channels like the profile")
+    first = RangeEstimator(profile, **estimator_options)(frame)
+    sigma = profile.backscatter.noise_sigma if profile.backscatter else {}
+    channels = [c.model_copy(update={"noise_floor": 3.0 * sigma.get(c.name, 0.0)}) for c in profile.channels]
+    compensated = RangeEstimator(profile.model_copy(update={"channels": channels}), **estimator_options)
+    h, w = frame.shape[:2]
+    intr = profile.camera_intrinsics()
+    axis_cos = pixel_rays(intr, h, w)[..., 2] if intr is not None else np.ones((h, w))
+    result = first
+    for _ in range(iterations):
+        depth = result.range.astype(np.float64) * axis_cos
+        result = compensated(frame, background=model.level(depth))
+    return result

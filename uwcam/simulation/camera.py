@@ -1,0 +1,152 @@
+"""The simulated camera: auto-exposure, shot noise, dark current, read noise, fixed-pattern
+gain, quantisation and saturation, reproducible with a seed.
+
+Noise is drawn by a compiled, counter-based generator: the normal deviate of pixel p in
+frame f comes from a SplitMix64 hash of (seed, f, p) and a tabulated inverse normal CDF
+(16-bit index, linear interpolation on 16 more bits, Acklam's rational formula in the two
+extreme bins). Frames are therefore identical whatever the thread count, and a
+1280×720×3 frame costs about 10 ms rather than numpy's ~40 ms. Shot noise is Gaussian
+with variance equal to the mean electron count, exact in mean and variance and a close
+approximation to Poisson above a few tens of electrons.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+from statistics import NormalDist
+
+import numpy as np
+from numba import njit, prange, uint64
+from numpy.typing import NDArray
+
+from uwcam.fileio import UserInputError
+
+# Auto-exposure target: the brightest pixel's expected value (DN) for each bit depth.
+TARGET_CODE = {8: 226.0, 12: 4077.0, 16: 65250.0}
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """Sensor noise and digitisation. Electrons (e⁻) and digital numbers (DN)."""
+
+    bits: int = 16
+    full_well_e: float = 20000.0
+    """Electrons at the top code: sets DN per electron."""
+    read_noise_e: float = 5.0
+    dark_current_e: float = 40.0
+    """Mean dark electrons per exposure (non-zero mean, with its own shot noise)."""
+    prnu: float = 0.01
+    """Relative rms of the fixed-pattern gain map (photo-response non-uniformity)."""
+    fixed_pattern_seed: int = 7
+    """Seed of the gain map: a property of the sensor, not of the frame."""
+    peak_code: float | None = None
+    """Auto-exposure target for the brightest pixel's expected value, DN (None: TARGET_CODE)."""
+
+    def __post_init__(self) -> None:
+        if self.bits not in TARGET_CODE:
+            raise UserInputError(f"bit depth must be one of {sorted(TARGET_CODE)}, got {self.bits}")
+        if self.peak_code is not None and not 0 < self.peak_code <= self.max_code:
+            raise UserInputError(f"the exposure peak must lie between 0 and {self.max_code} DN, got {self.peak_code}")
+
+    @property
+    def max_code(self) -> int:
+        return 2**self.bits - 1
+
+    @property
+    def dtype(self) -> np.dtype:
+        return np.dtype(np.uint8 if self.bits == 8 else np.uint16)
+
+    @property
+    def gain_dn_per_e(self) -> float:
+        return self.max_code / self.full_well_e
+
+    @property
+    def dark_level_dn(self) -> float:
+        """Mean dark signal in DN, the level a dark frame averages to."""
+        return self.dark_current_e * self.gain_dn_per_e
+
+    def gain_map(self, shape: tuple[int, ...]) -> NDArray[np.float64]:
+        return 1.0 + self.prnu * np.random.default_rng(self.fixed_pattern_seed).standard_normal(shape)
+
+    def exposure_for(self, radiance: NDArray) -> float:
+        """Electrons per unit radiance so the brightest pixel's expected value sits at the target code."""
+        peak = float(np.max(radiance * self.gain_map(radiance.shape)))  # the sensor's own response, fixed pattern included
+        if not peak > 0:
+            raise UserInputError("the scene is black: nothing lit in view (is the lamp on and the scene in range?)")
+        peak_dn = TARGET_CODE[self.bits] if self.peak_code is None else self.peak_code
+        target_e = peak_dn / self.gain_dn_per_e - self.dark_current_e
+        return target_e / peak
+
+    def expected(self, radiance: NDArray, exposure: float) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Mean and standard deviation (DN, float32) of each pixel before quantisation and clipping."""
+        electrons = radiance * exposure * self.gain_map(radiance.shape)
+        g = self.gain_dn_per_e
+        mean = (np.maximum(electrons, 0.0) + self.dark_current_e) * g
+        std = np.sqrt(mean * g + (self.read_noise_e * g) ** 2)
+        return mean.astype(np.float32), std.astype(np.float32)
+
+    def digitise(self, mean: NDArray[np.float32], std: NDArray[np.float32], seed: int, frame_index: int,
+                 out: NDArray | None = None) -> NDArray:
+        """One noisy frame: mean + std·N(0, 1), rounded and clipped to [0, max_code]."""
+        if out is None:
+            out = np.empty(mean.shape, dtype=self.dtype)
+        _digitise(mean.reshape(-1), std.reshape(-1), _frame_key(seed, frame_index), float(self.max_code),
+                  _inverse_normal_table(), out.reshape(-1))
+        return out
+
+
+@njit(cache=True, inline="always")
+def _splitmix(x):
+    x = x + uint64(0x9E3779B97F4A7C15)
+    z = (x ^ (x >> uint64(30))) * uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> uint64(27))) * uint64(0x94D049BB133111EB)
+    return z ^ (z >> uint64(31))
+
+
+def _frame_key(seed: int, frame_index: int) -> np.uint64:
+    mask = (1 << 64) - 1
+    key = int(_splitmix(np.uint64(seed & mask)))
+    return np.uint64(int(_splitmix(np.uint64((key ^ (frame_index * 0xD1B54A32D192ED03)) & mask))))
+
+
+@lru_cache(maxsize=1)
+def _inverse_normal_table() -> NDArray[np.float64]:
+    nd = NormalDist()
+    return np.array([0.0] + [nd.inv_cdf(i / 65536.0) for i in range(1, 65536)] + [0.0], dtype=np.float64)
+
+
+@njit(cache=True, inline="always")
+def _lower_tail(p):
+    """Φ⁻¹(p) for p < 0.02425 (Acklam's rational approximation, relative error < 1.2e-9)."""
+    q = math.sqrt(-2.0 * math.log(p))
+    num = ((((-7.784894002430293e-03 * q - 3.223964580411365e-01) * q - 2.400758277161838) * q
+            - 2.549732539343734) * q + 4.374664141464968) * q + 2.938163982698783
+    den = (((7.784695709041462e-03 * q + 3.224671290700398e-01) * q + 2.445134137142996) * q
+           + 3.754408661907416) * q + 1.0
+    return num / den
+
+
+@njit(cache=True, inline="always")
+def _normal(bits32, table):
+    idx = bits32 >> 16
+    frac = (bits32 & 0xFFFF) * (1.0 / 65536.0) + 0.5 / 65536.0
+    if idx == 0:
+        return _lower_tail(frac / 65536.0)
+    if idx == 65535:
+        return -_lower_tail((1.0 - frac) / 65536.0)
+    return table[idx] + (frac - 0.5 / 65536.0) * (table[idx + 1] - table[idx])
+
+
+@njit(parallel=True, cache=True)
+def _digitise(mean, std, key, top, table, out):
+    n = mean.shape[0]
+    for p in prange((n + 1) // 2):
+        r = _splitmix(key + uint64(p))
+        i = 2 * p
+        v = mean[i] + std[i] * _normal(np.int64(r >> uint64(32)), table)
+        out[i] = min(max(round(v), 0.0), top)
+        if i + 1 < n:
+            v = mean[i + 1] + std[i + 1] * _normal(np.int64(r & uint64(0xFFFFFFFF)), table)
+            out[i + 1] = min(max(round(v), 0.0), top)
