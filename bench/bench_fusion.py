@@ -17,13 +17,13 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import time
 import tracemalloc
 
 import numba
 import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+sys.path.insert(0, os.path.dirname(__file__))
 
 from tests.synthetic import make_profile  # noqa: E402
 from uwcam.optics import (  # noqa: E402
@@ -36,6 +36,7 @@ from uwcam.optics import (  # noqa: E402
     signal_variance,
 )
 from uwcam.ranging import RangeEstimator  # noqa: E402
+from timing import best_time  # noqa: E402
 
 
 def numpy_version(profile, frame):
@@ -50,15 +51,6 @@ def numpy_version(profile, frame):
     rng = np.where(valid, camera_range_from_path_length(path), np.nan).astype(np.float32)
     rvar = np.where(valid, camera_range_derivative(path) ** 2 * path_var, np.nan).astype(np.float32)
     return rng, rvar, reasons
-
-
-def best_time(fn, repeat):
-    times = []
-    for _ in range(repeat):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return min(times), float(np.median(times))
 
 
 def peak_extra_bytes(fn):

@@ -1,0 +1,31 @@
+"""The benchmark and study scripts run (tiny settings), so they cannot rot unnoticed."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@pytest.mark.slow
+def test_accuracy_study_quick_run_writes_report_and_plots(tmp_path):
+    subprocess.run([sys.executable, str(ROOT / "bench" / "accuracy_study.py"), "--quick", "--out", str(tmp_path)],
+                   check=True, capture_output=True, timeout=600)
+    report = (tmp_path / "REPORT.md").read_text()
+    assert "## 2. Backscatter" in report and "Published:" in report
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert set(results) == {"1", "2", "3", "4"}
+    assert len(list(tmp_path.glob("*.png"))) == 4
+    # Condition 1 without scattering: fusion no worse than the best pair at every noise level.
+    for row in results["1"]["levels"].values():
+        assert row["fusion"]["rms"] <= 1.05 * min(row[p]["rms"] for p in ("R/G", "R/B", "G/B"))
+
+
+@pytest.mark.slow
+def test_fusion_benchmark_runs(tmp_path):
+    out = subprocess.run([sys.executable, str(ROOT / "bench" / "bench_fusion.py"), "--size", "320x240", "--repeat", "3"],
+                         check=True, capture_output=True, text=True, timeout=600).stdout
+    assert "× memcopy" in out and "straightforward numpy" in out
