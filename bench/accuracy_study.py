@@ -245,18 +245,18 @@ def summary(results) -> list[str]:
     b1 = c2.get("ungated beta=0.001", {})
     rows = [
         ("2: β = 0, B = 0.010, at 10 m / 20 m", "≤ 1 % / 5.7 % (β ≤ 0.001)",
-         f"{pct(at(c2['ungated beta=0'], 10), 10)} / {pct(at(c2['ungated beta=0'], 20), 20)}"),
+         f"{pct(at(c2.get('ungated beta=0', {}), 10), 10)} / {pct(at(c2.get('ungated beta=0', {}), 20), 20)}"),
         ("2: β = 0.001 ungated, at 2 m / 10 m / 20 m", "≤ 1 % / ≤ 1 % / 5.7 %",
          f"{pct(at(b1, 2), 2)} / {pct(at(b1, 10), 10)} / {pct(at(b1, 20), 20)}"),
         ("2: β = 0.001 ungated, compensated, at 2 m / 10 m / 20 m", "goal: half the published error",
          f"{pct(at(b1, 2, 'compensated'), 2)} / {pct(at(b1, 10, 'compensated'), 10)} / {pct(at(b1, 20, 'compensated'), 20)}"),
-        ("2: β = 0.01 gated, at 20 m", "—", pct(at(c2["gated beta=0.01"], 20), 20)),
+        ("2: β = 0.01 gated, at 20 m", "—", pct(at(c2.get("gated beta=0.01", {}), 20), 20)),
         ("3: gated, B = 0.005 / 0.015, at 20 m", "2.2 cm / ≤ 10.4 cm",
-         f"{cm(at(c3['B=0.005'], 20))} / {cm(at(c3['B=0.015'], 20))}"),
+         f"{cm(at(c3.get('B=0.005', {}), 20))} / {cm(at(c3.get('B=0.015', {}), 20))}"),
         ("4: 16-bit, G/B pair, 3×3 mean, β = 0, at 10 m / 20 m", "< 10 cm / < 10 cm",
-         f"{cm(at(c4['β=0 16-bit G/B 3x3'], 10))} / {cm(at(c4['β=0 16-bit G/B 3x3'], 20))}"),
+         f"{cm(at(c4.get('β=0 16-bit G/B 3x3', {}), 10))} / {cm(at(c4.get('β=0 16-bit G/B 3x3', {}), 20))}"),
         ("4: 16-bit, fusion, 3×3 mean, β = 0, at 2 m / 4 m", "—",
-         f"{cm(at(c4['β=0 16-bit fusion 3x3'], 2))} / {cm(at(c4['β=0 16-bit fusion 3x3'], 4))}"),
+         f"{cm(at(c4.get('β=0 16-bit fusion 3x3', {}), 2))} / {cm(at(c4.get('β=0 16-bit fusion 3x3', {}), 4))}"),
     ]
     out = ["## Summary", "", "| condition | published | uwcam |", "|---|---|---|"]
     out += [f"| {a} | {b} | {c} |" for a, b, c in rows]

@@ -17,7 +17,7 @@ def test_accuracy_study_quick_run_writes_report_and_plots(tmp_path):
     report = (tmp_path / "REPORT.md").read_text()
     assert "## 2. Backscatter" in report and "Published:" in report
     results = json.loads((tmp_path / "results.json").read_text())
-    assert set(results) == {"1", "2", "3", "4"}
+    assert set(results) == {"1", "2", "3", "4", "seconds", "size"}
     assert len(list(tmp_path.glob("*.png"))) == 4
     # Condition 1 without scattering: fusion no worse than the best pair at every noise level.
     for row in results["1"]["levels"].values():
