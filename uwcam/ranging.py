@@ -154,18 +154,14 @@ class RangeEstimator:
         h, w = frame.shape[:2]
         if out is None:
             out = RangeResult(np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w), np.uint8))
-        if background is not None:
-            y, weight, state = self.channel_terms(frame, background)
-            args = (kernels.fetch_arrays, kernels.state_arrays, y, weight, state)
-        elif frame.dtype in (np.uint8, np.uint16):
+        common = (self._c, self._bits, self._geo, self.bounds, out.range, out.variance, out.reasons)
+        if background is None and frame.dtype in (np.uint8, np.uint16):
             table, states = self._lookup_tables(frame.dtype)
-            args = (kernels.fetch_lookup, kernels.state_lookup, frame, table, states)
+            kernels.fuse_lookup(frame, table, states, *common)
         elif np.issubdtype(frame.dtype, np.integer) or np.issubdtype(frame.dtype, np.floating):
-            y, weight, state = self.channel_terms(frame)
-            args = (kernels.fetch_arrays, kernels.state_arrays, y, weight, state)
+            kernels.fuse_arrays(*self.channel_terms(frame, background), *common)
         else:
             raise UserInputError(f"unsupported pixel type {frame.dtype}; give uint8, uint16 or float images")
-        kernels.fuse(*args, self._c, self._bits, self._geo, self.bounds, out.range, out.variance, out.reasons)
         return out
 
 
