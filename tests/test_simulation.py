@@ -172,3 +172,17 @@ def test_jerlov_preset_uses_published_optical_properties():
         water_preset("jerlov-XX", [500.0, 600.0])
     with pytest.raises(UserInputError, match="unknown scene 'reef'; known scenes: seabed, brick"):
         build_scene("reef", 2.0)
+
+
+def test_ambient_daylight_is_independent_of_the_lamp():
+    from uwcam.simulation import Ambient
+
+    daylight = Ambient(irradiance=(1e-6, 3e-6, 4e-6))
+    lit = world(ambient=daylight).components(lamp_on=True)
+    dark = world(ambient=daylight).components(lamp_on=False)
+    np.testing.assert_allclose(lit.ambient, dark.ambient)
+    assert np.all(dark.direct == 0) and np.all(dark.ambient > 0)
+    # Blue-green daylight on a seabed looking down: brighter in B than R, as given.
+    assert dark.ambient[..., 2].mean() > dark.ambient[..., 0].mean()
+    w = world(ambient=daylight)
+    assert w.frame(0, lamp_on=False).mean() > world().frame(0, lamp_on=False).mean()
