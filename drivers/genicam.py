@@ -1,0 +1,204 @@
+"""GenICam GenTL cameras through harvesters.
+
+The GenTL producer (.cti) comes from the configuration or from GENICAM_GENTL64_PATH (a
+path list of folders holding .cti files). Settings go through the camera's node map;
+automatic exposure, gain and white balance, gamma and LUTs are switched off where the
+camera has them, and what it lacks is reported. Multi-part payloads with one component
+per sensor (3-chip cameras) are assembled into one registered frame.
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+import time
+
+from uwcam.drivers.base import (
+    CameraDriver,
+    CameraSettings,
+    ConfigurationError,
+    ConfigureReport,
+    DeviceInfo,
+    DeviceLost,
+    Frame,
+    FrameTimeout,
+)
+from uwcam.drivers.pixels import assemble_components, decode, refuse_monochrome
+
+# Node → value that keeps radiometry linear and fixed.
+RADIOMETRY_OFF = {
+    "ExposureAuto": "Off",
+    "GainAuto": "Off",
+    "BalanceWhiteAuto": "Off",
+    "BlackLevelAuto": "Off",
+    "GammaEnable": False,
+    "LUTEnable": False,
+}
+
+
+def find_producers(cti: str | None = None) -> list[str]:
+    """The .cti files to load: the configured one, or those on GENICAM_GENTL64_PATH."""
+    if cti:
+        if not os.path.isfile(cti):
+            raise ConfigurationError(f"GenTL producer {cti} does not exist; give the path of your camera vendor's .cti file")
+        return [cti]
+    paths = [p for p in os.environ.get("GENICAM_GENTL64_PATH", "").split(os.pathsep) if p]
+    found = sorted(f for p in paths for f in glob.glob(os.path.join(p, "*.cti")))
+    if not found:
+        raise ConfigurationError(
+            "no GenTL producer: set 'cti' in the camera configuration or GENICAM_GENTL64_PATH to the folder of "
+            "your camera vendor's .cti file"
+        )
+    return found
+
+
+class GenTLCamera(CameraDriver):
+    """A GenICam camera (GigE Vision, USB3 Vision, CoaXPress…) via its vendor's GenTL producer."""
+
+    name = "genicam"
+
+    def __init__(self, cti: str | None = None, serial_number: str | None = None, channel_names: tuple[str, ...] = ("R", "G", "B"),
+                 buffers: int = 4) -> None:
+        self.producers = find_producers(cti)
+        self.serial_number = serial_number
+        self.channel_names = tuple(channel_names)
+        self.buffers = buffers
+        self._harvester = None
+        self._acquirer = None
+        self._bits = None
+
+    @staticmethod
+    def _new_harvester(producers: list[str]):
+        from harvesters.core import Harvester
+
+        h = Harvester()
+        for cti in producers:
+            h.add_file(cti)
+        h.update()
+        return h
+
+    @classmethod
+    def list_devices(cls, cti: str | None = None, **_) -> list[DeviceInfo]:
+        h = cls._new_harvester(find_producers(cti))
+        try:
+            return [DeviceInfo(d.id_, str(d.serial_number), d.model, d.vendor) for d in h.device_info_list]
+        finally:
+            h.reset()
+
+    def open(self) -> DeviceInfo:
+        self.close()
+        self._harvester = self._new_harvester(self.producers)
+        infos = self._harvester.device_info_list
+        chosen = [d for d in infos if self.serial_number is None or str(d.serial_number) == str(self.serial_number)]
+        if not chosen:
+            seen = ", ".join(str(d.serial_number) for d in infos) or "none"
+            raise DeviceLost(f"no GenTL camera with serial number {self.serial_number} (present: {seen})")
+        info = chosen[0]
+        try:
+            self._acquirer = self._harvester.create({"serial_number": info.serial_number})
+            self._acquirer.num_buffers = self.buffers
+        except Exception as exc:
+            raise DeviceLost(f"cannot open GenTL camera {info.serial_number}: {exc}") from None
+        return DeviceInfo(info.id_, str(info.serial_number), info.model, info.vendor)
+
+    def _nodes(self):
+        return self._acquirer.remote_device.node_map
+
+    def configure(self, settings: CameraSettings) -> ConfigureReport:
+        nm = self._nodes()
+        report = ConfigureReport()
+        for node, value in RADIOMETRY_OFF.items():
+            if not hasattr(nm, node):
+                continue  # the camera has no such automatic feature
+            try:
+                getattr(nm, node).value = value
+            except Exception:
+                report.radiometry_not_disabled.append(node)
+        if hasattr(nm, "Gamma"):
+            try:
+                nm.Gamma.value = 1.0
+            except Exception:
+                report.radiometry_not_disabled.append("Gamma")
+        wanted = {
+            "PixelFormat": settings.pixel_format,
+            "ExposureTime": settings.exposure_us,
+            "Gain": settings.gain_db,
+            "BlackLevel": settings.black_level,
+            "AcquisitionFrameRate": settings.frame_rate,
+        }
+        if settings.region is not None:
+            x, y, w, h = settings.region
+            wanted.update({"Width": w, "Height": h, "OffsetX": x, "OffsetY": y})
+        for node, value in wanted.items():
+            if value is None:
+                continue
+            if not hasattr(nm, node):
+                report.unsupported.append(node)
+                continue
+            if node == "PixelFormat" and value not in nm.PixelFormat.symbolics:
+                raise ConfigurationError(
+                    f"camera does not offer pixel format {value}; it offers {', '.join(nm.PixelFormat.symbolics)}"
+                )
+            try:
+                getattr(nm, node).value = value
+                report.applied[node] = getattr(nm, node).value
+            except Exception as exc:
+                report.unsupported.append(f"{node} ({exc})")
+        refuse_monochrome(nm.PixelFormat.value)  # fail at start, clearly, not on the first frame
+        return report
+
+    def start(self) -> None:
+        try:
+            self._acquirer.start()
+        except Exception as exc:
+            raise DeviceLost(f"cannot start acquisition: {exc}") from None
+
+    def read(self, timeout_s: float) -> Frame:
+        from genicam.gentl import TimeoutException
+
+        try:
+            with self._acquirer.fetch(timeout=timeout_s) as buffer:
+                received = time.monotonic_ns()
+                parts = [decode(c.data_format, c.data, c.width, c.height) for c in buffer.payload.components]
+                if len(parts) == 1:
+                    data, bits = parts[0]
+                else:
+                    data, bits = assemble_components([p[0] for p in parts]), parts[0][1]
+                data = data.copy()  # the buffer goes back to the producer when this block ends
+                try:
+                    device_ts = int(buffer.timestamp_ns)
+                except Exception:  # many producers do not time-stamp buffers
+                    device_ts = None
+                try:
+                    sequence = int(buffer.module.frame_id)
+                except Exception:
+                    sequence = -1
+        except TimeoutException:
+            raise FrameTimeout(f"no frame within {timeout_s:g} s") from None
+        except (ConfigurationError, FrameTimeout):
+            raise
+        except Exception as exc:
+            raise DeviceLost(f"GenTL acquisition failed: {exc}") from None
+        return Frame(data=data, sequence=sequence, host_monotonic_ns=received, wall_time=time.time(),
+                     device_timestamp_ns=device_ts, channel_names=self.channel_names[: data.shape[-1]], bit_depth=bits)
+
+    def stop(self) -> None:
+        if self._acquirer is not None:
+            try:
+                self._acquirer.stop()
+            except Exception:
+                pass
+
+    def close(self) -> None:
+        if self._acquirer is not None:
+            try:
+                self._acquirer.destroy()
+            except Exception:
+                pass
+            self._acquirer = None
+        if self._harvester is not None:
+            try:
+                self._harvester.reset()
+            except Exception:
+                pass
+            self._harvester = None

@@ -1,0 +1,132 @@
+"""Replay: a folder of frames (.npy, .tif, .png) or a video file, looped or played once, at
+the recorded rate (video) or a given one. For bench work, demos and regression runs on dives."""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from uwcam.drivers.base import (
+    CameraDriver,
+    CameraSettings,
+    ConfigurationError,
+    ConfigureReport,
+    CorruptFrame,
+    DeviceInfo,
+    DeviceLost,
+    EndOfStream,
+    Frame,
+    FrameTimeout,
+)
+from uwcam.fileio import UserInputError
+from uwcam.imageio import IMAGE_SUFFIXES, read_frame
+
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov")
+
+
+class ReplayCamera(CameraDriver):
+    name = "replay"
+
+    def __init__(self, source: str, fps: float | None = None, loop: bool = True,
+                 channel_names: tuple[str, ...] = ("R", "G", "B")) -> None:
+        self.source = Path(source)
+        self.loop = loop
+        self.channel_names = tuple(channel_names)
+        self.serial_number = f"replay:{self.source.name}"
+        if self.source.is_dir():
+            self.files = sorted(p for p in self.source.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+            if not self.files:
+                raise ConfigurationError(f"replay folder {self.source} holds no {', '.join(IMAGE_SUFFIXES)} frames")
+            self.fps = float(fps or 10.0)
+        elif self.source.is_file() and self.source.suffix.lower() in VIDEO_SUFFIXES:
+            self.files = []
+            probe = cv2.VideoCapture(str(self.source))
+            recorded = probe.get(cv2.CAP_PROP_FPS) if probe.isOpened() else 0.0
+            probe.release()
+            if not recorded and not fps:
+                raise ConfigurationError(f"cannot read a frame rate from {self.source}; give fps")
+            self.fps = float(fps or recorded)
+        else:
+            raise ConfigurationError(f"replay source {self.source} is neither a folder of frames nor a video ({', '.join(VIDEO_SUFFIXES)})")
+        if not self.fps > 0:
+            raise ConfigurationError(f"replay fps must be positive, got {self.fps}")
+        self._video = None
+        self._index = 0
+        self._sequence = 0
+        self._next_due = 0.0
+        self._closed = threading.Event()
+
+    @classmethod
+    def list_devices(cls, source: str = "", **_) -> list[DeviceInfo]:
+        return [DeviceInfo(f"replay:{source}", f"replay:{Path(source).name}", "replay")] if Path(source).exists() else []
+
+    def open(self) -> DeviceInfo:
+        if not self.source.exists():
+            raise DeviceLost(f"replay source {self.source} has gone")
+        if not self.files:
+            self._video = cv2.VideoCapture(str(self.source))
+            if not self._video.isOpened():
+                raise DeviceLost(f"OpenCV cannot open the video {self.source}")
+        self._closed.clear()
+        return DeviceInfo(f"replay:{self.source}", self.serial_number, "replay")
+
+    def configure(self, settings: CameraSettings) -> ConfigureReport:
+        report = ConfigureReport()
+        if settings.frame_rate:
+            self.fps = float(settings.frame_rate)
+            report.applied["frame_rate"] = self.fps
+        report.unsupported += [n for n in ("exposure_us", "gain_db", "pixel_format", "region", "black_level")
+                               if getattr(settings, n) is not None]
+        return report
+
+    def start(self) -> None:
+        self._next_due = time.monotonic()
+
+    def _next_image(self) -> np.ndarray:
+        if self.files:
+            if self._index >= len(self.files):
+                if not self.loop:
+                    raise EndOfStream(f"replay of {self.source} finished ({len(self.files)} frames)")
+                self._index = 0
+            path = self.files[self._index]
+            self._index += 1
+            try:
+                return read_frame(path)
+            except UserInputError as exc:
+                raise CorruptFrame(str(exc)) from None
+        ok, bgr = self._video.read()
+        if not ok:
+            if not self.loop:
+                raise EndOfStream(f"replay of {self.source} finished")
+            self._video.set(cv2.CAP_PROP_POS_FRAMES, 0)
+            ok, bgr = self._video.read()
+            if not ok:
+                raise DeviceLost(f"cannot read frames from {self.source}")
+        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+    def read(self, timeout_s: float) -> Frame:
+        wait = self._next_due - time.monotonic()
+        if wait > timeout_s:
+            self._closed.wait(timeout_s)
+            raise FrameTimeout(f"next replayed frame is due in {wait:.2f} s")
+        if wait > 0:
+            self._closed.wait(wait)
+        self._next_due += 1.0 / self.fps
+        data = self._next_image()
+        self._sequence += 1
+        return Frame(data=data, sequence=self._sequence, host_monotonic_ns=time.monotonic_ns(), wall_time=time.time(),
+                     channel_names=self.channel_names[: data.shape[-1]],
+                     bit_depth=16 if data.dtype == np.uint16 else 8)
+
+    def stop(self) -> None:
+        pass
+
+    def close(self) -> None:
+        self._closed.set()
+        if self._video is not None:
+            self._video.release()
+            self._video = None

@@ -1,0 +1,188 @@
+"""Simulated devices: a camera rendering the simulated world, sharing it with a simulated lamp
+and rangefinder so that a whole rig is consistent (lamp off → only ambient light and noise;
+the rangefinder measures the scene the camera sees).
+
+The simulated camera is a first-class driver, registered as ``sim``. Devices can be
+unplugged, stalled or made to send a damaged frame, to exercise the recovery paths.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from uwcam.drivers.base import (
+    CameraDriver,
+    CameraSettings,
+    ConfigurationError,
+    ConfigureReport,
+    CorruptFrame,
+    DeviceInfo,
+    DeviceLost,
+    Frame,
+    FrameTimeout,
+)
+from uwcam.simulation import CameraModel, Lamp, SimulatedWorld, water_preset
+
+
+@dataclass
+class SimulatedRig:
+    """One simulated world seen by camera, lamp and rangefinder alike."""
+
+    scene: str = "seabed"
+    distance: float = 2.0
+    size: tuple[int, int] = (640, 480)
+    water: str = "jerlov-II"
+    lamp_offset: tuple[float, float, float] = (0.3, 0.0, 0.0)
+    bits: int = 16
+    seed: int = 0
+    lamp_on: bool = True
+    lamp_intensity: float = 1.0
+    """0–1, set by the simulated lamp."""
+    _world: SimulatedWorld | None = field(default=None, repr=False)
+    _cache: dict = field(default_factory=dict, repr=False)
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    @property
+    def world(self) -> SimulatedWorld:
+        with self._lock:
+            if self._world is None:
+                names, wl = ("R", "G", "B"), (675.0, 575.0, 475.0)
+                self._world = SimulatedWorld(
+                    scene=self.scene, distance=self.distance, size=self.size,
+                    water=water_preset(self.water, list(wl)), lamp=Lamp(position=self.lamp_offset),
+                    camera=CameraModel(bits=self.bits), seed=self.seed,
+                )
+            return self._world
+
+    def expected(self) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Mean and σ (DN) for the lamp's present state; lamp light scales with its intensity."""
+        on = self.lamp_on and self.lamp_intensity > 0
+        level = round(self.lamp_intensity, 2) if on else 0.0
+        key = (on, level)
+        if key not in self._cache:
+            w = self.world
+            if on:
+                lit = w.components(True)
+                ambient = w.components(False).total
+                radiance = ambient + level * (lit.total - ambient)
+            else:
+                radiance = w.components(False).total
+            self._cache[key] = w.camera.expected(radiance, w.exposure)
+        return self._cache[key]
+
+    def true_range(self) -> float:
+        """Camera range (m) at the image centre, where the rangefinder points."""
+        truth = self.world.camera_range
+        h, w = truth.shape
+        return float(truth[h // 2, w // 2])
+
+
+class SimulatedCamera(CameraDriver):
+    """Frames of a :class:`SimulatedRig` at ``fps``, paced on the monotonic clock."""
+
+    name = "sim"
+    # Fault injection, per serial number: shared so a test can unplug "the" device.
+    _unplugged: set[str] = set()
+    _stalled: set[str] = set()
+    _corrupt_next: set[str] = set()
+
+    def __init__(self, rig: SimulatedRig | None = None, fps: float = 10.0, serial_number: str | None = "SIM-0001",
+                 **rig_options) -> None:
+        if not fps > 0:
+            raise ConfigurationError(f"sim camera fps must be positive, got {fps}")
+        self.rig = rig or SimulatedRig(**rig_options)
+        self.fps = float(fps)
+        self.serial_number = serial_number
+        self._open = False
+        self._streaming = False
+        self._sequence = 0
+        self._next_due = 0.0
+        self._closed = threading.Event()  # wakes a pacing wait when the camera closes
+
+    # Fault injection (tests and demonstrations) ---------------------------------------
+    @classmethod
+    def unplug(cls, serial: str) -> None:
+        cls._unplugged.add(serial)
+
+    @classmethod
+    def plug(cls, serial: str) -> None:
+        cls._unplugged.discard(serial)
+
+    @classmethod
+    def stall(cls, serial: str, stalled: bool = True) -> None:
+        (cls._stalled.add if stalled else cls._stalled.discard)(serial)
+
+    @classmethod
+    def corrupt_next(cls, serial: str) -> None:
+        cls._corrupt_next.add(serial)
+
+    # CameraDriver ---------------------------------------------------------------------
+    @classmethod
+    def list_devices(cls, serial_numbers: tuple[str, ...] = ("SIM-0001",), **_) -> list[DeviceInfo]:
+        return [DeviceInfo(f"sim:{s}", s, "simulated 3-chip RGB", "uwcam") for s in serial_numbers if s not in cls._unplugged]
+
+    def _check_present(self) -> None:
+        if self.serial_number in self._unplugged:
+            raise DeviceLost(f"simulated camera {self.serial_number} is unplugged")
+
+    def open(self) -> DeviceInfo:
+        self._check_present()
+        self.rig.world  # build the scene now, not on the first frame
+        self._open = True
+        self._closed.clear()
+        return DeviceInfo(f"sim:{self.serial_number}", self.serial_number or "", "simulated 3-chip RGB", "uwcam")
+
+    def configure(self, settings: CameraSettings) -> ConfigureReport:
+        report = ConfigureReport()
+        if settings.frame_rate:
+            self.fps = float(settings.frame_rate)
+            report.applied["frame_rate"] = self.fps
+        for name in ("exposure_us", "gain_db", "pixel_format", "region", "black_level"):
+            if getattr(settings, name) is not None:
+                report.unsupported.append(name)  # the simulated sensor has fixed settings
+        return report
+
+    def start(self) -> None:
+        self._check_present()
+        self._streaming = True
+        self._next_due = time.monotonic()
+
+    def read(self, timeout_s: float) -> Frame:
+        if not self._streaming:
+            raise DeviceLost("simulated camera is not streaming")
+        self._check_present()
+        wait = self._next_due - time.monotonic()
+        if self.serial_number in self._stalled or wait > timeout_s:
+            self._closed.wait(timeout_s)
+            self._check_present()
+            raise FrameTimeout(f"no frame within {timeout_s:g} s")
+        if wait > 0:
+            self._closed.wait(wait)
+        self._check_present()
+        self._next_due = max(self._next_due + 1.0 / self.fps, time.monotonic() - 1.0 / self.fps)
+        self._sequence += 1
+        if self.serial_number in self._corrupt_next:
+            self._corrupt_next.discard(self.serial_number)
+            raise CorruptFrame("simulated damaged frame")
+        mean, std = self.rig.expected()
+        world = self.rig.world
+        data = world.camera.digitise(mean, std, world.seed, self._sequence)
+        return Frame(
+            data=data, sequence=self._sequence, host_monotonic_ns=time.monotonic_ns(), wall_time=time.time(),
+            device_timestamp_ns=None, exposure_us=None, gain_db=None,
+            lamp_on=self.rig.lamp_on and self.rig.lamp_intensity > 0, channel_names=("R", "G", "B"),
+            bit_depth=world.camera.bits,
+        )
+
+    def stop(self) -> None:
+        self._streaming = False
+
+    def close(self) -> None:
+        self._streaming = False
+        self._open = False
+        self._closed.set()
