@@ -1,0 +1,260 @@
+"""Rangefinders on a serial line, read continuously in a background thread.
+
+* ``ascii``: NMEA depth sentences ($--DPT, $--DBT, checksums verified) and the ``R####``
+  millimetre lines of common ultrasonic rangers.
+* ``ping1d``: the Blue Robotics Ping1D sonar, binary ping protocol (message encoding and
+  parsing from ``bluerobotics-ping``; uwcam drives the port itself with blocking reads).
+
+Every reading carries range (m), confidence (0–1 from the device's own figure, None where
+the device gives none), monotonic and wall timestamps. Speed of sound is configurable
+(fresh 1435 m/s, salt 1500 m/s): ASCII devices compute range with their own assumed speed,
+which is rescaled; the Ping1D is told the speed. Readings outside [min, max] or below the
+confidence threshold are rejected and counted; garbage and checksum errors are counted,
+never fatal.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+
+from uwcam.drivers.base import ConfigurationError, DeviceLost, Health, HealthState
+from uwcam.drivers.serial_link import SerialLink
+
+FRESH_WATER = 1435.0
+SALT_WATER = 1500.0
+
+
+@dataclass(frozen=True)
+class RangeReading:
+    range_m: float
+    confidence: float | None
+    monotonic_ns: int
+    wall_time: float
+
+    @property
+    def age_s(self) -> float:
+        return (time.monotonic_ns() - self.monotonic_ns) / 1e9
+
+
+@dataclass
+class RangefinderStats:
+    readings: int = 0
+    rejected: int = 0
+    """Valid messages outside the range limits or below the confidence threshold."""
+    garbage: int = 0
+    """Lines or packets that could not be parsed, or failed their checksum."""
+
+
+@dataclass
+class RangefinderConfig:
+    speed_of_sound: float = SALT_WATER
+    min_range_m: float = 0.1
+    max_range_m: float = 100.0
+    min_confidence: float = 0.0
+    stale_after_s: float = 2.0
+
+    def __post_init__(self) -> None:
+        if not 1300 <= self.speed_of_sound <= 1700:
+            raise ConfigurationError(f"speed of sound {self.speed_of_sound} m/s is not water's (fresh ~1435, salt ~1500)")
+        if not 0 <= self.min_range_m < self.max_range_m:
+            raise ConfigurationError(f"need 0 ≤ min_range_m < max_range_m, got {self.min_range_m}, {self.max_range_m}")
+        if not 0 <= self.min_confidence <= 1:
+            raise ConfigurationError(f"min_confidence must be 0–1, got {self.min_confidence}")
+
+
+class SerialRangefinder:
+    """Common part: thread, latest reading, health, limits. Subclasses implement ``_poll``."""
+
+    kind = ""
+
+    def __init__(self, port: str, baud: int, config: RangefinderConfig | None = None, timeout_s: float = 0.5) -> None:
+        self.config = config or RangefinderConfig()
+        self.link = SerialLink(port, baud, timeout_s)
+        self.stats = RangefinderStats()
+        self._latest: RangeReading | None = None
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._last_good = time.monotonic()
+
+    @property
+    def health(self) -> Health:
+        h = self.link.health.current
+        latest = self.latest()
+        if h.state == HealthState.OK and (latest is None or latest.age_s > self.config.stale_after_s):
+            return Health(HealthState.RECOVERING, f"no valid range for {time.monotonic() - self._last_good:.1f} s")
+        return h
+
+    def latest(self) -> RangeReading | None:
+        with self._lock:
+            return self._latest
+
+    def fresh(self) -> RangeReading | None:
+        """The latest reading if younger than ``stale_after_s``, else None."""
+        r = self.latest()
+        return r if r is not None and r.age_s <= self.config.stale_after_s else None
+
+    def _accept(self, range_m: float, confidence: float | None) -> None:
+        c = self.config
+        if not (c.min_range_m <= range_m <= c.max_range_m) or (confidence is not None and confidence < c.min_confidence):
+            self.stats.rejected += 1
+            return
+        reading = RangeReading(range_m, confidence, time.monotonic_ns(), time.time())
+        with self._lock:
+            self._latest = reading
+        self.stats.readings += 1
+        self._last_good = time.monotonic()
+        self.link.health.set(HealthState.OK, "reading")
+
+    def start(self) -> None:
+        self.link.check_exists()
+        self._setup()
+        self._thread = threading.Thread(target=self._run, name=f"rangefinder-{self.kind}", daemon=True)
+        self._thread.start()
+
+    def _setup(self) -> None:
+        """Configure the device (e.g. speed of sound); failures are retried by the thread."""
+
+    def _run(self) -> None:
+        configured = True
+        while not self._stop.is_set():
+            try:
+                if not configured:
+                    self._setup()
+                    configured = True
+                self._poll()
+            except DeviceLost as exc:
+                configured = False
+                self.link.health.set(HealthState.RECOVERING, str(exc))
+                self._stop.wait(self.link.timeout_s)
+            except Exception as exc:  # never let a device kill the reader: report and retry
+                configured = False
+                self.link.fail(f"{type(exc).__name__}: {exc}")
+                self._stop.wait(self.link.timeout_s)
+
+    def _poll(self) -> None:
+        raise NotImplementedError
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+        self.link.close()
+        self.link.health.set(HealthState.STOPPED, "stopped")
+
+    def __enter__(self):
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+def nmea_checksum_ok(sentence: str) -> bool:
+    body, _, given = sentence.partition("*")
+    if not body.startswith("$") or len(given) < 2:
+        return False
+    calc = 0
+    for ch in body[1:]:
+        calc ^= ord(ch)
+    try:
+        return calc == int(given[:2], 16)
+    except ValueError:
+        return False
+
+
+def parse_ascii_range(line: str) -> float | None:
+    """Range in metres at the device's own speed of sound, or None if the line is not a range."""
+    line = line.strip()
+    if line.startswith("R") and line[1:].isdigit():
+        return int(line[1:]) / 1000.0
+    if line.startswith("$") and nmea_checksum_ok(line):
+        fields = line.split("*")[0].split(",")
+        kind = fields[0][-3:]
+        try:
+            if kind == "DPT" and fields[1]:
+                return float(fields[1])
+            if kind == "DBT" and len(fields) > 3 and fields[3] and fields[4] == "M":
+                return float(fields[3])
+        except (ValueError, IndexError):
+            return None
+    return None
+
+
+class AsciiRangefinder(SerialRangefinder):
+    """NMEA DPT/DBT or R#### (mm) lines."""
+
+    kind = "ascii"
+
+    def __init__(self, port: str, baud: int = 9600, device_speed_of_sound: float = SALT_WATER, **config) -> None:
+        super().__init__(port, baud, RangefinderConfig(**config))
+        self.device_speed_of_sound = float(device_speed_of_sound)
+
+    def _poll(self) -> None:
+        raw = self.link.read_until(b"\n")
+        if not raw:
+            return  # timeout: the thread goes on; health turns stale by itself
+        line = raw.decode("ascii", errors="replace").replace("\r", "\n").strip()
+        for part in filter(None, line.split("\n")):
+            value = parse_ascii_range(part)
+            if value is None:
+                self.stats.garbage += 1
+                continue
+            self._accept(value * self.config.speed_of_sound / self.device_speed_of_sound, None)
+
+
+class Ping1DRangefinder(SerialRangefinder):
+    """Blue Robotics Ping1D: requests a distance message per poll."""
+
+    kind = "ping1d"
+
+    def __init__(self, port: str, baud: int = 115200, rate_hz: float = 10.0, **config) -> None:
+        super().__init__(port, baud, RangefinderConfig(**config))
+        from brping import PingParser
+
+        if not 0 < rate_hz <= 50:
+            raise ConfigurationError(f"Ping1D poll rate must be 0–50 Hz, got {rate_hz}")
+        self.period_s = 1.0 / rate_hz
+        self._parser = PingParser()
+
+    def _message(self, message_id: int, **fields) -> bytes:
+        from brping import PingMessage
+
+        msg = PingMessage(message_id)
+        for name, value in fields.items():
+            setattr(msg, name, value)
+        msg.pack_msg_data()
+        return bytes(msg.msg_data)
+
+    def _setup(self) -> None:
+        from brping import definitions
+
+        with self.link.lock:
+            self.link.write(self._message(definitions.PING1D_SET_SPEED_OF_SOUND, sos_mm_per_sec=int(self.config.speed_of_sound * 1000)))
+
+    def _read_message(self):
+        from brping import PingParser
+
+        deadline = time.monotonic() + self.link.timeout_s
+        while time.monotonic() < deadline:
+            chunk = self.link.read(1)
+            if not chunk:
+                return None
+            state = self._parser.parse_byte(chunk[0])
+            if state == PingParser.NEW_MESSAGE:
+                return self._parser.rx_msg
+            if state == PingParser.ERROR:
+                self.stats.garbage += 1
+        return None
+
+    def _poll(self) -> None:
+        from brping import definitions
+
+        with self.link.lock:
+            self.link.write(self._message(definitions.COMMON_GENERAL_REQUEST, requested_id=definitions.PING1D_DISTANCE))
+            msg = self._read_message()
+        if msg is not None and msg.message_id == definitions.PING1D_DISTANCE:
+            self._accept(msg.distance / 1000.0, msg.confidence / 100.0)
+        self._stop.wait(self.period_s)

@@ -1,0 +1,102 @@
+"""A serial port that survives: reopens with backoff after the device goes away.
+
+pyserial does the I/O; reads block with the port's own timeout (no sleep-polling). The
+port path should be a stable name (udev symlink, see deploy/): a device that comes back
+under the same name is found again.
+"""
+
+from __future__ import annotations
+
+import termios
+import threading
+import time
+
+import serial
+
+from uwcam.drivers.base import ConfigurationError, DeviceLost, HealthState, HealthTracker
+
+# What pyserial raises when a port breaks: its own error, the OS's, and termios errors from
+# flushes on a vanished tty (seen with USB adapters pulled and ptys closed).
+PORT_ERRORS = (serial.SerialException, OSError, termios.error)
+
+
+class SerialLink:
+    """One serial port, opened lazily and reopened after failures (at most every ``retry_s``)."""
+
+    def __init__(self, port: str, baud: int = 115200, timeout_s: float = 0.5, retry_s: tuple[float, float] = (0.1, 5.0)) -> None:
+        self.port, self.baud, self.timeout_s = port, int(baud), float(timeout_s)
+        self.retry_s = retry_s
+        self.health = HealthTracker()
+        self.lock = threading.RLock()  # one transaction (command + reply) at a time
+        self._serial: serial.Serial | None = None
+        self._next_try = 0.0
+        self._delay = retry_s[0]
+
+    def check_exists(self) -> None:
+        """ConfigurationError at start when the port cannot exist at all (wrong name)."""
+        try:
+            serial.Serial(self.port, self.baud, timeout=self.timeout_s).close()
+        except serial.SerialException as exc:
+            raise ConfigurationError(f"cannot open serial port {self.port}: {exc}; check the device name and udev rules") from None
+
+    def _ensure_open(self) -> serial.Serial:
+        if self._serial is not None:
+            return self._serial
+        now = time.monotonic()
+        if now < self._next_try:
+            raise DeviceLost(f"{self.port} is unavailable; retrying in {self._next_try - now:.1f} s")
+        try:
+            self._serial = serial.Serial(self.port, self.baud, timeout=self.timeout_s, write_timeout=self.timeout_s)
+            self._delay = self.retry_s[0]
+            return self._serial
+        except PORT_ERRORS as exc:
+            self._next_try = now + self._delay
+            self._delay = min(self._delay * 2, self.retry_s[1])
+            self.health.set(HealthState.RECOVERING, f"cannot open {self.port}: {exc}")
+            raise DeviceLost(f"cannot open {self.port}: {exc}") from None
+
+    def fail(self, reason: str) -> None:
+        """Close after an I/O failure; the next use reopens."""
+        self.health.set(HealthState.RECOVERING, reason)
+        if self._serial is not None:
+            try:
+                self._serial.close()
+            except Exception:
+                pass
+            self._serial = None
+
+    def write(self, data: bytes) -> None:
+        port = self._ensure_open()
+        try:
+            port.reset_input_buffer()
+            port.write(data)
+            port.flush()
+        except PORT_ERRORS as exc:
+            self.fail(f"write to {self.port} failed: {exc}")
+            raise DeviceLost(f"write to {self.port} failed: {exc}") from None
+
+    def read_until(self, terminator: bytes, limit: int = 512) -> bytes:
+        """Bytes up to and including ``terminator``, or what came before the timeout."""
+        port = self._ensure_open()
+        try:
+            return port.read_until(terminator, limit)
+        except PORT_ERRORS as exc:
+            self.fail(f"read from {self.port} failed: {exc}")
+            raise DeviceLost(f"read from {self.port} failed: {exc}") from None
+
+    def read(self, size: int) -> bytes:
+        port = self._ensure_open()
+        try:
+            return port.read(size)
+        except PORT_ERRORS as exc:
+            self.fail(f"read from {self.port} failed: {exc}")
+            raise DeviceLost(f"read from {self.port} failed: {exc}") from None
+
+    def close(self) -> None:
+        with self.lock:
+            if self._serial is not None:
+                try:
+                    self._serial.close()
+                except Exception:
+                    pass
+                self._serial = None
