@@ -58,6 +58,8 @@ class AravisCamera(CameraDriver):
         self._camera = None
         self._stream = None
         self._format = ""
+        self._exposure_us: float | None = None
+        self._gain_db: float | None = None
 
     @classmethod
     def list_devices(cls, fake: bool = False, **_) -> list[DeviceInfo]:
@@ -135,6 +137,8 @@ class AravisCamera(CameraDriver):
                 report.applied["region"] = tuple(cam.get_region())
             except Exception as exc:
                 report.unsupported.append(f"region ({exc})")
+        self._exposure_us = cam.get_exposure_time() if cam.is_exposure_time_available() else None
+        self._gain_db = cam.get_gain() if cam.is_gain_available() else None
         if settings.black_level is not None:
             if self._feature("BlackLevel"):
                 dev.set_float_feature_value("BlackLevel", settings.black_level)
@@ -169,7 +173,8 @@ class AravisCamera(CameraDriver):
         finally:
             self._stream.push_buffer(buf)
         return Frame(data=data, sequence=int(sequence), host_monotonic_ns=received, wall_time=time.time(),
-                     device_timestamp_ns=int(stamp) or None, channel_names=self.channel_names[: data.shape[-1]], bit_depth=bits)
+                     device_timestamp_ns=int(stamp) or None, exposure_us=self._exposure_us, gain_db=self._gain_db,
+                     channel_names=self.channel_names[: data.shape[-1]], bit_depth=bits)
 
     def stop(self) -> None:
         if self._camera is not None:

@@ -13,6 +13,8 @@ import glob
 import os
 import time
 
+import numpy as np
+
 from uwcam.drivers.base import (
     CameraDriver,
     CameraSettings,
@@ -52,6 +54,16 @@ def find_producers(cti: str | None = None) -> list[str]:
     return found
 
 
+def component_array(component) -> np.ndarray:
+    """A payload component's pixels: harvesters' decoded array, or for packed formats (which it
+    leaves undecoded or empty) the raw bytes from the component's offset, for pixels.decode.
+    Verified on the simulator's unpacked formats; the packed path by reading harvesters' code."""
+    data = component.data
+    if component.data_format.endswith("p") or data is None or data.size == 0:
+        return np.frombuffer(component._buffer.raw_buffer, np.uint8, offset=component.data_offset)
+    return data
+
+
 class GenTLCamera(CameraDriver):
     """A GenICam camera (GigE Vision, USB3 Vision, CoaXPress…) via its vendor's GenTL producer."""
 
@@ -65,7 +77,8 @@ class GenTLCamera(CameraDriver):
         self.buffers = buffers
         self._harvester = None
         self._acquirer = None
-        self._bits = None
+        self._exposure_us: float | None = None
+        self._gain_db: float | None = None
 
     @staticmethod
     def _new_harvester(producers: list[str]):
@@ -145,6 +158,8 @@ class GenTLCamera(CameraDriver):
             except Exception as exc:
                 report.unsupported.append(f"{node} ({exc})")
         refuse_monochrome(nm.PixelFormat.value)  # fail at start, clearly, not on the first frame
+        self._exposure_us = float(nm.ExposureTime.value) if hasattr(nm, "ExposureTime") else None
+        self._gain_db = float(nm.Gain.value) if hasattr(nm, "Gain") else None
         return report
 
     def start(self) -> None:
@@ -159,7 +174,7 @@ class GenTLCamera(CameraDriver):
         try:
             with self._acquirer.fetch(timeout=timeout_s) as buffer:
                 received = time.monotonic_ns()
-                parts = [decode(c.data_format, c.data, c.width, c.height) for c in buffer.payload.components]
+                parts = [decode(c.data_format, component_array(c), c.width, c.height) for c in buffer.payload.components]
                 if len(parts) == 1:
                     data, bits = parts[0]
                 else:
@@ -180,7 +195,8 @@ class GenTLCamera(CameraDriver):
         except Exception as exc:
             raise DeviceLost(f"GenTL acquisition failed: {exc}") from None
         return Frame(data=data, sequence=sequence, host_monotonic_ns=received, wall_time=time.time(),
-                     device_timestamp_ns=device_ts, channel_names=self.channel_names[: data.shape[-1]], bit_depth=bits)
+                     device_timestamp_ns=device_ts, exposure_us=self._exposure_us, gain_db=self._gain_db,
+                     channel_names=self.channel_names[: data.shape[-1]], bit_depth=bits)
 
     def stop(self) -> None:
         if self._acquirer is not None:

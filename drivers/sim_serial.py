@@ -259,3 +259,61 @@ class SimulatedPing1D(PtyDevice):
                 reply.gain_setting = 3
                 reply.pack_msg_data()
                 self.send(bytes(reply.msg_data))
+
+
+# Registry entries: the real serial drivers, each talking to its own simulated device.
+def _serial_classes():
+    from uwcam.drivers.lamp import SerialLamp
+    from uwcam.drivers.rangefinder import AsciiRangefinder, Ping1DRangefinder
+
+    return SerialLamp, AsciiRangefinder, Ping1DRangefinder
+
+
+class SimulatedSerialLamp(_serial_classes()[0]):
+    """Registry name ``sim``: the serial lamp driver talking to a simulated lamp on a pty."""
+
+    kind = "sim"
+
+    def __init__(self, rig: SimulatedRig | None = None, protocol: str = "generic-dimmable-led") -> None:
+        self.device = SimulatedLampDevice(rig).start()
+        super().__init__(self.device.path, protocol)
+
+    def close(self) -> None:
+        super().close()
+        self.device.stop()
+
+
+class SimulatedAsciiRangefinder(_serial_classes()[1]):
+    """Registry name ``sim-ascii``: the ASCII rangefinder driver reading a simulated ranger."""
+
+    kind = "sim-ascii"
+
+    def __init__(self, rig: SimulatedRig | None = None, style: str = "nmea", rate_hz: float = 10.0, **config) -> None:
+        self.device = SimulatedAsciiRanger(rig, style=style, rate_hz=rate_hz)
+        super().__init__(self.device.path, **config)
+
+    def start(self) -> None:
+        self.device.start()
+        super().start()
+
+    def stop(self) -> None:
+        super().stop()
+        self.device.stop()
+
+
+class SimulatedPing1DRangefinder(_serial_classes()[2]):
+    """Registry name ``sim-ping1d``: the Ping1D driver talking to a simulated Ping1D."""
+
+    kind = "sim-ping1d"
+
+    def __init__(self, rig: SimulatedRig | None = None, confidence: int = 97, **config) -> None:
+        self.device = SimulatedPing1D(rig, confidence=confidence)
+        super().__init__(self.device.path, **config)
+
+    def start(self) -> None:
+        self.device.start()
+        super().start()
+
+    def stop(self) -> None:
+        super().stop()
+        self.device.stop()

@@ -34,6 +34,7 @@ def test_fake_camera_streams_rgb8_at_full_depth():
     assert f.data.shape == (512, 512, 3) and f.data.dtype == np.uint8 and f.bit_depth == 8
     assert f.sequence > frames[0].sequence and f.device_timestamp_ns
     assert report.applied["PixelFormat"] == "RGB8" and report.applied["exposure_us"] == pytest.approx(2000.0)
+    assert f.exposure_us == pytest.approx(2000.0) and f.gain_db is not None
 
 
 def test_fake_camera_refuses_mono16_and_unknown_formats():

@@ -189,6 +189,7 @@ def test_genicam_streams_from_the_gentl_simulator():
     assert f.data.ndim == 3 and f.data.shape[-1] == 3 and f.data.dtype == np.uint8  # alpha dropped
     assert frames[-1].sequence > frames[0].sequence
     assert report.applied["PixelFormat"] == "RGBa8"
+    assert f.exposure_us is None and f.gain_db is None  # the simulator has neither node
     assert "ExposureTime" in report.unsupported  # the simulator has no exposure node, and we say so
 
 

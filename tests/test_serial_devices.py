@@ -173,3 +173,28 @@ def test_ascii_parsing():
     assert parse_ascii_range(f"${body}*{checksum:02X}") == 12.5
     assert parse_ascii_range("hello") is None
     assert parse_ascii_range("R12a4") is None
+
+
+def test_simulated_rig_through_the_registry_is_consistent():
+    """Camera, lamp and rangefinder from the registry share one world, over the real serial code."""
+    from uwcam.drivers.supervisor import SupervisedCamera
+
+    rig = SimulatedRig(size=(32, 24), distance=3.0)
+    lamp = registry.create("lamp", "sim", rig=rig)
+    ranger = registry.create("rangefinder", "sim-ping1d", rig=rig, rate_hz=50)
+    camera = SupervisedCamera(registry.create("camera", "sim", rig=rig, fps=100.0, serial_number="SIM-RIG"))
+    try:
+        with camera, ranger:
+            lit = camera.get(5.0).data.mean()
+            lamp.off()
+            while camera.get(0.0) is not None:
+                pass
+            dark = camera.get(5.0)
+            assert dark.lamp_on is False and dark.data.mean() < 0.1 * lit
+            assert wait_for(lambda: ranger.fresh() is not None)
+            assert ranger.fresh().range_m == pytest.approx(rig.true_range(), abs=0.002)
+            assert rig.true_range() == pytest.approx(3.0, abs=0.01)  # the centre pixel, a hair off the axis
+    finally:
+        lamp.close()
+    assert {"serial", "sim"} <= set(registry.known("lamp"))
+    assert {"ascii", "ping1d", "sim-ascii", "sim-ping1d"} <= set(registry.known("rangefinder"))
