@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import glob
 import os
+import threading
 import time
 
 import numpy as np
@@ -54,6 +55,41 @@ def find_producers(cti: str | None = None) -> list[str]:
     return found
 
 
+# A GenTL producer serves its devices to one harvester per process: cameras on the same
+# producers share it, counted, and it is reset when the last one closes.
+_harvesters: dict[tuple[str, ...], list] = {}
+_harvesters_lock = threading.Lock()
+
+
+def _acquire_harvester(producers: list[str]):
+    from harvesters.core import Harvester
+
+    key = tuple(producers)
+    with _harvesters_lock:
+        if key not in _harvesters:
+            h = Harvester()
+            for cti in producers:
+                h.add_file(cti)
+            _harvesters[key] = [h, 0]
+        _harvesters[key][1] += 1
+        return _harvesters[key][0]
+
+
+def _release_harvester(producers: list[str]) -> None:
+    key = tuple(producers)
+    with _harvesters_lock:
+        entry = _harvesters.get(key)
+        if entry is None:
+            return
+        entry[1] -= 1
+        if entry[1] <= 0:
+            del _harvesters[key]
+            try:
+                entry[0].reset()
+            except Exception:
+                pass
+
+
 def component_array(component) -> np.ndarray:
     """A payload component's pixels: harvesters' decoded array, or for packed formats (which it
     leaves undecoded or empty) the raw bytes from the component's offset, for pixels.decode.
@@ -80,38 +116,42 @@ class GenTLCamera(CameraDriver):
         self._exposure_us: float | None = None
         self._gain_db: float | None = None
 
-    @staticmethod
-    def _new_harvester(producers: list[str]):
-        from harvesters.core import Harvester
-
-        h = Harvester()
-        for cti in producers:
-            h.add_file(cti)
-        h.update()
-        return h
-
     @classmethod
     def list_devices(cls, cti: str | None = None, **_) -> list[DeviceInfo]:
-        h = cls._new_harvester(find_producers(cti))
+        producers = find_producers(cti)
+        h = _acquire_harvester(producers)
         try:
+            h.update()
             return [DeviceInfo(d.id_, str(d.serial_number), d.model, d.vendor) for d in h.device_info_list]
         finally:
-            h.reset()
+            _release_harvester(producers)
 
     def open(self) -> DeviceInfo:
         self.close()
-        self._harvester = self._new_harvester(self.producers)
-        infos = self._harvester.device_info_list
-        chosen = [d for d in infos if self.serial_number is None or str(d.serial_number) == str(self.serial_number)]
-        if not chosen:
-            seen = ", ".join(str(d.serial_number) for d in infos) or "none"
-            raise DeviceLost(f"no GenTL camera with serial number {self.serial_number} (present: {seen})")
-        info = chosen[0]
-        try:
-            self._acquirer = self._harvester.create({"serial_number": info.serial_number})
-            self._acquirer.num_buffers = self.buffers
-        except Exception as exc:
-            raise DeviceLost(f"cannot open GenTL camera {info.serial_number}: {exc}") from None
+        self._harvester = _acquire_harvester(self.producers)
+
+        def matching():
+            return [d for d in self._harvester.device_info_list
+                    if self.serial_number is None or str(d.serial_number) == str(self.serial_number)]
+
+        for attempt in range(2):
+            chosen = matching()
+            if not chosen or attempt == 1:
+                # Re-enumerate only when needed: update() invalidates acquirers already created
+                # from this harvester (other sensors of a multi-sensor camera).
+                self._harvester.update()
+                chosen = matching()
+            if not chosen:
+                seen = ", ".join(str(d.serial_number) for d in self._harvester.device_info_list) or "none"
+                raise DeviceLost(f"no GenTL camera with serial number {self.serial_number} (present: {seen})")
+            info = chosen[0]
+            try:
+                self._acquirer = self._harvester.create({"serial_number": info.serial_number})
+                self._acquirer.num_buffers = self.buffers
+                break
+            except Exception as exc:  # a stale entry for a device that came back: enumerate again
+                if attempt == 1:
+                    raise DeviceLost(f"cannot open GenTL camera {info.serial_number}: {exc}") from None
         return DeviceInfo(info.id_, str(info.serial_number), info.model, info.vendor)
 
     def _nodes(self):
@@ -213,8 +253,5 @@ class GenTLCamera(CameraDriver):
                 pass
             self._acquirer = None
         if self._harvester is not None:
-            try:
-                self._harvester.reset()
-            except Exception:
-                pass
             self._harvester = None
+            _release_harvester(self.producers)

@@ -56,6 +56,8 @@ class V4L2Camera(CameraDriver):
         self.channel_names = tuple(channel_names)
         self._cap: cv2.VideoCapture | None = None
         self._sequence = 0
+        self._exposure: float | None = None
+        self._gain: float | None = None
 
     @classmethod
     def list_devices(cls, **_) -> list[DeviceInfo]:
@@ -117,6 +119,9 @@ class V4L2Camera(CameraDriver):
                 report.unsupported.append(name)
         if settings.black_level is not None:
             report.unsupported.append("black_level")
+        # Device units (V4L2 exposure is in 100 µs steps on most UVC cameras); None if not set.
+        self._exposure = report.applied.get("exposure_us")  # type: ignore[assignment]
+        self._gain = report.applied.get("gain_db")  # type: ignore[assignment]
         return report
 
     def start(self) -> None:
@@ -144,6 +149,7 @@ class V4L2Camera(CameraDriver):
         self._sequence += 1
         data = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
         return Frame(data=data, sequence=self._sequence, host_monotonic_ns=received, wall_time=time.time(),
+                     exposure_us=self._exposure, gain_db=self._gain,
                      channel_names=self.channel_names[:3], bit_depth=8 * data.dtype.itemsize)
 
     def stop(self) -> None:

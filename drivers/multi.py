@@ -1,0 +1,103 @@
+"""One registered frame from several sensors: 3-chip (prism) and multi-band cameras whose
+sensors appear as separate devices or streams, each delivering one component.
+
+Each sensor is any registered camera driver; the frame takes one channel from each, read in
+turn and matched in time: a sensor whose frame is older than the newest by more than
+``max_skew_ms`` is read again, so channels never mix exposures far apart.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from uwcam.drivers.base import CameraDriver, CameraSettings, ConfigurationError, ConfigureReport, CorruptFrame, DeviceInfo, Frame
+
+
+class MultiSensorCamera(CameraDriver):
+    name = "multi"
+
+    def __init__(self, sensors: list[dict], channel_names: tuple[str, ...] | None = None, max_skew_ms: float = 20.0) -> None:
+        from uwcam.drivers import registry
+
+        if len(sensors) < 2:
+            raise ConfigurationError("a multi-sensor camera needs two or more sensors, one per channel")
+        self.parts: list[tuple[CameraDriver, int]] = []
+        for k, spec in enumerate(sensors):
+            spec = dict(spec)
+            if "driver" not in spec:
+                raise ConfigurationError(f"sensor {k} needs a 'driver' (one of {', '.join(registry.known('camera'))})")
+            name, channel = spec.pop("driver"), int(spec.pop("channel", 0))
+            self.parts.append((registry.create("camera", name, **spec), channel))
+        self.channel_names = tuple(channel_names or [f"ch{k}" for k in range(len(self.parts))])
+        if len(self.channel_names) != len(self.parts):
+            raise ConfigurationError(f"{len(self.parts)} sensors but {len(self.channel_names)} channel names")
+        self.max_skew_ns = int(max_skew_ms * 1e6)
+        self._sequence = 0
+
+    @property
+    def serial_number(self) -> str | None:  # type: ignore[override]
+        serials = [d.serial_number for d, _ in self.parts]
+        return None if any(s is None for s in serials) else "+".join(serials)
+
+    @serial_number.setter
+    def serial_number(self, value: str | None) -> None:
+        if value is not None:
+            for (driver, _), serial in zip(self.parts, value.split("+")):
+                driver.serial_number = serial
+
+    @classmethod
+    def list_devices(cls, **_) -> list[DeviceInfo]:
+        return []  # each sensor's own driver lists its devices
+
+    def open(self) -> DeviceInfo:
+        infos = [driver.open() for driver, _ in self.parts]
+        for (driver, _), info in zip(self.parts, infos):
+            if driver.serial_number is None:
+                driver.serial_number = info.serial_number
+        return DeviceInfo("+".join(i.id for i in infos), "+".join(i.serial_number for i in infos),
+                          " + ".join(i.model for i in infos), infos[0].vendor)
+
+    def configure(self, settings: CameraSettings) -> ConfigureReport:
+        merged = ConfigureReport()
+        for k, (driver, _) in enumerate(self.parts):
+            report = driver.configure(settings)
+            merged.applied.update({f"sensor{k}.{key}": value for key, value in report.applied.items()})
+            merged.unsupported += [f"sensor{k}.{item}" for item in report.unsupported]
+            merged.radiometry_not_disabled += [f"sensor{k}.{item}" for item in report.radiometry_not_disabled]
+        return merged
+
+    def start(self) -> None:
+        for driver, _ in self.parts:
+            driver.start()
+
+    def read(self, timeout_s: float) -> Frame:
+        deadline = time.monotonic() + timeout_s
+        frames = [driver.read(timeout_s) for driver, _ in self.parts]
+        while True:
+            newest = max(f.host_monotonic_ns for f in frames)
+            stale = [k for k, f in enumerate(frames) if newest - f.host_monotonic_ns > self.max_skew_ns]
+            if not stale:
+                break
+            if time.monotonic() > deadline:
+                raise CorruptFrame(f"sensors could not be matched within {self.max_skew_ns / 1e6:g} ms")
+            for k in stale:
+                frames[k] = self.parts[k][0].read(max(deadline - time.monotonic(), 0.01))
+        planes = [f.data[:, :, channel] if f.data.ndim == 3 else f.data for f, (_, channel) in zip(frames, self.parts)]
+        if len({p.shape for p in planes}) != 1 or len({p.dtype for p in planes}) != 1:
+            raise CorruptFrame(f"sensor images differ in size or type: {[(p.shape, str(p.dtype)) for p in planes]}")
+        self._sequence += 1
+        first = frames[0]
+        return Frame(data=np.stack(planes, axis=-1), sequence=self._sequence,
+                     host_monotonic_ns=max(f.host_monotonic_ns for f in frames), wall_time=time.time(),
+                     device_timestamp_ns=first.device_timestamp_ns, exposure_us=first.exposure_us, gain_db=first.gain_db,
+                     channel_names=self.channel_names, bit_depth=first.bit_depth)
+
+    def stop(self) -> None:
+        for driver, _ in self.parts:
+            driver.stop()
+
+    def close(self) -> None:
+        for driver, _ in self.parts:
+            driver.close()
