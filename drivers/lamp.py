@@ -7,7 +7,6 @@ retried once, then reported, and the lamp's health says why.
 
 from __future__ import annotations
 
-import os
 import re
 from dataclasses import dataclass
 from importlib import resources

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from uwcam.drivers.base import ConfigurationError, DeviceLost, Health, HealthState
 from uwcam.drivers.serial_link import SerialLink

@@ -75,22 +75,20 @@ class SerialLink:
             self.fail(f"write to {self.port} failed: {exc}")
             raise DeviceLost(f"write to {self.port} failed: {exc}") from None
 
+    def _read(self, what: str, call):
+        port = self._ensure_open()
+        try:
+            return call(port)
+        except PORT_ERRORS as exc:
+            self.fail(f"{what} from {self.port} failed: {exc}")
+            raise DeviceLost(f"{what} from {self.port} failed: {exc}") from None
+
     def read_until(self, terminator: bytes, limit: int = 512) -> bytes:
         """Bytes up to and including ``terminator``, or what came before the timeout."""
-        port = self._ensure_open()
-        try:
-            return port.read_until(terminator, limit)
-        except PORT_ERRORS as exc:
-            self.fail(f"read from {self.port} failed: {exc}")
-            raise DeviceLost(f"read from {self.port} failed: {exc}") from None
+        return self._read("read", lambda port: port.read_until(terminator, limit))
 
     def read(self, size: int) -> bytes:
-        port = self._ensure_open()
-        try:
-            return port.read(size)
-        except PORT_ERRORS as exc:
-            self.fail(f"read from {self.port} failed: {exc}")
-            raise DeviceLost(f"read from {self.port} failed: {exc}") from None
+        return self._read("read", lambda port: port.read(size))
 
     def close(self) -> None:
         with self.lock:

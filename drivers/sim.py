@@ -51,7 +51,7 @@ class SimulatedRig:
     def world(self) -> SimulatedWorld:
         with self._lock:
             if self._world is None:
-                names, wl = ("R", "G", "B"), (675.0, 575.0, 475.0)
+                wl = (675.0, 575.0, 475.0)
                 self._world = SimulatedWorld(
                     scene=self.scene, distance=self.distance, size=self.size,
                     water=water_preset(self.water, list(wl)), lamp=Lamp(position=self.lamp_offset),
@@ -132,7 +132,7 @@ class SimulatedCamera(CameraDriver):
 
     def open(self) -> DeviceInfo:
         self._check_present()
-        self.rig.world  # build the scene now, not on the first frame
+        _ = self.rig.world  # build the scene now, not on the first frame
         self._open = True
         self._closed.clear()
         return DeviceInfo(f"sim:{self.serial_number}", self.serial_number or "", "simulated 3-chip RGB", "uwcam")

@@ -283,7 +283,21 @@ class SimulatedSerialLamp(_serial_classes()[0]):
         self.device.stop()
 
 
-class SimulatedAsciiRangefinder(_serial_classes()[1]):
+class _OwnsDevice:
+    """Starts the simulated device before the driver, stops it after."""
+
+    device: PtyDevice
+
+    def start(self) -> None:
+        self.device.start()
+        super().start()  # type: ignore[misc]
+
+    def stop(self) -> None:
+        super().stop()  # type: ignore[misc]
+        self.device.stop()
+
+
+class SimulatedAsciiRangefinder(_OwnsDevice, _serial_classes()[1]):
     """Registry name ``sim-ascii``: the ASCII rangefinder driver reading a simulated ranger."""
 
     kind = "sim-ascii"
@@ -292,16 +306,8 @@ class SimulatedAsciiRangefinder(_serial_classes()[1]):
         self.device = SimulatedAsciiRanger(rig, style=style, rate_hz=rate_hz)
         super().__init__(self.device.path, **config)
 
-    def start(self) -> None:
-        self.device.start()
-        super().start()
 
-    def stop(self) -> None:
-        super().stop()
-        self.device.stop()
-
-
-class SimulatedPing1DRangefinder(_serial_classes()[2]):
+class SimulatedPing1DRangefinder(_OwnsDevice, _serial_classes()[2]):
     """Registry name ``sim-ping1d``: the Ping1D driver talking to a simulated Ping1D."""
 
     kind = "sim-ping1d"
@@ -309,11 +315,3 @@ class SimulatedPing1DRangefinder(_serial_classes()[2]):
     def __init__(self, rig: SimulatedRig | None = None, confidence: int = 97, **config) -> None:
         self.device = SimulatedPing1D(rig, confidence=confidence)
         super().__init__(self.device.path, **config)
-
-    def start(self) -> None:
-        self.device.start()
-        super().start()
-
-    def stop(self) -> None:
-        super().stop()
-        self.device.stop()

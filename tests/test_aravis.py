@@ -2,25 +2,16 @@
 
 import shutil
 import subprocess
-import time
 
 import numpy as np
 import pytest
 
+from tests.waiting import wait_for
 from uwcam.drivers.aravis import AravisCamera
 from uwcam.drivers.base import CameraSettings, ConfigurationError, HealthState
 from uwcam.drivers.supervisor import SupervisedCamera
 
 FAKE_GV = "arv-fake-gv-camera-0.8"
-
-
-def wait_for(predicate, timeout_s=15.0):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.05)
-    return False
 
 
 def test_fake_camera_streams_rgb8_at_full_depth():
@@ -58,7 +49,7 @@ def fake_gv():
     def start():
         proc = subprocess.Popen([FAKE_GV, "-i", "127.0.0.1"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         procs.append(proc)
-        assert wait_for(lambda: any(d.serial_number == "GV01" for d in AravisCamera.list_devices()))
+        assert wait_for(lambda: any(d.serial_number == "GV01" for d in AravisCamera.list_devices()), 15.0)
         return proc
 
     yield start
@@ -77,7 +68,7 @@ def test_gige_camera_over_loopback_recovers_after_it_vanishes(fake_gv):
         assert cam.device.serial_number == "GV01"
         proc.kill()
         proc.wait()
-        assert wait_for(lambda: cam.health.state != HealthState.OK)
+        assert wait_for(lambda: cam.health.state != HealthState.OK, 15.0)
         assert cam.health.state in (HealthState.RECOVERING, HealthState.LOST)
         fake_gv()
         assert wait_for(lambda: cam.health.state == HealthState.OK, 30.0)

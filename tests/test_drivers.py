@@ -9,6 +9,7 @@ import genicam
 import numpy as np
 import pytest
 
+from tests.waiting import wait_for
 from uwcam.drivers import registry
 from uwcam.drivers.base import CameraSettings, ConfigurationError, DeviceLost, HealthState
 from uwcam.drivers.genicam import GenTLCamera, find_producers
@@ -19,15 +20,6 @@ from uwcam.drivers.supervisor import SupervisedCamera
 from uwcam.drivers.v4l2 import V4L2Camera
 
 VIKY = os.path.join(os.path.dirname(genicam.__file__), "viky.cti")
-
-
-def wait_for(predicate, timeout_s=10.0):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.02)
-    return False
 
 
 @pytest.fixture
