@@ -1,7 +1,8 @@
 """Benchmark: frames/s and per-frame cost of each camera driver under supervision, beside the
 raw producer loop of the same source measured in the same run.
 
-Raw loops: harvesters fetch + copy (GenTL producer simulator), OpenCV VideoCapture.read on a
+Raw loops: harvesters fetch + copy (GenTL producer simulator), Aravis stream pop + copy
+(Fake camera), OpenCV VideoCapture.read on a
 video file (the V4L2 driver's code path here), the simulator's frame(), reading replay files.
 Supervised: SupervisedCamera(driver) with a consumer calling get(). CPU ms/frame is process
 CPU time (both threads) per delivered frame.
@@ -72,6 +73,34 @@ def raw_gentl(seconds):
         h.reset()
 
 
+def raw_aravis(seconds):
+    import gi
+
+    gi.require_version("Aravis", "0.8")
+    from gi.repository import Aravis
+
+    Aravis.enable_interface("Fake")
+    cam = Aravis.Camera.new("Fake_1")
+    cam.set_pixel_format_from_string("RGB8")
+    cam.set_frame_rate(200.0)
+    stream = cam.create_stream(None, None)
+    for _ in range(8):
+        stream.push_buffer(Aravis.Buffer.new_allocate(cam.get_payload()))
+    cam.start_acquisition()
+    try:
+        def one():
+            buf = stream.timeout_pop_buffer(2_000_000)
+            if buf is None:
+                return 0
+            np.frombuffer(buf.get_data(), np.uint8).reshape(buf.get_image_height(), buf.get_image_width(), 3).copy()
+            stream.push_buffer(buf)
+            return 1
+        one()
+        return measure(one, seconds)
+    finally:
+        cam.stop_acquisition()
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=4.0)
@@ -81,6 +110,11 @@ def main() -> None:
 
     rows.append(("GenTL (harvesters, viky.cti)", raw_gentl(s),
                  supervised(GenTLCamera(cti=VIKY), s, CameraSettings(pixel_format="RGBa8"))))
+
+    from uwcam.drivers.aravis import AravisCamera
+
+    rows.append(("Aravis Fake camera (512x512 RGB8)", raw_aravis(s),
+                 supervised(AravisCamera(fake=True, device_id="Fake_1"), s, CameraSettings(pixel_format="RGB8", frame_rate=200.0))))
 
     with tempfile.TemporaryDirectory() as tmp:
         video = os.path.join(tmp, "clip.avi")
