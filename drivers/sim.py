@@ -40,6 +40,8 @@ class SimulatedRig:
     lamp_offset: tuple[float, float, float] = (0.3, 0.0, 0.0)
     bits: int = 16
     seed: int = 0
+    material: str | None = None
+    """One material for every surface (e.g. "grey", the calibration plate's hue); None: each its own."""
     lamp_on: bool = True
     lamp_intensity: float = 1.0
     """0–1, set by the simulated lamp."""
@@ -55,7 +57,7 @@ class SimulatedRig:
                 self._world = SimulatedWorld(
                     scene=self.scene, distance=self.distance, size=self.size,
                     water=water_preset(self.water, list(wl)), lamp=Lamp(position=self.lamp_offset),
-                    camera=CameraModel(bits=self.bits), seed=self.seed,
+                    camera=CameraModel(bits=self.bits), seed=self.seed, material=self.material,
                 )
             return self._world
 

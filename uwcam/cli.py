@@ -1,4 +1,4 @@
-"""The ``uwcam`` command line: calibrate, range, simulate."""
+"""The ``uwcam`` command line: calibrate, range, simulate, run, config check."""
 
 from __future__ import annotations
 
@@ -323,6 +323,40 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_run(args: argparse.Namespace) -> int:
+    import logging
+
+    import uvicorn
+
+    from uwcam.api import create_app
+    from uwcam.config import default_config, load_config
+
+    config = load_config(args.config) if args.config else default_config()
+    if args.host:
+        config.api.host = args.host
+    if args.port is not None:
+        config.api.port = args.port
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    app = create_app(config)
+    where = "embedded default (simulated rig)" if not args.config else args.config
+    print(f"uwcam {__version__}: {where}; API on http://{config.api.host}:{config.api.port}/docs", flush=True)
+    # uvicorn handles SIGINT/SIGTERM: the lifespan then stops the loop, switches the lamp off
+    # and releases the devices.
+    uvicorn.run(app, host=config.api.host, port=config.api.port, log_level="warning")
+    return 0
+
+
+def cmd_config_check(args: argparse.Namespace) -> int:
+    from uwcam.config import load_config
+
+    config = load_config(args.file)
+    from uwcam.api import required_token
+
+    required_token(config)
+    print(f"{args.file}: valid (camera {config.camera.driver}, API {config.api.host}:{config.api.port})")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="uwcam", description="Underwater ranging camera: calibrate, range, simulate, run.")
     parser.add_argument("--version", action="version", version=f"uwcam {__version__}")
@@ -393,6 +427,18 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("-o", "--output", metavar="FRAME.(tif|npy|png)")
     sim.add_argument("--truth", metavar="TRUTH.npy", help="write camera range per pixel (m, NaN where no surface)")
     sim.set_defaults(func=cmd_simulate)
+
+    run = sub.add_parser("run", help="run the camera daemon (default: simulated rig, API on 127.0.0.1:8080)")
+    run.add_argument("--config", metavar="FILE", help="rig configuration (YAML); default: the embedded simulated rig")
+    run.add_argument("--host", help="API address (default 127.0.0.1)")
+    run.add_argument("--port", type=int, help="API port (default 8080)")
+    run.set_defaults(func=cmd_run)
+
+    cfg = sub.add_parser("config", help="configuration tools")
+    cfg_sub = cfg.add_subparsers(dest="config_command", required=True, metavar="ACTION")
+    check = cfg_sub.add_parser("check", help="validate a configuration file without starting anything")
+    check.add_argument("file", metavar="FILE")
+    check.set_defaults(func=cmd_config_check)
     return parser
 
 

@@ -80,15 +80,24 @@ class RangeEstimator:
             self.active[[names.index(p) for p in pair]] = True
             if v[self.active][0] == v[self.active][1]:
                 raise UserInputError(f"channels {pair[0]} and {pair[1]} have equal attenuation, so the pair carries no range")
-        self.attenuation = v - v.mean()  # centred: only differences matter, and sums stay well conditioned
         self.bounds = np.array(path_length_bounds, dtype=np.float64)
         self._tables: dict[int, tuple[NDArray, NDArray]] = {}
-        # Kernel constants: attenuations as a tuple (the channel loop unrolls), one bit per
-        # distinct attenuation value, and the geometry.
+        # Kernel constants: centred attenuations as a tuple (the channel loop unrolls; only
+        # differences matter and centring keeps sums well conditioned), one bit per distinct
+        # attenuation value, and the geometry.
+        self.set_attenuation_differences(v)
+        self._geo = self._geometry()
+
+    def set_attenuation_differences(self, differences: NDArray | list[float]) -> None:
+        """Use new attenuation differences c_k − c_ref (1/m), e.g. tracked live from a patch.
+        Lookup tables do not depend on them, so this is cheap enough for every frame."""
+        v = np.asarray(differences, dtype=np.float64)
+        if v.shape != (self.n_channels,) or not np.all(np.isfinite(v)):
+            raise ValueError(f"need {self.n_channels} finite attenuation differences, got {v}")
+        self.attenuation = v - v.mean()
         self._c = tuple(float(x) for x in self.attenuation)
         distinct = sorted(set(self._c))
         self._bits = tuple(1 << distinct.index(x) for x in self._c)
-        self._geo = self._geometry()
 
     # Geometry parameters for the kernel: [mode, Sx, Sy, Sz, |S|, 1/fx, 1/fy, cx, cy].
     def _geometry(self) -> NDArray[np.float64]:

@@ -272,7 +272,13 @@ SCENES: dict[str, str] = {
     "tilted-plane": "a grey plane through the axis at --range, tilted 30° about the x axis",
     "plate": "the calibration plate of a rig (default grey plate) square to the axis at --range, open water behind",
     "open-water": "nothing in range: backscatter (and ambient light) only, for measuring the water's own light",
+    "seabed-patch": "the seabed with a grey calibration patch on a bracket 0.8 m in front of the camera, lower right",
 }
+
+# The calibration patch of the "seabed-patch" scene, camera frame (m).
+PATCH_CENTRE_M = (0.28, 0.18)
+PATCH_DISTANCE_M = 0.8
+PATCH_SIZE_M = 0.1
 
 
 def build_scene(name: str, distance: float, rig: Rig | None = None, material: str | None = None) -> Scene:
@@ -299,6 +305,10 @@ def _build_scene(name: str, distance: float, rig: Rig | None) -> Scene:
         return Scene(name, (seabed,))
     if name == "open-water":
         return Scene(name, ())
+    if name == "seabed-patch":
+        x, y, d, half = PATCH_CENTRE_M[0], PATCH_CENTRE_M[1], PATCH_DISTANCE_M, PATCH_SIZE_M / 2
+        patch = Plane((x, y, d), (0.0, 0.0, -1.0), "grey", half_size=(half, half))
+        return Scene(name, (seabed, patch))
     if name == "brick":
         proud = 0.10
         brick = Box((0.0, 0.0, z - proud / 2), (0.1075, 0.05125, proud / 2), 25.0, "brick")

@@ -1,0 +1,203 @@
+"""The daemon over HTTP and WebSocket: a real uvicorn server on an ephemeral port, real clients."""
+
+import asyncio
+import io
+import json
+import struct
+import threading
+
+import cv2
+import httpx
+import numpy as np
+import pytest
+import uvicorn
+import websockets
+
+from tests.waiting import wait_for
+from uwcam.api import HEADER, create_app
+from uwcam.cli import main
+from uwcam.config import ApiConfig, CameraConfig, DaemonConfig, DeviceConfig
+from uwcam.drivers.sim import SimulatedCamera
+from uwcam.fileio import UserInputError
+
+SERIAL = "SIM-API"
+
+
+def small_config(token=None) -> DaemonConfig:
+    return DaemonConfig(
+        camera=CameraConfig(driver="sim", options={"fps": 20.0, "serial_number": SERIAL}, watchdog_s=0.5),
+        lamp=DeviceConfig(driver="sim"),
+        rangefinder=DeviceConfig(driver="sim-ping1d", options={"rate_hz": 20}),
+        simulation={"scene": "seabed-patch", "distance": 2.0, "size": [160, 120], "water": "jerlov-IB",
+                    "lamp_offset": [0.3, 0.0, 0.0], "material": "grey"},
+        api=ApiConfig(token=token),
+    )
+
+
+class Server:
+    def __init__(self, config: DaemonConfig) -> None:
+        self.app = create_app(config)
+        self.server = uvicorn.Server(uvicorn.Config(self.app, host="127.0.0.1", port=0, log_level="warning", lifespan="on"))
+        self.thread = threading.Thread(target=self.server.run, name="uvicorn-test")
+
+    def __enter__(self) -> "Server":
+        self.thread.start()
+        assert wait_for(lambda: self.server.started, 60.0), "server did not start"
+        self.port = self.server.servers[0].sockets[0].getsockname()[1]
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.http = httpx.Client(base_url=self.url, timeout=10.0)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.http.close()
+        self.server.should_exit = True
+        self.thread.join(timeout=30.0)
+
+    @property
+    def daemon(self):
+        return self.app.state.daemon
+
+
+@pytest.fixture(scope="module")
+def server():
+    with Server(small_config()) as s:
+        assert wait_for(lambda: s.http.get("/api/v1/status").json()["frames"]["processed"] > 2, 30.0)
+        yield s
+
+
+@pytest.fixture(autouse=True)
+def no_leaked_threads():
+    """Module-scoped server threads are expected here; the default fixture would flag them."""
+    yield
+
+
+def test_status_reports_devices_and_moving_figures(server):
+    first = server.http.get("/api/v1/status").json()
+    assert wait_for(lambda: server.http.get("/api/v1/status").json()["frames"]["processed"] > first["frames"]["processed"] + 3)
+    s = server.http.get("/api/v1/status").json()
+    assert s["camera"]["health"]["state"] == "ok" and s["camera"]["device"]["serial_number"] == SERIAL
+    assert s["frames"]["captured"] >= s["frames"]["processed"] > 0 and s["frames"]["fps"] > 5
+    assert s["latency_ms"]["p99"] >= s["latency_ms"]["p50"] > 0
+    assert s["calibration"]["name"] == "simulated tank calibration"
+    assert s["calibration"]["tracking"]["state"] == "tracking" and abs(s["calibration"]["tracking"]["drift"]["G"]) < 0.01
+    assert s["rangefinder"]["range_m"] == pytest.approx(2.0, abs=0.01) and s["rangefinder"]["confidence"] == pytest.approx(0.97)
+
+
+def test_snapshots_match_the_simulated_truth(server):
+    truth = server.daemon.rig.world.camera_range
+    r = np.load(io.BytesIO(server.http.get("/api/v1/snapshot/range?format=npy").content))
+    assert r.shape == truth.shape and np.nanmedian(np.abs(r - truth)) < 0.2
+    mm = cv2.imdecode(np.frombuffer(server.http.get("/api/v1/snapshot/range?format=png16").content, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert mm.dtype == np.uint16 and abs(np.median(mm[mm > 0]) / 1000.0 - np.nanmedian(truth)) < 0.3
+    var = server.http.get("/api/v1/snapshot/variance?format=tiff")
+    assert var.headers["content-type"] == "image/tiff" and int(var.headers["x-frame-number"]) > 0
+    image = server.http.get("/api/v1/snapshot/image?format=png")
+    assert cv2.imdecode(np.frombuffer(image.content, np.uint8), cv2.IMREAD_UNCHANGED).shape == (120, 160, 3)
+    bad = server.http.get("/api/v1/snapshot/variance?format=png16")
+    assert bad.status_code == 422 and "png16 is for the range map" in bad.json()["detail"]
+    assert server.http.get("/api/v1/snapshot/depth").status_code == 422
+
+
+def test_websocket_stream_decodes_to_the_range_map(server):
+    truth = server.daemon.rig.world.camera_range
+
+    async def client():
+        async with websockets.connect(f"ws://127.0.0.1:{server.port}/api/v1/stream?encoding=mm&rate=10") as ws:
+            hello = json.loads(await ws.recv())
+            frames, telemetry = [], []
+            while len(frames) < 2 or not telemetry:
+                msg = await asyncio.wait_for(ws.recv(), 10.0)
+                (frames if isinstance(msg, bytes) else telemetry).append(msg)
+            return hello, frames, json.loads(telemetry[0])
+
+    hello, frames, telemetry = asyncio.run(client())
+    assert hello["type"] == "hello" and hello["binary"]["header"] == "<4sIqqHHB3xf"
+    magic, number, captured, sent, w, h, dtype, scale = HEADER.unpack_from(frames[-1])
+    assert magic == b"UWR1" and (w, h) == (160, 120) and dtype == 2 and scale == pytest.approx(0.001)
+    assert sent >= captured and struct.unpack_from("<I", frames[0], 4)[0] < number
+    mm = np.frombuffer(frames[-1][HEADER.size:], "<u2").reshape(h, w)
+    metres = np.where(mm > 0, mm * scale, np.nan)
+    assert np.nanmedian(np.abs(metres - truth)) < 0.2
+    assert telemetry["type"] == "telemetry" and telemetry["frames"]["processed"] > 0
+
+
+def test_lamp_control_and_dark_frames(server):
+    assert server.http.put("/api/v1/lamp", json={"on": False}).json()["on"] is False
+    assert wait_for(lambda: server.daemon.pipeline.latest.frame.lamp_on is False)
+    dark = np.load(io.BytesIO(server.http.get("/api/v1/snapshot/reasons").content))
+    assert (dark != 0).mean() > 0.9  # nothing to range without the lamp
+    lamp = server.http.put("/api/v1/lamp", json={"on": True, "intensity": 80}).json()
+    assert lamp["on"] is True and lamp["intensity"] == 80 and lamp["health"]["state"] == "ok"
+    bad = server.http.put("/api/v1/lamp", json={"intensity": 140})
+    assert bad.status_code == 422
+    assert server.http.put("/api/v1/lamp", json={"on": True, "intensity": 100}).status_code == 200
+
+
+def test_config_patch_is_validated_before_it_applies(server):
+    assert server.http.get("/api/v1/config").json()["smoothing"] == "none"
+    changed = server.http.patch("/api/v1/config", json={"smoothing": "mean"})
+    assert changed.status_code == 200 and changed.json()["smoothing"] == "mean"
+    bad = server.http.patch("/api/v1/config", json={"smoothing": "gaussian"})
+    assert bad.status_code == 422 and "smoothing" in json.dumps(bad.json())
+    assert server.http.patch("/api/v1/config", json={"pair": ["G", "X"]}).status_code == 422
+    assert server.http.patch("/api/v1/config", json={"colour": 1}).status_code == 422
+    assert server.http.get("/api/v1/config").json()["smoothing"] == "mean"  # the bad ones changed nothing
+    server.http.patch("/api/v1/config", json={"smoothing": "none"})
+
+
+def test_metrics_in_prometheus_text(server):
+    text = server.http.get("/metrics").text
+    assert "uwcam_frames_processed_total" in text and 'uwcam_latency_ms{quantile="0.99"}' in text
+
+
+def test_camera_lost_mid_dive_is_reported_and_recovered(server):
+    SimulatedCamera.unplug(SERIAL)
+    try:
+        assert wait_for(lambda: server.http.get("/api/v1/status").json()["camera"]["health"]["state"] != "ok")
+        state = server.http.get("/api/v1/status").json()["camera"]["health"]
+        assert state["state"] in ("recovering", "lost") and "unplugged" in state["reason"]
+        frozen = server.daemon.pipeline.processed
+        assert not wait_for(lambda: server.daemon.pipeline.processed > frozen + 1, 1.0)  # no stale frames as new
+    finally:
+        SimulatedCamera.plug(SERIAL)
+    assert wait_for(lambda: server.http.get("/api/v1/status").json()["camera"]["health"]["state"] == "ok", 20.0)
+    n = server.daemon.pipeline.processed
+    assert wait_for(lambda: server.daemon.pipeline.processed > n + 3)
+
+
+def test_state_changes_need_the_token():
+    with Server(small_config(token="s3cret")) as s:
+        assert s.http.get("/api/v1/status").status_code == 200  # reading stays open
+        denied = s.http.put("/api/v1/lamp", json={"on": False})
+        assert denied.status_code == 401 and "Authorization: Bearer" in denied.json()["detail"]
+        ok = s.http.put("/api/v1/lamp", json={"on": False}, headers={"Authorization": "Bearer s3cret"})
+        assert ok.status_code == 200
+    config = small_config()
+    config.api.host = "0.0.0.0"
+    with pytest.raises(UserInputError, match="refusing to listen on 0.0.0.0 without a token"):
+        create_app(config)
+
+
+def test_config_check_command(tmp_path, capsys):
+    good = tmp_path / "rig.yaml"
+    good.write_text("version: 1\ncamera: {driver: sim}\napi: {port: 9000}\n")
+    assert main(["config", "check", str(good)]) == 0
+    assert "valid (camera sim, API 127.0.0.1:9000)" in capsys.readouterr().out
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("version: 1\ncamera: {driver: genicam, queue_size: 0}\n")
+    assert main(["config", "check", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "key 'camera.queue_size': Input should be greater than or equal to 1" in err and str(bad) in err
+    open_net = tmp_path / "open.yaml"
+    open_net.write_text("version: 1\napi: {host: 0.0.0.0}\n")
+    assert main(["config", "check", str(open_net)]) == 2
+    assert "without a token" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", ["sim-rig.yaml", "v4l2-rig.yaml", "gige-rig.yaml"])
+def test_deploy_examples_are_valid(name, monkeypatch, capsys):
+    from pathlib import Path
+
+    monkeypatch.setenv("UWCAM_TOKEN", "from-the-environment")
+    path = Path(__file__).resolve().parent.parent / "deploy" / name
+    assert main(["config", "check", str(path)]) == 0, capsys.readouterr().err

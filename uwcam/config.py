@@ -1,0 +1,121 @@
+"""Daemon configuration: a YAML file validated strictly; errors name the file, key and what is expected.
+
+Without a file, ``uwcam run`` uses :func:`default_config`: a simulated camera, lamp and Ping1D
+sharing one simulated seabed with a calibration patch in view.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from uwcam.fileio import UserInputError, explain_validation_error, load_yaml_mapping
+
+CONFIG_VERSION = 1
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class CameraSettingsConfig(Strict):
+    exposure_us: Annotated[float, Field(gt=0)] | None = None
+    gain_db: float | None = None
+    pixel_format: str | None = None
+    region: tuple[int, int, int, int] | None = None
+    black_level: float | None = None
+    frame_rate: Annotated[float, Field(gt=0)] | None = None
+
+
+class CameraConfig(Strict):
+    driver: str = "sim"
+    """Registry name: sim, replay, genicam, aravis, v4l2, multi, or a plug-in's."""
+    options: dict[str, Any] = {}
+    """Passed to the driver (e.g. cti, serial_number, device)."""
+    settings: CameraSettingsConfig = CameraSettingsConfig()
+    queue_size: Annotated[int, Field(ge=1, le=64)] = 4
+    watchdog_s: Annotated[float, Field(gt=0)] = 2.0
+
+
+class DeviceConfig(Strict):
+    driver: str
+    options: dict[str, Any] = {}
+
+
+class PatchConfig(Strict):
+    """A calibration patch fixed in view for live tracking of attenuation differences (DESIGN.md §6)."""
+
+    region: tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0)], Annotated[int, Field(gt=0)], Annotated[int, Field(gt=0)]]
+    """x, y, width, height in pixels."""
+    path_length_m: Annotated[float, Field(gt=0)]
+    """Lamp → patch → camera path length d_T^p, metres."""
+    smoothing: Annotated[float, Field(gt=0, le=1)] = 0.1
+    """EMA weight of each new estimate."""
+    max_step: Annotated[float, Field(gt=0)] = 0.05
+    """Estimates further than this (1/m) from the tracked value are rejected as outliers."""
+
+
+class ProcessingConfig(Strict):
+    pair: tuple[str, str] | None = None
+    """Two channel names for single-pair ranging; None fuses all channels."""
+    smoothing: Literal["none", "mean", "median"] = "none"
+    """3×3 smoothing of the range map."""
+    path_length_bounds: tuple[Annotated[float, Field(ge=0)], Annotated[float, Field(gt=0)]] = (0.0, 100.0)
+    patch: PatchConfig | None = None
+
+    @model_validator(mode="after")
+    def _bounds(self) -> "ProcessingConfig":
+        if self.path_length_bounds[0] >= self.path_length_bounds[1]:
+            raise ValueError("path_length_bounds must be [min, max] with min < max")
+        return self
+
+
+class ApiConfig(Strict):
+    host: str = "127.0.0.1"
+    port: Annotated[int, Field(ge=0, le=65535)] = 8080
+    token: str | None = None
+    """Bearer token for endpoints that change state; required when listening beyond loopback.
+    Also read from the UWCAM_TOKEN environment variable."""
+    stream_rate_hz: Annotated[float, Field(gt=0, le=120)] = 30.0
+    """Most frames per second sent to one WebSocket client."""
+
+
+class DaemonConfig(Strict):
+    version: Literal[1] = CONFIG_VERSION
+    camera: CameraConfig = CameraConfig()
+    lamp: DeviceConfig | None = None
+    rangefinder: DeviceConfig | None = None
+    calibration: str | None = None
+    """Path of the calibration profile; None only with the simulated camera (calibrated at start)."""
+    simulation: dict[str, Any] = {}
+    """Options of the shared simulated rig (scene, distance, size, water, lamp_offset...) when devices are simulated."""
+    processing: ProcessingConfig = ProcessingConfig()
+    api: ApiConfig = ApiConfig()
+
+    @model_validator(mode="after")
+    def _calibration_needed(self) -> "DaemonConfig":
+        if self.calibration is None and self.camera.driver != "sim":
+            raise ValueError("calibration: give the path of a calibration profile (uwcam calibrate makes one)")
+        return self
+
+
+def load_config(path: str | os.PathLike[str]) -> DaemonConfig:
+    """Load and validate; UserInputError names the file, the key path and what is wrong."""
+    data = load_yaml_mapping(path, "configuration")
+    try:
+        return DaemonConfig.model_validate(data)
+    except ValidationError as exc:
+        raise UserInputError(explain_validation_error(exc, f"configuration {path}")) from None
+
+
+def default_config() -> DaemonConfig:
+    """The embedded default: a simulated rig, API on 127.0.0.1:8080."""
+    return DaemonConfig(
+        camera=CameraConfig(driver="sim", options={"fps": 10.0}),
+        lamp=DeviceConfig(driver="sim"),
+        rangefinder=DeviceConfig(driver="sim-ping1d"),
+        simulation={"scene": "seabed-patch", "distance": 2.0, "size": [640, 480], "water": "jerlov-IB",
+                    "lamp_offset": [0.3, 0.0, 0.0], "material": "grey"},
+    )

@@ -1,0 +1,200 @@
+"""The frame loop: newest frame → range, variance, reasons → published state.
+
+Acquisition runs in the camera's own supervisor thread; processing runs here, in one thread
+that always takes the newest frame (older queued frames are skipped and counted, never the
+newest), tracks the attenuation difference live from a calibration patch in view
+(DESIGN.md §6) and publishes immutable results. Readers (the API) never block the loop:
+they read the latest published result or are called back with it.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from uwcam.config import PatchConfig, ProcessingConfig
+from uwcam.drivers.base import Frame
+from uwcam.drivers.supervisor import SupervisedCamera
+from uwcam.profile import CalibrationProfile
+from uwcam.ranging import RangeEstimator, RangeResult, smooth_range_map
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Published:
+    """One processed frame. Arrays are never modified after publication."""
+
+    number: int
+    frame: Frame
+    result: RangeResult
+    publish_monotonic_ns: int
+    attenuation_differences: tuple[float, ...]
+
+    @property
+    def latency_s(self) -> float:
+        return (self.publish_monotonic_ns - self.frame.host_monotonic_ns) / 1e9
+
+
+@dataclass
+class PatchTracker:
+    """Re-estimates c_k − c_ref every frame from a patch of known path length (DESIGN.md §6):
+    ln(E_k/E_ref) = b_k − V_k·d_T^p, so V_k = (b_k − ln(E_k/E_ref)) / d_T^p; smoothed by an EMA,
+    with frames rejected when the patch is saturated, too dark or the estimate jumps."""
+
+    config: PatchConfig
+    profile: CalibrationProfile
+    tracked: NDArray[np.float64] = field(init=False)
+    accepted: int = 0
+    rejected: int = 0
+    last_reason: str = "no frame yet"
+
+    def __post_init__(self) -> None:
+        self.calibrated = self.profile.array("attenuation_difference")
+        self.tracked = self.calibrated.copy()
+        self.log_constant = self.profile.array("log_constant")
+        self.dark = self.profile.array("dark_level")
+        self.floor = self.profile.array("noise_floor")
+        self.ref = self.profile.reference_index
+
+    def update(self, data: NDArray) -> bool:
+        x, y, w, h = self.config.region
+        patch = data[y : y + h, x : x + w]
+        if patch.size == 0:
+            self.last_reason = "patch region lies outside the image"
+            self.rejected += 1
+            return False
+        if np.any(patch >= self.profile.saturation_level):
+            self.last_reason = "patch saturated"
+            self.rejected += 1
+            return False
+        e = patch.reshape(-1, patch.shape[-1]).astype(np.float64).mean(axis=0) - self.dark
+        if np.any(e <= np.maximum(self.floor, 0.0)) or np.any(e <= 0):
+            self.last_reason = "patch below the noise floor (occluded or lamp off?)"
+            self.rejected += 1
+            return False
+        estimate = (self.log_constant - (np.log(e) - np.log(e[self.ref]))) / self.config.path_length_m
+        estimate[self.ref] = 0.0
+        if self.accepted and np.max(np.abs(estimate - self.tracked)) > self.config.max_step:
+            self.last_reason = f"estimate jumped by {np.max(np.abs(estimate - self.tracked)):.3f} 1/m (outlier)"
+            self.rejected += 1
+            return False
+        a = 1.0 if self.accepted == 0 else self.config.smoothing
+        self.tracked = (1 - a) * self.tracked + a * estimate
+        self.accepted += 1
+        self.last_reason = "tracking"
+        return True
+
+    def status(self) -> dict:
+        names = self.profile.channel_names
+        return {
+            "attenuation_differences": dict(zip(names, map(float, self.tracked))),
+            "drift": dict(zip(names, map(float, self.tracked - self.calibrated))),
+            "accepted": self.accepted,
+            "rejected": self.rejected,
+            "state": self.last_reason,
+        }
+
+
+class FramePipeline:
+    """Processes frames from a supervised camera in one thread and publishes the results."""
+
+    def __init__(self, camera: SupervisedCamera, profile: CalibrationProfile, processing: ProcessingConfig) -> None:
+        self.camera = camera
+        self.profile = profile
+        self._lock = threading.Lock()  # guards configuration swaps and the published result
+        self._apply(processing)
+        self._latest: Published | None = None
+        self._subscribers: list[Callable[[Published], None]] = []
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.processed = 0
+        self.skipped = 0
+        self._latencies: collections.deque[float] = collections.deque(maxlen=600)
+        self._times: collections.deque[float] = collections.deque(maxlen=60)
+
+    def _apply(self, processing: ProcessingConfig) -> None:
+        estimator = RangeEstimator(self.profile, pair=processing.pair, path_length_bounds=processing.path_length_bounds)
+        tracker = PatchTracker(processing.patch, self.profile) if processing.patch else None
+        with self._lock:
+            self.processing = processing
+            self.estimator = estimator
+            self.tracker = tracker
+
+    def reconfigure(self, processing: ProcessingConfig) -> None:
+        """Apply new processing settings from the next frame on (validated by the caller)."""
+        self._apply(processing)
+
+    def subscribe(self, callback: Callable[[Published], None]) -> None:
+        """``callback(published)`` from the processing thread; it must not block."""
+        self._subscribers.append(callback)
+
+    def unsubscribe(self, callback: Callable[[Published], None]) -> None:
+        if callback in self._subscribers:
+            self._subscribers.remove(callback)
+
+    @property
+    def latest(self) -> Published | None:
+        with self._lock:
+            return self._latest
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="frame-pipeline", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=10.0)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            frame = self.camera.get(timeout_s=0.25)
+            if frame is None:
+                continue
+            while (newer := self.camera.get(timeout_s=0.0)) is not None:
+                self.skipped += 1  # always the newest: the older frame is dropped
+                frame = newer
+            try:
+                self._process(frame)
+            except Exception:  # one bad frame must not stop the loop
+                log.exception("processing frame %s failed", frame.sequence)
+
+    def _process(self, frame: Frame) -> None:
+        with self._lock:
+            estimator, tracker, processing = self.estimator, self.tracker, self.processing
+        if tracker is not None and tracker.update(frame.data):
+            estimator.set_attenuation_differences(tracker.tracked)
+        result = estimator(frame.data)
+        if processing.smoothing != "none":
+            result = smooth_range_map(result, processing.smoothing)
+        now = time.monotonic_ns()
+        published = Published(self.processed + 1, frame, result, now, tuple(float(v) for v in (
+            tracker.tracked if tracker is not None else self.profile.array("attenuation_difference"))))
+        with self._lock:
+            self._latest = published
+        self.processed += 1
+        self._latencies.append(published.latency_s)
+        self._times.append(now / 1e9)
+        for callback in list(self._subscribers):
+            callback(published)
+
+    def stats(self) -> dict:
+        lat = np.array(self._latencies)
+        times = list(self._times)
+        fps = (len(times) - 1) / (times[-1] - times[0]) if len(times) > 1 and times[-1] > times[0] else 0.0
+        return {
+            "processed": self.processed,
+            "skipped_for_newer": self.skipped,
+            "fps": round(fps, 2),
+            "latency_ms": None if lat.size == 0 else {"p50": round(float(np.percentile(lat, 50)) * 1e3, 2),
+                                                      "p99": round(float(np.percentile(lat, 99)) * 1e3, 2)},
+            "patch": None if self.tracker is None else self.tracker.status(),
+        }
