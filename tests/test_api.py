@@ -201,3 +201,55 @@ def test_deploy_examples_are_valid(name, monkeypatch, capsys):
     monkeypatch.setenv("UWCAM_TOKEN", "from-the-environment")
     path = Path(__file__).resolve().parent.parent / "deploy" / name
     assert main(["config", "check", str(path)]) == 0, capsys.readouterr().err
+
+
+def test_calibration_profiles_upload_validate_activate(server):
+    import yaml
+
+    profiles = server.http.get("/api/v1/calibration/profiles").json()
+    active = [p for p in profiles if p["active"]]
+    assert len(active) == 1 and active[0]["channels"] == ["R", "G", "B"]
+    original = server.http.get(f"/api/v1/calibration/profiles/{active[0]['name']}").json()
+    corrupt = dict(original, channels=original["channels"][:1])
+    bad = server.http.put("/api/v1/calibration/profiles/broken", content=yaml.safe_dump(corrupt))
+    assert bad.status_code == 422 and "key 'channels': List should have at least 2 items" in bad.json()["detail"]
+    assert server.http.put("/api/v1/calibration/profiles/junk", content=b"\x00\xff: [").status_code == 422
+    assert server.http.get("/api/v1/status").json()["calibration"]["name"] == active[0]["name"]  # unchanged
+    tweaked = dict(original, name="second")
+    ok = server.http.put("/api/v1/calibration/profiles/second", content=yaml.safe_dump(tweaked))
+    assert ok.status_code == 200 and ok.json()["active"] is False
+    assert server.http.post("/api/v1/calibration/profiles/second/activate").json()["active"] is True
+    assert server.http.get("/api/v1/status").json()["calibration"]["name"] == "second"
+    assert server.http.post("/api/v1/calibration/profiles/nope/activate").status_code == 404
+    server.http.post(f"/api/v1/calibration/profiles/{active[0]['name']}/activate")
+
+
+def test_config_restore_and_pointcloud(server):
+    server.http.patch("/api/v1/config", json={"smoothing": "median"})
+    server.http.patch("/api/v1/config", json={"smoothing": "mean"})
+    assert server.http.post("/api/v1/config/restore").json()["smoothing"] == "median"
+    server.http.patch("/api/v1/config", json={"smoothing": "none"})
+    response = server.http.get("/api/v1/snapshot/pointcloud")
+    assert response.status_code == 200, response.text
+    ply = response.content
+    head, _, body = ply.partition(b"end_header\n")
+    count = int(head.split(b"element vertex ")[1].split(b"\n")[0])
+    points = np.frombuffer(body, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
+    assert count == len(points) > 0.9 * 160 * 120
+    assert np.median(points["z"]) == pytest.approx(2.0, abs=0.3)  # the seabed, square to the camera at 2 m
+
+
+@pytest.mark.slow
+def test_schemathesis_finds_no_server_errors():
+    """Property-based requests from the OpenAPI schema against the live server: no 500s."""
+    import shutil
+    import subprocess
+
+    st = shutil.which("st")
+    assert st, "schemathesis is part of the test dependencies"
+    with Server(small_config()) as s:
+        assert wait_for(lambda: s.daemon.pipeline.latest is not None, 30.0)
+        run = subprocess.run([st, "run", f"{s.url}/openapi.json", "--checks", "not_a_server_error", "-n", "30",
+                              "--generation-deterministic", "--request-timeout", "20"],
+                             capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stdout[-4000:]

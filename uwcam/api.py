@@ -19,6 +19,7 @@ import io
 import ipaddress
 import json
 import os
+import re
 import struct
 import time
 from contextlib import asynccontextmanager
@@ -35,9 +36,12 @@ from uwcam import __version__
 from uwcam.config import DaemonConfig, PatchConfig, ProcessingConfig
 from uwcam.daemon import Daemon
 from uwcam.fileio import UserInputError
+from uwcam.optics.geometry import pixel_rays
 from uwcam.pipeline import Published
 
 HEADER = struct.Struct("<4sIqqHHB3xf")
+MAX_PROFILE_BYTES = 1 << 20
+NAME = re.compile(r"[A-Za-z0-9._-]{1,64}")
 MAGIC = b"UWR1"
 FLOAT16_METRES, UINT16_MILLIMETRES = 1, 2
 
@@ -150,6 +154,32 @@ def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
         """Health of every device, frame counters, fps, latency, calibration and tracking, rangefinder, lamp."""
         return d.status()
 
+    # Registered before /snapshot/{kind}, which would otherwise match it first.
+    @app.get("/api/v1/snapshot/pointcloud", responses={200: {"content": {"application/octet-stream": {}}}})
+    def pointcloud(d: Daemon = Depends(get_daemon)) -> Response:
+        """The latest range map as a binary PLY point cloud (camera frame, metres; colour from the image)."""
+        published = latest(d)
+        profile = d.profiles[d.profile_name]
+        intr = profile.camera_intrinsics()
+        if intr is None:
+            raise HTTPException(status_code=409, detail="a point cloud needs camera intrinsics in the calibration profile")
+        r = published.result.range
+        rays = pixel_rays(intr, *r.shape)
+        ok = np.isfinite(r)
+        xyz = (r[ok, None] * rays[ok]).astype("<f4")
+        img = published.frame.data[ok][:, :3].astype(np.float64)
+        peak = float(img.max()) if img.size else 1.0  # a frame may have no valid pixel at all (lamp off)
+        rgb = np.clip(img / max(peak, 1.0) * 255.0, 0, 255).astype(np.uint8)
+        vertex = np.empty(len(xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+        vertex["x"], vertex["y"], vertex["z"] = xyz.T
+        vertex["red"], vertex["green"], vertex["blue"] = rgb.T
+        header = ("ply\nformat binary_little_endian 1.0\n"
+                  f"comment uwcam frame {published.number}\nelement vertex {len(vertex)}\n"
+                  "property float x\nproperty float y\nproperty float z\n"
+                  "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n").encode()
+        return Response(header + vertex.tobytes(), media_type="application/octet-stream",
+                        headers={"X-Frame-Number": str(published.number)})
+
     @app.get("/api/v1/snapshot/{kind}", responses={200: {"content": {"application/octet-stream": {}, "image/png": {},
                                                                       "image/tiff": {}}}})
     def snapshot(kind: Literal["range", "variance", "reasons", "image"],
@@ -201,6 +231,65 @@ def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
             raise HTTPException(status_code=422, detail=f"pair needs two different channels of {names}")
         d.pipeline.reconfigure(new)
         return new.model_dump(mode="json")
+
+    @app.post("/api/v1/config/restore", dependencies=[Depends(authorised)])
+    def restore_config(d: Daemon = Depends(get_daemon)) -> dict:
+        """Go back to the processing settings that were in force before the last change."""
+        try:
+            return d.pipeline.restore().model_dump(mode="json")
+        except ValueError as exc:
+            raise HTTPException(status_code=409, detail=str(exc)) from None
+
+    @app.get("/api/v1/calibration/profiles")
+    def list_profiles(d: Daemon = Depends(get_daemon)) -> list[dict]:
+        """Known calibration profiles; one is active."""
+        return [{"name": name, "active": name == d.profile_name, "created": p.provenance.created,
+                 "channels": p.channel_names, "method": p.provenance.method} for name, p in d.profiles.items()]
+
+    @app.get("/api/v1/calibration/profiles/{name}")
+    def get_profile(name: str, d: Daemon = Depends(get_daemon)) -> dict:
+        if name not in d.profiles:
+            raise HTTPException(status_code=404, detail=f"no profile '{name}'; known: {', '.join(d.profiles)}")
+        return d.profiles[name].model_dump(mode="json")
+
+    @app.put("/api/v1/calibration/profiles/{name}", dependencies=[Depends(authorised)], openapi_extra={
+        "requestBody": {"required": True, "content": {
+            "application/x-yaml": {"schema": {"type": "string"}},
+            "application/json": {"schema": {"type": "object", "description": "a uwcam calibration profile"}}}}})
+    async def upload_profile(name: str, request: Request, d: Daemon = Depends(get_daemon)) -> dict:
+        """Upload a profile (YAML or JSON body, at most 1 MiB). It is validated in full; a bad one
+        is refused with the reason and changes nothing. Uploading does not activate it."""
+        import yaml
+
+        from uwcam.profile import profile_from_mapping
+
+        if not NAME.fullmatch(name):
+            raise HTTPException(status_code=422, detail="profile names use letters, digits, '.', '_' and '-' (1–64)")
+        body = await request.body()
+        if len(body) > MAX_PROFILE_BYTES:
+            raise HTTPException(status_code=413, detail=f"profile larger than {MAX_PROFILE_BYTES} bytes")
+        try:
+            data = yaml.safe_load(body.decode("utf-8"))
+        except (UnicodeDecodeError, yaml.YAMLError) as exc:
+            raise HTTPException(status_code=422, detail=f"profile is not valid YAML or JSON: {exc}") from None
+        if not isinstance(data, dict):
+            raise HTTPException(status_code=422, detail="profile must be a mapping of keys to values")
+        try:
+            profile = profile_from_mapping(data, f"profile {name}")
+        except UserInputError as exc:
+            raise HTTPException(status_code=422, detail=str(exc)) from None
+        d.profiles[name] = profile
+        return {"name": name, "active": name == d.profile_name, "channels": profile.channel_names}
+
+    @app.post("/api/v1/calibration/profiles/{name}/activate", dependencies=[Depends(authorised)])
+    def activate_profile(name: str, d: Daemon = Depends(get_daemon)) -> dict:
+        if name not in d.profiles:
+            raise HTTPException(status_code=404, detail=f"no profile '{name}'; known: {', '.join(d.profiles)}")
+        try:
+            d.activate(name)
+        except UserInputError as exc:
+            raise HTTPException(status_code=422, detail=str(exc)) from None
+        return {"name": name, "active": True}
 
     @app.get("/api/v1/lamp")
     def get_lamp(d: Daemon = Depends(get_daemon)) -> dict:

@@ -8,7 +8,6 @@ a calibration profile the daemon calibrates in that simulated water at start (gr
 from __future__ import annotations
 
 import logging
-import os
 import time
 
 import numpy as np
@@ -74,6 +73,8 @@ class Daemon:
         self.rangefinder = None
         self.pipeline: FramePipeline | None = None
         self.profile_name = ""
+        self.profiles: dict[str, CalibrationProfile] = {}
+        """Calibration profiles known to the daemon by name; the active one is ``profile_name``."""
 
     def _options(self, name: str, options: dict) -> dict:
         if name in SIMULATED:
@@ -98,13 +99,13 @@ class Daemon:
                                                    **self._options(cfg.rangefinder.driver, cfg.rangefinder.options))
             if cfg.calibration is not None:
                 profile = load_profile(cfg.calibration)
-                self.profile_name = f"{profile.name} ({os.path.basename(cfg.calibration)})"
             elif self.rig is not None:
                 log.info("calibrating in the simulated water")
                 profile = simulated_calibration(self.rig)
-                self.profile_name = profile.name
             else:
                 raise UserInputError("no calibration profile configured")
+            self.profile_name = profile.name
+            self.profiles[profile.name] = profile
             processing = cfg.processing
             if processing.patch is None and self.rig is not None and self.rig.scene == "seabed-patch":
                 processing = processing.model_copy(update={"patch": simulated_patch(self.rig)})
@@ -139,6 +140,19 @@ class Daemon:
             self.lamp.close()
             self.lamp = None
 
+    def _created(self) -> str | None:
+        profile = self.profiles.get(self.profile_name)
+        return None if profile is None else profile.provenance.created
+
+    def activate(self, name: str) -> None:
+        profile = self.profiles[name]
+        active = self.profiles[self.profile_name]
+        if len(profile.channels) != len(active.channels):
+            raise UserInputError(f"profile {name} has {len(profile.channels)} channels but the camera delivers "
+                                 f"{len(active.channels)}; upload a profile made with this camera")
+        self.pipeline.set_profile(profile)
+        self.profile_name = name
+
     def status(self) -> dict:
         camera = self.camera.status() if self.camera else None
         rf = None
@@ -162,7 +176,7 @@ class Daemon:
                        "dropped": cam_stats.get("dropped", 0) + stats.get("skipped_for_newer", 0),
                        "fps": stats.get("fps", 0.0)},
             "latency_ms": stats.get("latency_ms"),
-            "calibration": {"name": self.profile_name, "tracking": stats.get("patch")},
+            "calibration": {"name": self.profile_name, "created": self._created(), "tracking": stats.get("patch")},
             "rangefinder": rf,
             "lamp": lamp,
         }

@@ -111,6 +111,7 @@ class FramePipeline:
         self.profile = profile
         self._lock = threading.Lock()  # guards configuration swaps and the published result
         self._apply(processing)
+        self.previous_processing: ProcessingConfig | None = None
         self._latest: Published | None = None
         self._subscribers: list[Callable[[Published], None]] = []
         self._stop = threading.Event()
@@ -129,8 +130,23 @@ class FramePipeline:
             self.tracker = tracker
 
     def reconfigure(self, processing: ProcessingConfig) -> None:
-        """Apply new processing settings from the next frame on (validated by the caller)."""
+        """Apply new processing settings from the next frame on (validated by the caller); the
+        settings they replace are kept for :meth:`restore`."""
+        previous = self.processing
         self._apply(processing)
+        self.previous_processing = previous
+
+    def restore(self) -> ProcessingConfig:
+        """Go back to the settings before the last change."""
+        if self.previous_processing is None:
+            raise ValueError("no earlier settings to restore")
+        self.reconfigure(self.previous_processing)
+        return self.processing
+
+    def set_profile(self, profile: CalibrationProfile) -> None:
+        """Range with another calibration from the next frame on."""
+        self.profile = profile
+        self._apply(self.processing)
 
     def subscribe(self, callback: Callable[[Published], None]) -> None:
         """``callback(published)`` from the processing thread; it must not block."""
