@@ -12,6 +12,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -173,6 +174,9 @@ class SimulatedCamera(CameraDriver):
             raise CorruptFrame("simulated damaged frame")
         mean, std = self.rig.expected()
         world = self.rig.world
+        # One numba thread (a per-thread setting): the simulated sensor stands in for hardware
+        # that costs the host nothing, and must not compete with the frame loop for cores.
+        numba.set_num_threads(1)
         data = world.camera.digitise(mean, std, world.seed, self._sequence)
         return Frame(
             data=data, sequence=self._sequence, host_monotonic_ns=time.monotonic_ns(), wall_time=time.time(),

@@ -37,7 +37,8 @@ def small_config(token=None) -> DaemonConfig:
 class Server:
     def __init__(self, config: DaemonConfig) -> None:
         self.app = create_app(config)
-        self.server = uvicorn.Server(uvicorn.Config(self.app, host="127.0.0.1", port=0, log_level="warning", lifespan="on"))
+        self.server = uvicorn.Server(uvicorn.Config(self.app, host="127.0.0.1", port=0, log_level="warning", lifespan="on",
+                                                    ws_per_message_deflate=False))
         self.thread = threading.Thread(target=self.server.run, name="uvicorn-test")
 
     def __enter__(self) -> "Server":

@@ -325,6 +325,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     import logging
+    import os
+
+    # Worker threads of numba's OpenMP layer sleep when idle instead of spinning: the camera,
+    # the frame loop and the server share few cores. Must be set before numba starts OpenMP.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
     import uvicorn
 
@@ -342,7 +347,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     print(f"uwcam {__version__}: {where}; API on http://{config.api.host}:{config.api.port}/docs", flush=True)
     # uvicorn handles SIGINT/SIGTERM: the lifespan then stops the loop, switches the lamp off
     # and releases the devices.
-    uvicorn.run(app, host=config.api.host, port=config.api.port, log_level="warning")
+    # No per-message deflate: zlib on every multi-megabyte range map cost a third of the CPU
+    # (measured with py-spy) and float maps barely compress.
+    uvicorn.run(app, host=config.api.host, port=config.api.port, log_level="warning", ws_per_message_deflate=False)
     return 0
 
 

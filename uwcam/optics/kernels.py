@@ -17,6 +17,8 @@ Why it is shaped like this:
 * An unusable channel has weight 0 and simply adds nothing, so the hot loop has no
   branches; channel states are read only for pixels left without a range, to name
   the reason.
+* Kernels release the GIL (nogil): the camera, the frame loop and the API server run in
+  threads of one process and must not stall each other.
 * Two module-level kernels rather than one taking fetch functions as arguments: numba's
   on-disk cache cannot reload kernels specialised on other compiled functions.
 * "Two usable channels of different attenuation" is a bit test: each distinct
@@ -104,7 +106,7 @@ def _invalid(i, j, reason, out_range, out_var, out_reason):
     out_reason[i, j] = reason
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def fuse_lookup(raw, table, states, c, bits, geo, bounds, out_range, out_var, out_reason):
     """Range, variance and reason of every pixel of an integer frame.
 
@@ -141,7 +143,7 @@ def fuse_lookup(raw, table, states, c, bits, geo, bounds, out_range, out_var, ou
                 _invalid(i, j, _no_range(n_usable, n_sat, n_back), out_range, out_var, out_reason)
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def fuse_arrays(y, weight, state, c, bits, geo, bounds, out_range, out_var, out_reason):
     """As :func:`fuse_lookup`, with y = ln E − b, weight = E²/σ² (0 where unusable) and the
     ChannelState given per pixel and channel, each (H, W, N): for float frames."""

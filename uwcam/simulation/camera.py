@@ -139,7 +139,7 @@ def _normal(bits32, table):
     return table[idx] + (frac - 0.5 / 65536.0) * (table[idx + 1] - table[idx])
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _digitise(mean, std, key, top, table, out):
     n = mean.shape[0]
     for p in prange((n + 1) // 2):

@@ -113,7 +113,7 @@ def _slab_source(ux, uy, uz, t, dt, lamp, lamp_r, beam_scale):
     return _beam(pz / ds, beam_scale) * (lamp_r / (ds + lamp_r)) ** 2 * dt, ds
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _slab_contributions(inv_f, centre, step, edges, lamp, lamp_r, beam_scale, intensity, c, g, beta, direct_out, forward_out):
     """Backscatter of each whole slab on a coarse pixel grid: (gh, gw, S, N) direct and
     forward-scattered parts. Pixel (gi·step, gj·step), clamped to the image, is the sample."""
@@ -145,7 +145,7 @@ def _bin_position(log_t, log_r_min, log_span, n_bins):
     return b0, x - b0
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _backscatter_column(rays, surface_range, step, log_edges, slab_direct, slab_forward, open_end_z, log_r_min,
                         log_span, direct_out, bins_out):
     """Per pixel: the coarse per-slab contributions, interpolated bilinearly to the pixel and
@@ -185,7 +185,7 @@ def _backscatter_column(rays, surface_range, step, log_edges, slab_direct, slab_
                         bins_out[b0 + 1, i, j, k] += share * fv * f
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _backscatter_gated(rays, surface_range, gate_width, steps, open_gate_end, lamp, lamp_r, beam_scale, intensity,
                        c, g, beta, log_r_min, log_span, direct_out, bins_out):
     """Range-gated backscatter: only [d − gate_width, d] in front of each pixel's surface (or of
@@ -214,7 +214,7 @@ def _backscatter_gated(rays, surface_range, gate_width, steps, open_gate_end, la
                         bins_out[b0 + 1, i, j, k] += fv * f
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _bin_surface(source, ranges, log_r_min, log_span, bins_out):
     """Split each pixel's forward-scattered surface light between the two nearest range bins."""
     h, w, n = source.shape
