@@ -78,7 +78,7 @@ def run(size, fps, seconds, sample_every_s=10.0):
                     break
                 except OSError:
                     if time.monotonic() > deadline or proc.poll() is not None:
-                        raise RuntimeError("uwcam run did not start")
+                        raise RuntimeError("uwcam run did not start") from None
                     time.sleep(0.2)
 
             def status():
