@@ -254,3 +254,23 @@ def test_schemathesis_finds_no_server_errors():
                               "--generation-deterministic", "--request-timeout", "20"],
                              capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stdout[-4000:]
+
+
+def test_rangefinder_fixes_reflectance_and_pauses_when_silent(server):
+    def reflectance():
+        return server.http.get("/api/v1/status").json()["calibration"]["reflectance"]
+
+    assert wait_for(lambda: reflectance()["state"] == "correcting", 20.0)
+    ratio = reflectance()["reflectance_ratio_to_target"]
+    # Grey seabed, grey plate: the same hue, so the ratio to the target is ~1 in every channel.
+    assert all(abs(v - 1.0) < 0.1 for v in ratio.values()), ratio
+    sonar = server.daemon.rangefinder.device
+    sonar.disconnect()
+    try:
+        assert wait_for(lambda: reflectance()["state"].startswith("paused"), 20.0)
+        assert "rangefinder" in reflectance()["state"] or "reading" in reflectance()["state"]
+        n = server.daemon.pipeline.processed
+        assert wait_for(lambda: server.daemon.pipeline.processed > n + 3)  # ranging goes on meanwhile
+    finally:
+        sonar.reconnect()
+    assert wait_for(lambda: reflectance()["state"] == "correcting", 20.0)

@@ -159,3 +159,34 @@ def test_bad_calibration_input_is_explained(kwargs, frames_, distances, message)
     data = {"one": f[:1], "two": f, "dark": [np.zeros_like(x) for x in f]}[frames_]
     with pytest.raises(UserInputError, match=message):
         calibrate(data, distances, inputs(**kwargs))
+
+
+def test_reflectance_corrector_recovers_a_surface_of_another_hue():
+    """A rangefinder reading at the footprint turns a wrong-hue range map into a right one (§8)."""
+    from types import SimpleNamespace
+
+    from uwcam.config import ReflectanceConfig
+    from uwcam.drivers.base import Frame, Health, HealthState
+    from uwcam.drivers.rangefinder import RangeReading
+    from uwcam.pipeline import ReflectanceCorrector
+
+    distances = [1.0, 2.0]
+    profile = calibrate(frames(distances), distances, inputs())
+    surface = np.array([0.5, 0.25, 0.2])  # redder than the plate
+    data, dc = plate_frame(1.7, RGB_ATTENUATION, CONSTANT, surface, SHAPE, LAMP, fov_deg=FOV)
+    h, w = SHAPE
+    centre = (w // 2 - 2, h // 2 - 2, 5, 5)
+    now = 10**12
+    reading = RangeReading(float(dc[h // 2, w // 2]), 0.97, now, 0.0)
+    rf = SimpleNamespace(health=Health(HealthState.OK, "reading"), latest=lambda: reading)
+    corrector = ReflectanceCorrector(ReflectanceConfig(footprint=centre), profile, rf)
+    frame = Frame(data=data, sequence=1, host_monotonic_ns=now, wall_time=0.0)
+    b = corrector.update(frame, profile.array("attenuation_difference"))
+    assert corrector.status()["state"] == "correcting"
+    channels = [c.model_copy(update={"log_constant": float(v)}) for c, v in zip(profile.channels, b)]
+    corrected = RangeEstimator(profile.model_copy(update={"channels": channels}))(data).range
+    wrong = RangeEstimator(profile)(data).range
+    assert np.nanmax(np.abs(corrected - dc)) < 0.01 < np.nanmean(np.abs(wrong - dc))
+    stale = Frame(data=data, sequence=2, host_monotonic_ns=now + 2 * 10**9, wall_time=0.0)
+    corrector.update(stale, profile.array("attenuation_difference"))
+    assert corrector.status()["state"].startswith("paused: reading 2.00 s from the frame")

@@ -57,6 +57,20 @@ class PatchConfig(Strict):
     """Estimates further than this (1/m) from the tracked value are rejected as outliers."""
 
 
+class ReflectanceConfig(Strict):
+    """Surface reflectance from the rangefinder (DESIGN.md §8): where its beam meets the scene in
+    the image, and how fresh a reading must be to use it."""
+
+    footprint: tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0)], Annotated[int, Field(gt=0)], Annotated[int, Field(gt=0)]]
+    """x, y, width, height in pixels of the rangefinder's footprint."""
+    max_age_s: Annotated[float, Field(gt=0)] = 0.5
+    """Readings further than this from the frame's capture time are not used."""
+    smoothing: Annotated[float, Field(gt=0, le=1)] = 0.2
+    """EMA weight of each new estimate of the surface's log constants."""
+    tolerance: Annotated[float, Field(gt=0)] = 0.002
+    """Change in log constants (natural-log units) below which the estimator is not rebuilt."""
+
+
 class ProcessingConfig(Strict):
     pair: tuple[str, str] | None = None
     """Two channel names for single-pair ranging; None fuses all channels."""
@@ -64,6 +78,8 @@ class ProcessingConfig(Strict):
     """3×3 smoothing of the range map."""
     path_length_bounds: tuple[Annotated[float, Field(ge=0)], Annotated[float, Field(gt=0)]] = (0.0, 100.0)
     patch: PatchConfig | None = None
+    reflectance: ReflectanceConfig | None = None
+    """Correct for the surface's hue with the rangefinder; None: assume the calibration target's hue."""
 
     @model_validator(mode="after")
     def _bounds(self) -> "ProcessingConfig":

@@ -13,7 +13,7 @@ import time
 import numpy as np
 
 from uwcam.calibration import CalibrationInputs, calibrate, project_plate_box
-from uwcam.config import DaemonConfig, PatchConfig
+from uwcam.config import DaemonConfig, PatchConfig, ReflectanceConfig
 from uwcam.drivers import registry
 from uwcam.drivers.base import CameraSettings
 from uwcam.drivers.sim import SimulatedRig
@@ -109,6 +109,12 @@ class Daemon:
             processing = cfg.processing
             if processing.patch is None and self.rig is not None and self.rig.scene == "seabed-patch":
                 processing = processing.model_copy(update={"patch": simulated_patch(self.rig)})
+            if processing.reflectance is None and self.rig is not None and cfg.rangefinder is not None \
+                    and cfg.rangefinder.driver in SIMULATED:
+                # The simulated sonar looks along the optical axis: its footprint is the image centre.
+                w, h = self.rig.size
+                processing = processing.model_copy(update={"reflectance": ReflectanceConfig(
+                    footprint=(w // 2 - 4, h // 2 - 4, 9, 9))})
             settings = CameraSettings(**cfg.camera.settings.model_dump())
             self.camera = SupervisedCamera(driver, settings, queue_size=cfg.camera.queue_size, watchdog_s=cfg.camera.watchdog_s)
             if self.lamp is not None:
@@ -117,7 +123,7 @@ class Daemon:
             self.camera.start()
             if self.rangefinder is not None:
                 self.rangefinder.start()
-            self.pipeline = FramePipeline(self.camera, profile, processing)
+            self.pipeline = FramePipeline(self.camera, profile, processing, self.rangefinder)
             self.pipeline.start()
         except BaseException:
             self.stop()
@@ -176,7 +182,8 @@ class Daemon:
                        "dropped": cam_stats.get("dropped", 0) + stats.get("skipped_for_newer", 0),
                        "fps": stats.get("fps", 0.0)},
             "latency_ms": stats.get("latency_ms"),
-            "calibration": {"name": self.profile_name, "created": self._created(), "tracking": stats.get("patch")},
+            "calibration": {"name": self.profile_name, "created": self._created(), "tracking": stats.get("patch"),
+                            "reflectance": stats.get("reflectance")},
             "rangefinder": rf,
             "lamp": lamp,
         }

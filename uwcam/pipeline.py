@@ -19,9 +19,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from uwcam.config import PatchConfig, ProcessingConfig
+from uwcam.config import PatchConfig, ProcessingConfig, ReflectanceConfig
 from uwcam.drivers.base import Frame
 from uwcam.drivers.supervisor import SupervisedCamera
+from uwcam.optics.geometry import path_length_from_camera_range, pixel_rays
+from uwcam.optics.reflectance import surface_log_constant
 from uwcam.profile import CalibrationProfile
 from uwcam.ranging import RangeEstimator, RangeResult, smooth_range_map
 
@@ -103,12 +105,68 @@ class PatchTracker:
         }
 
 
+@dataclass
+class ReflectanceCorrector:
+    """Surface log constants b_k from rangefinder readings at the beam's footprint (DESIGN.md §8).
+
+    A reading is used only if it is fresh relative to the frame's capture time and the
+    rangefinder is healthy; otherwise the correction pauses (the last estimate stays in use)
+    and :meth:`status` says why.
+    """
+
+    config: ReflectanceConfig
+    profile: CalibrationProfile
+    rangefinder: object
+    log_constant: NDArray[np.float64] | None = None
+    used: int = 0
+    state: str = "no reading yet"
+
+    def update(self, frame: Frame, attenuation_differences: NDArray) -> NDArray[np.float64] | None:
+        rf = self.rangefinder
+        health = rf.health
+        reading = rf.latest()
+        if health.state.value != "ok":
+            self.state = f"paused: rangefinder {health.state.value} ({health.reason})"
+            return self.log_constant
+        if reading is None:
+            self.state = "paused: no valid reading yet"
+            return self.log_constant
+        skew = abs(reading.monotonic_ns - frame.host_monotonic_ns) / 1e9
+        if skew > self.config.max_age_s:
+            self.state = f"paused: reading {skew:.2f} s from the frame (limit {self.config.max_age_s:g} s)"
+            return self.log_constant
+        x, y, w, h = self.config.footprint
+        pixels = frame.data[y : y + h, x : x + w].reshape(-1, frame.data.shape[-1]).astype(np.float64)
+        e = pixels - self.profile.array("dark_level")
+        ok = np.all((e > self.profile.array("noise_floor")) & (pixels < self.profile.saturation_level), axis=1)
+        if ok.sum() < max(4, pixels.shape[0] // 4):
+            self.state = "paused: footprint too dark or saturated"
+            return self.log_constant
+        intr = self.profile.camera_intrinsics()
+        rays = pixel_rays(intr, *frame.data.shape[:2])[y : y + h, x : x + w].reshape(-1, 3)[ok] if intr else None
+        path = path_length_from_camera_range(np.full(int(ok.sum()), reading.range_m), self.profile.lamp_position_m, rays)
+        estimate = surface_log_constant(e[ok], path, attenuation_differences, self.profile.reference_index)
+        a = 1.0 if self.log_constant is None else self.config.smoothing
+        self.log_constant = estimate if self.log_constant is None else (1 - a) * self.log_constant + a * estimate
+        self.used += 1
+        self.state = "correcting"
+        return self.log_constant
+
+    def status(self) -> dict:
+        names = self.profile.channel_names
+        target = self.profile.array("log_constant")
+        ratio = None if self.log_constant is None else dict(zip(names, map(float, np.exp(self.log_constant - target))))
+        return {"state": self.state, "readings_used": self.used, "reflectance_ratio_to_target": ratio}
+
+
 class FramePipeline:
     """Processes frames from a supervised camera in one thread and publishes the results."""
 
-    def __init__(self, camera: SupervisedCamera, profile: CalibrationProfile, processing: ProcessingConfig) -> None:
+    def __init__(self, camera: SupervisedCamera, profile: CalibrationProfile, processing: ProcessingConfig,
+                 rangefinder: object | None = None) -> None:
         self.camera = camera
         self.profile = profile
+        self.rangefinder = rangefinder
         self._lock = threading.Lock()  # guards configuration swaps and the published result
         self._apply(processing)
         self.previous_processing: ProcessingConfig | None = None
@@ -121,13 +179,26 @@ class FramePipeline:
         self._latencies: collections.deque[float] = collections.deque(maxlen=600)
         self._times: collections.deque[float] = collections.deque(maxlen=60)
 
+    def _estimator(self, processing: ProcessingConfig, log_constant: NDArray | None = None) -> RangeEstimator:
+        profile = self.profile
+        if log_constant is not None:
+            channels = [c.model_copy(update={"log_constant": float(b)}) for c, b in zip(profile.channels, log_constant)]
+            profile = profile.model_copy(update={"channels": channels})
+        return RangeEstimator(profile, pair=processing.pair, path_length_bounds=processing.path_length_bounds)
+
     def _apply(self, processing: ProcessingConfig) -> None:
-        estimator = RangeEstimator(self.profile, pair=processing.pair, path_length_bounds=processing.path_length_bounds)
+        if processing.reflectance is not None and self.rangefinder is None:
+            raise ValueError("reflectance correction needs a rangefinder in the configuration")
+        estimator = self._estimator(processing)
         tracker = PatchTracker(processing.patch, self.profile) if processing.patch else None
+        corrector = (ReflectanceCorrector(processing.reflectance, self.profile, self.rangefinder)
+                     if processing.reflectance else None)
         with self._lock:
             self.processing = processing
             self.estimator = estimator
             self.tracker = tracker
+            self.corrector = corrector
+            self._estimator_log_constant = self.profile.array("log_constant")
 
     def reconfigure(self, processing: ProcessingConfig) -> None:
         """Apply new processing settings from the next frame on (validated by the caller); the
@@ -185,9 +256,19 @@ class FramePipeline:
 
     def _process(self, frame: Frame) -> None:
         with self._lock:
-            estimator, tracker, processing = self.estimator, self.tracker, self.processing
+            estimator, tracker, processing, corrector = self.estimator, self.tracker, self.processing, self.corrector
         if tracker is not None and tracker.update(frame.data):
             estimator.set_attenuation_differences(tracker.tracked)
+        if corrector is not None:
+            v = tracker.tracked if tracker is not None else self.profile.array("attenuation_difference")
+            b = corrector.update(frame, v)
+            if b is not None and np.max(np.abs(b - self._estimator_log_constant)) > processing.reflectance.tolerance:
+                # Lookup tables depend on b: rebuild (a few ms), keeping the tracked attenuation.
+                estimator = self._estimator(processing, b)
+                if tracker is not None:
+                    estimator.set_attenuation_differences(tracker.tracked)
+                with self._lock:
+                    self.estimator, self._estimator_log_constant = estimator, b
         result = estimator(frame.data)
         if processing.smoothing != "none":
             result = smooth_range_map(result, processing.smoothing)
@@ -213,4 +294,5 @@ class FramePipeline:
             "latency_ms": None if lat.size == 0 else {"p50": round(float(np.percentile(lat, 50)) * 1e3, 2),
                                                       "p99": round(float(np.percentile(lat, 99)) * 1e3, 2)},
             "patch": None if self.tracker is None else self.tracker.status(),
+            "reflectance": None if self.corrector is None else self.corrector.status(),
         }
