@@ -274,3 +274,29 @@ def test_rangefinder_fixes_reflectance_and_pauses_when_silent(server):
     finally:
         sonar.reconnect()
     assert wait_for(lambda: reflectance()["state"] == "correcting", 20.0)
+
+
+def test_uploaded_profiles_persist_in_the_profiles_folder(tmp_path):
+    import yaml
+
+    config = small_config()
+    config.profiles_dir = str(tmp_path / "profiles")
+    with Server(config) as s:
+        active = next(p for p in s.http.get("/api/v1/calibration/profiles").json() if p["active"])
+        body = s.http.get(f"/api/v1/calibration/profiles/{active['name']}").json()
+        assert s.http.put("/api/v1/calibration/profiles/tank-2026", content=yaml.safe_dump(body)).status_code == 200
+    saved = tmp_path / "profiles" / "tank-2026.yaml"
+    assert saved.exists()
+    (tmp_path / "profiles" / "broken.yaml").write_text("format: nonsense\n")
+    with Server(config) as s:  # a restart finds it again; the broken file is skipped, not fatal
+        names = [p["name"] for p in s.http.get("/api/v1/calibration/profiles").json()]
+        assert "tank-2026" in names and "broken" not in names
+
+
+def test_smoothing_before_the_transform(server):
+    assert server.http.patch("/api/v1/config", json={"smoothing": "mean", "smoothing_stage": "before"}).status_code == 200
+    n = server.daemon.pipeline.processed
+    assert wait_for(lambda: server.daemon.pipeline.processed > n + 2)
+    r = np.load(io.BytesIO(server.http.get("/api/v1/snapshot/range").content))
+    assert np.isfinite(r).mean() > 0.9
+    server.http.patch("/api/v1/config", json={"smoothing": "none", "smoothing_stage": "after"})

@@ -80,6 +80,7 @@ class ProcessingPatch(BaseModel):
     fuse: bool | None = None
     """true: fuse all channels (clears pair)."""
     smoothing: Literal["none", "mean", "median"] | None = None
+    smoothing_stage: Literal["after", "before"] | None = None
     path_length_bounds: tuple[float, float] | None = None
     patch: PatchConfig | None = None
 
@@ -278,7 +279,7 @@ def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
             profile = profile_from_mapping(data, f"profile {name}")
         except UserInputError as exc:
             raise HTTPException(status_code=422, detail=str(exc)) from None
-        d.profiles[name] = profile
+        d.save_profile(name, profile)
         return {"name": name, "active": name == d.profile_name, "channels": profile.channel_names}
 
     @app.post("/api/v1/calibration/profiles/{name}/activate", dependencies=[Depends(authorised)])

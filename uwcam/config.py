@@ -75,7 +75,9 @@ class ProcessingConfig(Strict):
     pair: tuple[str, str] | None = None
     """Two channel names for single-pair ranging; None fuses all channels."""
     smoothing: Literal["none", "mean", "median"] = "none"
-    """3×3 smoothing of the range map."""
+    """3×3 smoothing."""
+    smoothing_stage: Literal["after", "before"] = "after"
+    """Smooth the range map (after; keeps edges of invalid areas) or the image (before the transform)."""
     path_length_bounds: tuple[Annotated[float, Field(ge=0)], Annotated[float, Field(gt=0)]] = (0.0, 100.0)
     patch: PatchConfig | None = None
     reflectance: ReflectanceConfig | None = None
@@ -105,6 +107,8 @@ class DaemonConfig(Strict):
     rangefinder: DeviceConfig | None = None
     calibration: str | None = None
     """Path of the calibration profile; None only with the simulated camera (calibrated at start)."""
+    profiles_dir: str | None = None
+    """Folder of calibration profiles (*.yaml): loaded at start, and where uploads are saved."""
     simulation: dict[str, Any] = {}
     """Options of the shared simulated rig (scene, distance, size, water, lamp_offset...) when devices are simulated."""
     processing: ProcessingConfig = ProcessingConfig()

@@ -7,7 +7,9 @@ a calibration profile the daemon calibrates in that simulated water at start (gr
 
 from __future__ import annotations
 
+import glob
 import logging
+import os
 import time
 
 import numpy as np
@@ -20,7 +22,7 @@ from uwcam.drivers.sim import SimulatedRig
 from uwcam.drivers.supervisor import SupervisedCamera
 from uwcam.fileio import UserInputError
 from uwcam.pipeline import FramePipeline
-from uwcam.profile import CalibrationProfile, load_profile
+from uwcam.profile import CalibrationProfile, load_profile, save_profile
 from uwcam.rig import builtin_rig_path, load_rig
 from uwcam.simulation import Lamp, SimulatedWorld, water_preset
 from uwcam.simulation.camera import CameraModel
@@ -105,6 +107,7 @@ class Daemon:
             else:
                 raise UserInputError("no calibration profile configured")
             self.profile_name = profile.name
+            self._load_profiles_dir()
             self.profiles[profile.name] = profile
             processing = cfg.processing
             if processing.patch is None and self.rig is not None and self.rig.scene == "seabed-patch":
@@ -145,6 +148,23 @@ class Daemon:
                 log.error("could not switch the lamp off: %s", exc)
             self.lamp.close()
             self.lamp = None
+
+    def _load_profiles_dir(self) -> None:
+        folder = self.config.profiles_dir
+        if folder is None:
+            return
+        os.makedirs(folder, exist_ok=True)
+        for path in sorted(glob.glob(os.path.join(folder, "*.yaml"))):
+            try:
+                self.profiles[os.path.splitext(os.path.basename(path))[0]] = load_profile(path)
+            except UserInputError as exc:  # one bad file must not stop the vehicle's camera
+                log.warning("skipping calibration profile: %s", exc)
+
+    def save_profile(self, name: str, profile: CalibrationProfile) -> None:
+        """Keep a profile by name; with a profiles folder, also write it there atomically."""
+        if self.config.profiles_dir is not None:
+            save_profile(profile, os.path.join(self.config.profiles_dir, f"{name}.yaml"))
+        self.profiles[name] = profile
 
     def _created(self) -> str | None:
         profile = self.profiles.get(self.profile_name)

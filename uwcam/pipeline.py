@@ -16,6 +16,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -269,8 +270,11 @@ class FramePipeline:
                     estimator.set_attenuation_differences(tracker.tracked)
                 with self._lock:
                     self.estimator, self._estimator_log_constant = estimator, b
-        result = estimator(frame.data)
-        if processing.smoothing != "none":
+        data = frame.data
+        if processing.smoothing != "none" and processing.smoothing_stage == "before":
+            data = cv2.blur(data, (3, 3)) if processing.smoothing == "mean" else cv2.medianBlur(data, 3)
+        result = estimator(data)
+        if processing.smoothing != "none" and processing.smoothing_stage == "after":
             result = smooth_range_map(result, processing.smoothing)
         now = time.monotonic_ns()
         published = Published(self.processed + 1, frame, result, now, tuple(float(v) for v in (
