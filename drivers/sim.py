@@ -27,7 +27,7 @@ from uwcam.drivers.base import (
     Frame,
     FrameTimeout,
 )
-from uwcam.simulation import CameraModel, Lamp, SimulatedWorld, water_preset
+from uwcam.simulation import Ambient, CameraModel, Lamp, SimulatedWorld, water_preset
 
 
 @dataclass
@@ -43,6 +43,8 @@ class SimulatedRig:
     seed: int = 0
     material: str | None = None
     """One material for every surface (e.g. "grey", the calibration plate's hue); None: each its own."""
+    ambient: tuple[float, ...] | None = None
+    """Daylight from above per channel (relative to the lamp), present whether the lamp is on or not."""
     lamp_on: bool = True
     lamp_intensity: float = 1.0
     """0–1, set by the simulated lamp."""
@@ -59,6 +61,7 @@ class SimulatedRig:
                     scene=self.scene, distance=self.distance, size=self.size,
                     water=water_preset(self.water, list(wl)), lamp=Lamp(position=self.lamp_offset),
                     camera=CameraModel(bits=self.bits), seed=self.seed, material=self.material,
+                    ambient=None if self.ambient is None else Ambient(tuple(self.ambient)),
                 )
             return self._world
 

@@ -300,3 +300,29 @@ def test_smoothing_before_the_transform(server):
     r = np.load(io.BytesIO(server.http.get("/api/v1/snapshot/range").content))
     assert np.isfinite(r).mean() > 0.9
     server.http.patch("/api/v1/config", json={"smoothing": "none", "smoothing_stage": "after"})
+
+
+def test_lamp_off_frames_remove_daylight():
+    """With strong daylight, subtracting a lamp-off frame every few frames restores the range."""
+    def errors(interval):
+        config = small_config()
+        # No patch in view and no rangefinder: patch tracking and reflectance correction would
+        # absorb daylight bias at their own ranges only, and hide the effect being tested.
+        config.simulation["scene"] = "seabed"
+        config.rangefinder = None
+        config.simulation["ambient"] = [1e-6, 6e-5, 1.2e-4]  # daylight at depth: the red long gone
+        config.processing.lamp_off_interval = interval
+        with Server(config) as s:
+            truth = s.daemon.rig.world.camera_range
+            assert wait_for(lambda: s.daemon.pipeline.processed > 8, 30.0)
+            if interval:
+                assert wait_for(lambda: s.daemon.pipeline.stats()["ambient_frames"] >= 2, 20.0)
+                assert s.daemon.rig.lamp_on  # back on after each dark frame
+                latest = s.daemon.pipeline.latest
+                assert latest.frame.lamp_on is True  # dark frames are not published as ranges
+            r = np.load(io.BytesIO(s.http.get("/api/v1/snapshot/range").content))
+            return np.nanmedian(np.abs(r - truth))
+
+    plain, corrected = errors(0), errors(4)
+    print(f"daylight: median |error| {plain:.3f} m plain, {corrected:.3f} m with lamp-off frames")
+    assert corrected < 0.5 * plain and corrected < 0.2, (plain, corrected)

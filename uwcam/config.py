@@ -80,6 +80,9 @@ class ProcessingConfig(Strict):
     """Smooth the range map (after; keeps edges of invalid areas) or the image (before the transform)."""
     path_length_bounds: tuple[Annotated[float, Field(ge=0)], Annotated[float, Field(gt=0)]] = (0.0, 100.0)
     patch: PatchConfig | None = None
+    lamp_off_interval: Annotated[int, Field(ge=0)] = 0
+    """Every this many frames, take one with the lamp off and subtract it (daylight, dark level)
+    from the lamp-lit frames that follow; 0: never."""
     reflectance: ReflectanceConfig | None = None
     """Correct for the surface's hue with the rangefinder; None: assume the calibration target's hue."""
 

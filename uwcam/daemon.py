@@ -82,7 +82,7 @@ class Daemon:
         if name in SIMULATED:
             if self.rig is None:
                 sim = dict(self.config.simulation)
-                for key in ("size", "lamp_offset"):
+                for key in ("size", "lamp_offset", "ambient"):
                     if key in sim:
                         sim[key] = tuple(sim[key])
                 self.rig = SimulatedRig(**sim)
@@ -126,7 +126,7 @@ class Daemon:
             self.camera.start()
             if self.rangefinder is not None:
                 self.rangefinder.start()
-            self.pipeline = FramePipeline(self.camera, profile, processing, self.rangefinder)
+            self.pipeline = FramePipeline(self.camera, profile, processing, self.rangefinder, self.lamp)
             self.pipeline.start()
         except BaseException:
             self.stop()

@@ -67,7 +67,8 @@ class PatchTracker:
         self.floor = self.profile.array("noise_floor")
         self.ref = self.profile.reference_index
 
-    def update(self, data: NDArray) -> bool:
+    def update(self, data: NDArray, background: NDArray | None = None) -> bool:
+        """background: light (DN) not from the lamp, e.g. the ambient frame, subtracted first."""
         x, y, w, h = self.config.region
         patch = data[y : y + h, x : x + w]
         if patch.size == 0:
@@ -79,6 +80,8 @@ class PatchTracker:
             self.rejected += 1
             return False
         e = patch.reshape(-1, patch.shape[-1]).astype(np.float64).mean(axis=0) - self.dark
+        if background is not None:
+            e = e - background[y : y + h, x : x + w].reshape(-1, patch.shape[-1]).mean(axis=0)
         if np.any(e <= np.maximum(self.floor, 0.0)) or np.any(e <= 0):
             self.last_reason = "patch below the noise floor (occluded or lamp off?)"
             self.rejected += 1
@@ -122,7 +125,8 @@ class ReflectanceCorrector:
     used: int = 0
     state: str = "no reading yet"
 
-    def update(self, frame: Frame, attenuation_differences: NDArray) -> NDArray[np.float64] | None:
+    def update(self, frame: Frame, attenuation_differences: NDArray, background: NDArray | None = None) -> NDArray[np.float64] | None:
+        """background: light (DN) not from the lamp, e.g. the ambient frame, subtracted first."""
         rf = self.rangefinder
         health = rf.health
         reading = rf.latest()
@@ -139,6 +143,8 @@ class ReflectanceCorrector:
         x, y, w, h = self.config.footprint
         pixels = frame.data[y : y + h, x : x + w].reshape(-1, frame.data.shape[-1]).astype(np.float64)
         e = pixels - self.profile.array("dark_level")
+        if background is not None:
+            e = e - background[y : y + h, x : x + w].reshape(-1, frame.data.shape[-1])
         ok = np.all((e > self.profile.array("noise_floor")) & (pixels < self.profile.saturation_level), axis=1)
         if ok.sum() < max(4, pixels.shape[0] // 4):
             self.state = "paused: footprint too dark or saturated"
@@ -164,10 +170,16 @@ class FramePipeline:
     """Processes frames from a supervised camera in one thread and publishes the results."""
 
     def __init__(self, camera: SupervisedCamera, profile: CalibrationProfile, processing: ProcessingConfig,
-                 rangefinder: object | None = None) -> None:
+                 rangefinder: object | None = None, lamp: object | None = None) -> None:
         self.camera = camera
         self.profile = profile
         self.rangefinder = rangefinder
+        self.lamp = lamp
+        # Lamp-off frames for ambient subtraction (processing thread only).
+        self._ambient: NDArray[np.float32] | None = None
+        self._ambient_frames = 0
+        self._lit_since_dark = 0
+        self._lamp_off_since_ns: int | None = None
         self._lock = threading.Lock()  # guards configuration swaps and the published result
         self._apply(processing)
         self.previous_processing: ProcessingConfig | None = None
@@ -190,6 +202,8 @@ class FramePipeline:
     def _apply(self, processing: ProcessingConfig) -> None:
         if processing.reflectance is not None and self.rangefinder is None:
             raise ValueError("reflectance correction needs a rangefinder in the configuration")
+        if processing.lamp_off_interval and self.lamp is None:
+            raise ValueError("lamp_off_interval needs a lamp in the configuration")
         estimator = self._estimator(processing)
         tracker = PatchTracker(processing.patch, self.profile) if processing.patch else None
         corrector = (ReflectanceCorrector(processing.reflectance, self.profile, self.rangefinder)
@@ -255,14 +269,51 @@ class FramePipeline:
             except Exception:  # one bad frame must not stop the loop
                 log.exception("processing frame %s failed", frame.sequence)
 
+    def _dark_frame_due(self, frame: Frame, interval: int) -> bool:
+        """Run the lamp-off cycle; True if ``frame`` was taken as the ambient frame (not ranged)."""
+        if self._lamp_off_since_ns is not None:
+            dark = frame.lamp_on is False if frame.lamp_on is not None else frame.host_monotonic_ns > self._lamp_off_since_ns
+            if not dark:
+                return False  # captured before the lamp went off: an ordinary frame
+            # Daylight varies smoothly across the image and slowly in time: a 5×5 box and an
+            # average over dark frames keep the subtraction from adding a frame's worth of noise.
+            level = cv2.blur(frame.data.astype(np.float32), (5, 5)) - self.profile.array("dark_level").astype(np.float32)
+            level = level.clip(0)
+            if self._ambient is None:
+                # Estimates so far included daylight: start tracking afresh on corrected light,
+                # or the outlier test would hold on to the biased values.
+                self._ambient = level
+                with self._lock:
+                    if self.tracker is not None:
+                        self.tracker.accepted = 0
+                    if self.corrector is not None:
+                        self.corrector.log_constant = None
+            else:
+                self._ambient = 0.5 * (self._ambient + level)
+            self._ambient_frames += 1
+            self._lamp_off_since_ns = None
+            self._lit_since_dark = 0
+            self.lamp.on()
+            return True
+        if frame.lamp_on is False:
+            return True  # the lamp is off for another reason: nothing to range against
+        self._lit_since_dark += 1
+        if self._lit_since_dark >= interval:
+            self.lamp.off()
+            self._lamp_off_since_ns = time.monotonic_ns()
+        return False
+
     def _process(self, frame: Frame) -> None:
         with self._lock:
             estimator, tracker, processing, corrector = self.estimator, self.tracker, self.processing, self.corrector
-        if tracker is not None and tracker.update(frame.data):
+        if processing.lamp_off_interval and self._dark_frame_due(frame, processing.lamp_off_interval):
+            return
+        ambient = self._ambient if processing.lamp_off_interval else None
+        if tracker is not None and tracker.update(frame.data, ambient):
             estimator.set_attenuation_differences(tracker.tracked)
         if corrector is not None:
             v = tracker.tracked if tracker is not None else self.profile.array("attenuation_difference")
-            b = corrector.update(frame, v)
+            b = corrector.update(frame, v, ambient)
             if b is not None and np.max(np.abs(b - self._estimator_log_constant)) > processing.reflectance.tolerance:
                 # Lookup tables depend on b: rebuild (a few ms), keeping the tracked attenuation.
                 estimator = self._estimator(processing, b)
@@ -273,7 +324,7 @@ class FramePipeline:
         data = frame.data
         if processing.smoothing != "none" and processing.smoothing_stage == "before":
             data = cv2.blur(data, (3, 3)) if processing.smoothing == "mean" else cv2.medianBlur(data, 3)
-        result = estimator(data)
+        result = estimator(data, background=ambient)
         if processing.smoothing != "none" and processing.smoothing_stage == "after":
             result = smooth_range_map(result, processing.smoothing)
         now = time.monotonic_ns()
@@ -299,4 +350,5 @@ class FramePipeline:
                                                       "p99": round(float(np.percentile(lat, 99)) * 1e3, 2)},
             "patch": None if self.tracker is None else self.tracker.status(),
             "reflectance": None if self.corrector is None else self.corrector.status(),
+            "ambient_frames": self._ambient_frames,
         }
