@@ -106,7 +106,7 @@ def main() -> None:
     mem_fast_reuse = peak_extra_bytes(lambda: estimator(frame, out=out))
     mem_fast_fresh = peak_extra_bytes(lambda: estimator(frame))
     mem_numpy = peak_extra_bytes(lambda: numpy_version(profile, frame))
-    tables = sum(a.nbytes for pair in estimator._tables.values() for a in pair)
+    tables = sum(t.nbytes + s.nbytes for t, s, _ in estimator._tables.values())
 
     nbytes = frame.nbytes + out.range.nbytes + out.variance.nbytes + out.reasons.nbytes
     print(f"frame {w}x{h}x3 uint16, numba threads {numba.get_num_threads()}; bytes read+written {nbytes / 1e6:.1f} MB; {os.cpu_count()} CPUs; best of {args.repeat}")

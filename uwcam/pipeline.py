@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 from uwcam.config import PatchConfig, ProcessingConfig, ReflectanceConfig
 from uwcam.drivers.base import Frame
 from uwcam.drivers.supervisor import SupervisedCamera
-from uwcam.optics.geometry import path_length_from_camera_range, pixel_rays
+from uwcam.optics.geometry import Intrinsics, path_length_from_camera_range, pixel_rays
 from uwcam.optics.reflectance import surface_log_constant
 from uwcam.profile import CalibrationProfile
 from uwcam.ranging import RangeEstimator, RangeResult, smooth_range_map
@@ -150,7 +150,10 @@ class ReflectanceCorrector:
             self.state = "paused: footprint too dark or saturated"
             return self.log_constant
         intr = self.profile.camera_intrinsics()
-        rays = pixel_rays(intr, *frame.data.shape[:2])[y : y + h, x : x + w].reshape(-1, 3)[ok] if intr else None
+        rays = None
+        if intr is not None:  # rays of the footprint only: the principal point shifted into it
+            window = Intrinsics(intr.fx, intr.fy, intr.cx - x, intr.cy - y)
+            rays = pixel_rays(window, pixels.shape[0] // w, w).reshape(-1, 3)[ok]
         path = path_length_from_camera_range(np.full(int(ok.sum()), reading.range_m), self.profile.lamp_position_m, rays)
         estimate = surface_log_constant(e[ok], path, attenuation_differences, self.profile.reference_index)
         a = 1.0 if self.log_constant is None else self.config.smoothing
@@ -192,12 +195,8 @@ class FramePipeline:
         self._latencies: collections.deque[float] = collections.deque(maxlen=600)
         self._times: collections.deque[float] = collections.deque(maxlen=60)
 
-    def _estimator(self, processing: ProcessingConfig, log_constant: NDArray | None = None) -> RangeEstimator:
-        profile = self.profile
-        if log_constant is not None:
-            channels = [c.model_copy(update={"log_constant": float(b)}) for c, b in zip(profile.channels, log_constant)]
-            profile = profile.model_copy(update={"channels": channels})
-        return RangeEstimator(profile, pair=processing.pair, path_length_bounds=processing.path_length_bounds)
+    def _estimator(self, processing: ProcessingConfig) -> RangeEstimator:
+        return RangeEstimator(self.profile, pair=processing.pair, path_length_bounds=processing.path_length_bounds)
 
     def _apply(self, processing: ProcessingConfig) -> None:
         if processing.reflectance is not None and self.rangefinder is None:
@@ -315,12 +314,8 @@ class FramePipeline:
             v = tracker.tracked if tracker is not None else self.profile.array("attenuation_difference")
             b = corrector.update(frame, v, ambient)
             if b is not None and np.max(np.abs(b - self._estimator_log_constant)) > processing.reflectance.tolerance:
-                # Lookup tables depend on b: rebuild (a few ms), keeping the tracked attenuation.
-                estimator = self._estimator(processing, b)
-                if tracker is not None:
-                    estimator.set_attenuation_differences(tracker.tracked)
-                with self._lock:
-                    self.estimator, self._estimator_log_constant = estimator, b
+                estimator.set_log_constants(b)
+                self._estimator_log_constant = b
         data = frame.data
         if processing.smoothing != "none" and processing.smoothing_stage == "before":
             data = cv2.blur(data, (3, 3)) if processing.smoothing == "mean" else cv2.medianBlur(data, 3)

@@ -81,7 +81,7 @@ class RangeEstimator:
             if v[self.active][0] == v[self.active][1]:
                 raise UserInputError(f"channels {pair[0]} and {pair[1]} have equal attenuation, so the pair carries no range")
         self.bounds = np.array(path_length_bounds, dtype=np.float64)
-        self._tables: dict[int, tuple[NDArray, NDArray]] = {}
+        self._tables: dict[int, tuple[NDArray, NDArray, float]] = {}
         # Kernel constants: centred attenuations as a tuple (the channel loop unrolls; only
         # differences matter and centring keeps sums well conditioned), one bit per distinct
         # attenuation value, and the geometry.
@@ -138,16 +138,27 @@ class RangeEstimator:
         return y, weight, state.astype(np.uint8)
 
     def _lookup_tables(self, dtype: np.dtype) -> tuple[NDArray, NDArray]:
-        """Per-channel tables over every code of an integer dtype: (N, L, 2) float32 and (N, L) uint8."""
+        """Per-channel tables over every code of an integer dtype: (N, L, 2) float32 [ln E − offset,
+        E²/σ²] and (N, L) uint8 states. They do not depend on the log constants b, which the
+        kernel subtracts, so b can follow the surface every frame for free."""
         bits = np.dtype(dtype).itemsize * 8
         if bits not in self._tables:
             codes = np.arange(2**bits, dtype=np.float64)[:, None].repeat(self.n_channels, axis=1)
             y, w, state = self.channel_terms(codes)
-            # A common offset of y changes nothing; removing it keeps float32 digits for the differences.
-            y = np.where(w > 0, y - np.median(y[w > 0]) if np.any(w > 0) else y, 0.0)
-            table = np.stack([y.T, w.T], axis=-1).astype(np.float32)
-            self._tables[bits] = (np.ascontiguousarray(table), np.ascontiguousarray(state.T))
+            ln_e = np.where(w > 0, y + self.log_constant, 0.0)
+            # A common offset of ln E changes nothing; removing it keeps float32 digits for differences.
+            offset = float(np.median(ln_e[w > 0])) if np.any(w > 0) else 0.0
+            ln_e = np.where(w > 0, ln_e - offset, 0.0)
+            table = np.stack([ln_e.T, w.T], axis=-1).astype(np.float32)
+            self._tables[bits] = (np.ascontiguousarray(table), np.ascontiguousarray(state.T), offset)
         return self._tables[bits]
+
+    def set_log_constants(self, log_constant: NDArray | list[float]) -> None:
+        """Use new log constants b_k (e.g. of the surface, from a rangefinder); cheap: no table rebuild."""
+        b = np.asarray(log_constant, dtype=np.float64)
+        if b.shape != (self.n_channels,) or not np.all(np.isfinite(b)):
+            raise ValueError(f"need {self.n_channels} finite log constants, got {b}")
+        self.log_constant = b
 
     def __call__(self, frame: NDArray, out: RangeResult | None = None, background: NDArray | None = None) -> RangeResult:
         """Range, variance and reasons for one frame (H, W, N); ``out`` reuses output arrays.
@@ -163,12 +174,14 @@ class RangeEstimator:
         h, w = frame.shape[:2]
         if out is None:
             out = RangeResult(np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w), np.uint8))
-        common = (self._c, self._bits, self._geo, self.bounds, out.range, out.variance, out.reasons)
+        common = (self._bits, self._geo, self.bounds, out.range, out.variance, out.reasons)
         if background is None and frame.dtype in (np.uint8, np.uint16):
-            table, states = self._lookup_tables(frame.dtype)
-            kernels.fuse_lookup(frame, table, states, *common)
+            table, states, offset = self._lookup_tables(frame.dtype)
+            b = tuple(float(v) for v in self.log_constant - offset)
+            kernels.fuse_lookup(frame, table, states, self._c, b, *common)
         elif np.issubdtype(frame.dtype, np.integer) or np.issubdtype(frame.dtype, np.floating):
-            kernels.fuse_arrays(*self.channel_terms(frame, background), *common)
+            y, weight, state = self.channel_terms(frame, background)  # y already has b subtracted
+            kernels.fuse_arrays(y, weight, state, self._c, (0.0,) * self.n_channels, *common)
         else:
             raise UserInputError(f"unsupported pixel type {frame.dtype}; give uint8, uint16 or float images")
         return out

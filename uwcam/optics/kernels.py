@@ -107,12 +107,13 @@ def _invalid(i, j, reason, out_range, out_var, out_reason):
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def fuse_lookup(raw, table, states, c, bits, geo, bounds, out_range, out_var, out_reason):
+def fuse_lookup(raw, table, states, c, b, bits, geo, bounds, out_range, out_var, out_reason):
     """Range, variance and reason of every pixel of an integer frame.
 
-    raw: (H, W, N) codes; table: (N, L, 2) float32 [ln E − b, E²/σ²] per code, weight 0 where
-    unusable; states: (N, L) uint8 ChannelState per code; c: tuple of N centred attenuations
-    (1/m); bits: tuple of N ints, one bit per distinct attenuation; geo: [mode, Sx, Sy, Sz, |S|,
+    raw: (H, W, N) codes; table: (N, L, 2) float32 [ln E − offset, E²/σ²] per code, weight 0
+    where unusable; states: (N, L) uint8 ChannelState per code; c: tuple of N centred
+    attenuations (1/m); b: tuple of N log constants minus the table's offset (y = table − b, so
+    log constants change without rebuilding tables); bits: tuple of N ints, one bit per distinct attenuation; geo: [mode, Sx, Sy, Sz, |S|,
     1/fx, 1/fy, cx, cy]; bounds: [min, max] path length (m). Outputs (H, W) float32, float32, uint8.
     """
     h, w = out_range.shape
@@ -124,7 +125,7 @@ def fuse_lookup(raw, table, states, c, bits, geo, bounds, out_range, out_var, ou
             for k in range(n):
                 code = raw[i, j, k]
                 wk = np.float64(table[k, code, 1])
-                yk = np.float64(table[k, code, 0])
+                yk = np.float64(table[k, code, 0]) - b[k]
                 wc = wk * c[k]
                 sw += wk
                 swc += wc
@@ -144,8 +145,8 @@ def fuse_lookup(raw, table, states, c, bits, geo, bounds, out_range, out_var, ou
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def fuse_arrays(y, weight, state, c, bits, geo, bounds, out_range, out_var, out_reason):
-    """As :func:`fuse_lookup`, with y = ln E − b, weight = E²/σ² (0 where unusable) and the
+def fuse_arrays(y, weight, state, c, b, bits, geo, bounds, out_range, out_var, out_reason):
+    """As :func:`fuse_lookup`, with y = ln E (minus b in the kernel), weight = E²/σ² (0 where unusable) and the
     ChannelState given per pixel and channel, each (H, W, N): for float frames."""
     h, w = out_range.shape
     n = len(c)
@@ -155,7 +156,7 @@ def fuse_arrays(y, weight, state, c, bits, geo, bounds, out_range, out_var, out_
             n_usable = groups = 0
             for k in range(n):
                 wk = np.float64(weight[i, j, k])
-                yk = np.float64(y[i, j, k])
+                yk = np.float64(y[i, j, k]) - b[k]
                 wc = wk * c[k]
                 sw += wk
                 swc += wc
