@@ -128,14 +128,22 @@ class SerialLamp:
 
     def on(self) -> None:
         self._transaction(self.protocol.commands.switch_on, self._ok)
+        self._remember(on=True)
 
     def off(self) -> None:
         self._transaction(self.protocol.commands.switch_off, self._ok)
+        self._remember(on=False)
+
+    def _remember(self, **change) -> None:
+        """Keep last_status current after a command the lamp acknowledged."""
+        last = self.last_status or LampStatus(on=False, percent=100)
+        self.last_status = LampStatus(**{**last.__dict__, **change})
 
     def set_intensity(self, percent: float) -> None:
         if not 0 <= percent <= 100:
             raise ConfigurationError(f"lamp intensity must be 0–100 %, got {percent}")
         self._transaction(self.protocol.commands.intensity.format(percent=int(round(percent))), self._ok)
+        self._remember(percent=int(round(percent)))
 
     def status(self) -> LampStatus:
         m = self._transaction(self.protocol.commands.status, self._status).groupdict()

@@ -326,3 +326,14 @@ def test_lamp_off_frames_remove_daylight():
     plain, corrected = errors(0), errors(4)
     print(f"daylight: median |error| {plain:.3f} m plain, {corrected:.3f} m with lamp-off frames")
     assert corrected < 0.5 * plain and corrected < 0.2, (plain, corrected)
+
+
+def test_lamp_off_interval_is_live_tunable_and_errors_are_json(server):
+    changed = server.http.patch("/api/v1/config", json={"lamp_off_interval": 6})
+    assert changed.status_code == 200 and changed.json()["lamp_off_interval"] == 6
+    assert wait_for(lambda: server.daemon.pipeline.stats()["ambient_frames"] >= 1, 20.0)
+    assert server.http.patch("/api/v1/config", json={"lamp_off_interval": -1}).status_code == 422
+    server.http.patch("/api/v1/config", json={"lamp_off_interval": 0})
+    assert wait_for(lambda: server.daemon.rig.lamp_on)
+    bad = server.http.put("/api/v1/calibration/profiles/x", content=b"[1, 2]")
+    assert bad.status_code == 422 and bad.headers["content-type"].startswith("application/json")

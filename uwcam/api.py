@@ -18,6 +18,7 @@ import hmac
 import io
 import ipaddress
 import json
+import logging
 import os
 import re
 import struct
@@ -83,6 +84,7 @@ class ProcessingPatch(BaseModel):
     smoothing_stage: Literal["after", "before"] | None = None
     path_length_bounds: tuple[float, float] | None = None
     patch: PatchConfig | None = None
+    lamp_off_interval: Annotated[int, Field(ge=0)] | None = None
 
 
 class Broadcaster:
@@ -133,6 +135,12 @@ def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
     @app.exception_handler(UserInputError)
     async def _user_error(request: Request, exc: UserInputError):
         return JSONResponse(status_code=400, content={"error": str(exc)})
+
+    @app.exception_handler(Exception)
+    async def _unexpected(request: Request, exc: Exception):
+        # A clear JSON message, never a stack trace; the trace goes to the daemon's log.
+        logging.getLogger("uwcam.api").exception("unexpected error in %s %s", request.method, request.url.path)
+        return JSONResponse(status_code=500, content={"error": f"internal error ({type(exc).__name__}); see the daemon log"})
 
     def get_daemon(request: Request) -> Daemon:
         return request.app.state.daemon
@@ -230,7 +238,10 @@ def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
         names = d.pipeline.profile.channel_names
         if new.pair is not None and (len(set(new.pair)) != 2 or any(p not in names for p in new.pair)):
             raise HTTPException(status_code=422, detail=f"pair needs two different channels of {names}")
-        d.pipeline.reconfigure(new)
+        try:
+            d.pipeline.reconfigure(new)
+        except ValueError as exc:  # e.g. a lamp-off interval without a lamp
+            raise HTTPException(status_code=422, detail=str(exc)) from None
         return new.model_dump(mode="json")
 
     @app.post("/api/v1/config/restore", dependencies=[Depends(authorised)])

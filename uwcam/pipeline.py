@@ -303,6 +303,10 @@ class FramePipeline:
         return False
 
     def _process(self, frame: Frame) -> None:
+        if frame.lamp_on is None and self.lamp is not None:
+            # The camera cannot know: record the lamp's last reported state with the frame.
+            last = getattr(self.lamp, "last_status", None)
+            frame.lamp_on = None if last is None else bool(last.on)
         with self._lock:
             estimator, tracker, processing, corrector = self.estimator, self.tracker, self.processing, self.corrector
         if processing.lamp_off_interval and self._dark_frame_due(frame, processing.lamp_off_interval):
