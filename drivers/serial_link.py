@@ -55,46 +55,44 @@ class SerialLink:
             self.health.set(HealthState.RECOVERING, f"cannot open {self.port}: {exc}")
             raise DeviceLost(f"cannot open {self.port}: {exc}") from None
 
-    def fail(self, reason: str) -> None:
-        """Close after an I/O failure; the next use reopens."""
-        self.health.set(HealthState.RECOVERING, reason)
+    def _close_port(self) -> None:
         if self._serial is not None:
             try:
                 self._serial.close()
-            except Exception:
+            except Exception:  # closing a vanished port is best effort
                 pass
             self._serial = None
 
-    def write(self, data: bytes) -> None:
-        port = self._ensure_open()
-        try:
-            port.reset_input_buffer()
-            port.write(data)
-            port.flush()
-        except PORT_ERRORS as exc:
-            self.fail(f"write to {self.port} failed: {exc}")
-            raise DeviceLost(f"write to {self.port} failed: {exc}") from None
+    def fail(self, reason: str) -> None:
+        """Close after an I/O failure; the next use reopens."""
+        self.health.set(HealthState.RECOVERING, reason)
+        self._close_port()
 
-    def _read(self, what: str, call):
+    def _io(self, what: str, call):
+        """Run ``call(port)``; a port error closes the port and becomes DeviceLost naming ``what``."""
         port = self._ensure_open()
         try:
             return call(port)
         except PORT_ERRORS as exc:
-            self.fail(f"{what} from {self.port} failed: {exc}")
-            raise DeviceLost(f"{what} from {self.port} failed: {exc}") from None
+            self.fail(f"{what} {self.port} failed: {exc}")
+            raise DeviceLost(f"{what} {self.port} failed: {exc}") from None
+
+    def write(self, data: bytes) -> None:
+        """Send ``data``, dropping any stale input first (each command waits for its own reply)."""
+        def send(port):
+            port.reset_input_buffer()
+            port.write(data)
+            port.flush()
+
+        self._io("write to", send)
 
     def read_until(self, terminator: bytes, limit: int = 512) -> bytes:
         """Bytes up to and including ``terminator``, or what came before the timeout."""
-        return self._read("read", lambda port: port.read_until(terminator, limit))
+        return self._io("read from", lambda port: port.read_until(terminator, limit))
 
     def read(self, size: int) -> bytes:
-        return self._read("read", lambda port: port.read(size))
+        return self._io("read from", lambda port: port.read(size))
 
     def close(self) -> None:
         with self.lock:
-            if self._serial is not None:
-                try:
-                    self._serial.close()
-                except Exception:
-                    pass
-                self._serial = None
+            self._close_port()
