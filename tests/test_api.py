@@ -337,3 +337,35 @@ def test_lamp_off_interval_is_live_tunable_and_errors_are_json(server):
     assert wait_for(lambda: server.daemon.rig.lamp_on)
     bad = server.http.put("/api/v1/calibration/profiles/x", content=b"[1, 2]")
     assert bad.status_code == 422 and bad.headers["content-type"].startswith("application/json")
+
+
+def test_lamp_comes_back_on_after_a_failed_switch():
+    """A serial glitch when switching back on after a dark frame is retried; the lamp does not stay off."""
+    from types import SimpleNamespace
+
+    from uwcam.config import ProcessingConfig
+    from uwcam.drivers.base import DeviceLost, Frame
+    from uwcam.pipeline import FramePipeline
+    from tests.synthetic import make_profile
+
+    calls = []
+
+    class FlakyLamp:
+        last_status = None
+
+        def on(self):
+            calls.append("on")
+            if calls.count("on") == 1:
+                raise DeviceLost("garbled reply")
+
+        def off(self):
+            calls.append("off")
+
+    pipeline = FramePipeline(SimpleNamespace(), make_profile([0.46, 0.11, 0.06], [0, 0, 0]),
+                             ProcessingConfig(lamp_off_interval=2), lamp=FlakyLamp())
+    frames = [np.full((4, 4, 3), 1000, np.uint16)] * 6
+    states = [True, True, False, False, True, True]  # the lamp stays off until switched on again
+    for k, (data, lit) in enumerate(zip(frames, states)):
+        pipeline._process(Frame(data=data, sequence=k, host_monotonic_ns=k, wall_time=0.0, lamp_on=lit))
+    assert calls[:3] == ["off", "on", "on"]  # the failed switch was retried on the next frame
+    assert pipeline.stats()["ambient_frames"] == 1

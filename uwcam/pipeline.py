@@ -183,6 +183,7 @@ class FramePipeline:
         self._ambient_frames = 0
         self._lit_since_dark = 0
         self._lamp_off_since_ns: int | None = None
+        self._lamp_on_pending = False
         self._lock = threading.Lock()  # guards configuration swaps and the published result
         self._apply(processing)
         self.previous_processing: ProcessingConfig | None = None
@@ -268,8 +269,19 @@ class FramePipeline:
             except Exception:  # one bad frame must not stop the loop
                 log.exception("processing frame %s failed", frame.sequence)
 
+    def _switch_lamp_on(self) -> None:
+        try:
+            self.lamp.on()
+            self._lamp_on_pending = False
+        except Exception as exc:  # a serial glitch must not leave the lamp off: retried next frame
+            self._lamp_on_pending = True
+            log.warning("could not switch the lamp back on after a dark frame: %s", exc)
+
     def _dark_frame_due(self, frame: Frame, interval: int) -> bool:
         """Run the lamp-off cycle; True if ``frame`` was taken as the ambient frame (not ranged)."""
+        if self._lamp_on_pending:
+            self._switch_lamp_on()
+            return frame.lamp_on is False
         if self._lamp_off_since_ns is not None:
             dark = frame.lamp_on is False if frame.lamp_on is not None else frame.host_monotonic_ns > self._lamp_off_since_ns
             if not dark:
@@ -292,7 +304,7 @@ class FramePipeline:
             self._ambient_frames += 1
             self._lamp_off_since_ns = None
             self._lit_since_dark = 0
-            self.lamp.on()
+            self._switch_lamp_on()
             return True
         if frame.lamp_on is False:
             return True  # the lamp is off for another reason: nothing to range against
