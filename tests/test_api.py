@@ -369,3 +369,50 @@ def test_lamp_comes_back_on_after_a_failed_switch():
         pipeline._process(Frame(data=data, sequence=k, host_monotonic_ns=k, wall_time=0.0, lamp_on=lit))
     assert calls[:3] == ["off", "on", "on"]  # the failed switch was retried on the next frame
     assert pipeline.stats()["ambient_frames"] == 1
+
+
+def test_marker_locates_the_patch_in_a_drawn_image():
+    from uwcam.config import MarkerConfig, PatchConfig
+    from uwcam.pipeline import PatchTracker
+    from tests.synthetic import make_profile
+
+    marker = cv2.aruco.generateImageMarker(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50), 7, 60)
+    image = np.full((200, 300, 3), 40000, np.uint16)
+    image[50:110, 100:160] = (marker.astype(np.uint16) * 200)[:, :, None]
+    config = PatchConfig(marker=MarkerConfig(id=7, offset=(1.5, 0.25), size=(0.5, 0.5)), path_length_m=1.0)
+    tracker = PatchTracker(config, make_profile([0.46, 0.11, 0.06], [0.0, 0.0, 0.0]))
+    x, y, w, h = tracker.locate(image)
+    assert abs(x - (100 + 1.5 * 59)) <= 2 and abs(y - (50 + 0.25 * 59)) <= 2 and abs(w - 30) <= 2 and abs(h - 30) <= 2
+    assert tracker.locate(np.full((200, 300, 3), 40000, np.uint16)) is None
+    with pytest.raises(ValueError, match="either a fixed 'region' or a 'marker'"):
+        PatchConfig(region=(0, 0, 4, 4), marker=config.marker, path_length_m=1.0)
+    with pytest.raises(ValueError, match="unknown ArUco dictionary 'DICT_9X9'"):
+        MarkerConfig(dictionary="DICT_9X9", id=1, offset=(1, 0), size=(1, 1))
+
+
+def test_daemon_tracks_the_patch_found_by_its_marker():
+    from uwcam.config import MarkerConfig, PatchConfig
+    from uwcam.daemon import simulated_patch
+    from uwcam.drivers.sim import SimulatedRig
+    from uwcam.simulation.scene import MARKER_CENTRE_M, MARKER_SIDE_M, PATCH_CENTRE_M, PATCH_SIZE_M
+
+    config = small_config()
+    config.simulation["size"] = [640, 480]  # the marker needs a few tens of pixels
+    rig = SimulatedRig(scene="seabed-patch", size=(640, 480), lamp_offset=(0.3, 0.0, 0.0))
+    fixed = simulated_patch(rig)
+    # From the marker's top-left corner to the inner part of the patch, in marker sides.
+    corner = np.array(MARKER_CENTRE_M) - MARKER_SIDE_M / 2
+    inner = np.array(PATCH_CENTRE_M) - PATCH_SIZE_M / 2 + 0.02
+    offset = tuple((inner - corner) / MARKER_SIDE_M)
+    config.processing.patch = PatchConfig(marker=MarkerConfig(id=7, offset=offset, size=(0.75, 0.75)),
+                                          path_length_m=fixed.path_length_m)
+    with Server(config) as s:
+        def tracking():
+            return s.http.get("/api/v1/status").json()["calibration"]["tracking"]
+
+        assert wait_for(lambda: tracking()["accepted"] >= 3, 30.0), tracking()
+        t = tracking()
+        assert t["state"] == "tracking" and abs(t["drift"]["G"]) < 0.02
+        x, y, w, h = t["region"]
+        fx, fy, fw, fh = fixed.region
+        assert abs(x - fx) < 0.2 * fw and abs(y - fy) < 0.2 * fh  # where the fixed region says the patch is

@@ -44,17 +44,45 @@ class DeviceConfig(Strict):
     options: dict[str, Any] = {}
 
 
+class MarkerConfig(Strict):
+    """An OpenCV ArUco marker beside the patch, found every frame, that places the patch region."""
+
+    dictionary: str = "DICT_4X4_50"
+    """OpenCV predefined dictionary name."""
+    id: Annotated[int, Field(ge=0)]
+    offset: tuple[float, float]
+    """From the marker's top-left corner to the patch region's, in marker side lengths (x, y)."""
+    size: tuple[Annotated[float, Field(gt=0)], Annotated[float, Field(gt=0)]]
+    """Patch region width and height in marker side lengths."""
+
+    @model_validator(mode="after")
+    def _known_dictionary(self) -> "MarkerConfig":
+        import cv2
+
+        if not self.dictionary.startswith("DICT_") or not hasattr(cv2.aruco, self.dictionary):
+            raise ValueError(f"unknown ArUco dictionary '{self.dictionary}'; e.g. DICT_4X4_50, DICT_6X6_250")
+        return self
+
+
 class PatchConfig(Strict):
     """A calibration patch fixed in view for live tracking of attenuation differences (DESIGN.md §6)."""
 
-    region: tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0)], Annotated[int, Field(gt=0)], Annotated[int, Field(gt=0)]]
-    """x, y, width, height in pixels."""
+    region: tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0)], Annotated[int, Field(gt=0)], Annotated[int, Field(gt=0)]] | None = None
+    """x, y, width, height in pixels, for a patch fixed in the image."""
+    marker: MarkerConfig | None = None
+    """Or: find the patch every frame next to a fiducial marker (the vehicle flexes, the bracket moves)."""
     path_length_m: Annotated[float, Field(gt=0)]
     """Lamp → patch → camera path length d_T^p, metres."""
     smoothing: Annotated[float, Field(gt=0, le=1)] = 0.1
     """EMA weight of each new estimate."""
     max_step: Annotated[float, Field(gt=0)] = 0.05
     """Estimates further than this (1/m) from the tracked value are rejected as outliers."""
+
+    @model_validator(mode="after")
+    def _one_way_to_find_it(self) -> "PatchConfig":
+        if (self.region is None) == (self.marker is None):
+            raise ValueError("a patch needs either a fixed 'region' or a 'marker' that locates it, not both")
+        return self
 
 
 class ReflectanceConfig(Strict):

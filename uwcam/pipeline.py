@@ -60,6 +60,8 @@ class PatchTracker:
     last_reason: str = "no frame yet"
 
     def __post_init__(self) -> None:
+        self._detector = None
+        self.region = self.config.region
         self.calibrated = self.profile.array("attenuation_difference")
         self.tracked = self.calibrated.copy()
         self.log_constant = self.profile.array("log_constant")
@@ -67,9 +69,37 @@ class PatchTracker:
         self.floor = self.profile.array("noise_floor")
         self.ref = self.profile.reference_index
 
+    def locate(self, data: NDArray) -> tuple[int, int, int, int] | None:
+        """The patch region in pixels: fixed, or placed beside the marker found in this frame."""
+        if self.config.marker is None:
+            return self.config.region
+        m = self.config.marker
+        if self._detector is None:
+            dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, m.dictionary))
+            self._detector = cv2.aruco.ArucoDetector(dictionary, cv2.aruco.DetectorParameters())
+        # Detect on the brightest channel, stretched to 8 bits.
+        channel = data[:, :, int(np.argmax(data.reshape(-1, data.shape[-1])[:: 97].mean(axis=0)))].astype(np.float32)
+        top = float(np.percentile(channel[::4, ::4], 99.5)) or 1.0
+        grey = np.clip(channel * (255.0 / top), 0, 255).astype(np.uint8)
+        corners, ids, _ = self._detector.detectMarkers(grey)
+        if ids is None or m.id not in ids.ravel():
+            return None
+        c = corners[list(ids.ravel()).index(m.id)].reshape(4, 2)
+        side = float(np.mean([np.linalg.norm(c[1] - c[0]), np.linalg.norm(c[3] - c[0])]))
+        x, y = c[0] + np.array(m.offset) * side
+        w, h = np.array(m.size) * side
+        x0, y0 = max(int(round(x)), 0), max(int(round(y)), 0)
+        return x0, y0, max(int(round(w)), 1), max(int(round(h)), 1)
+
     def update(self, data: NDArray, background: NDArray | None = None) -> bool:
         """background: light (DN) not from the lamp, e.g. the ambient frame, subtracted first."""
-        x, y, w, h = self.config.region
+        region = self.locate(data)
+        if region is None:
+            self.last_reason = f"marker {self.config.marker.id} not found (occluded, dark or out of view?)"
+            self.rejected += 1
+            return False
+        self.region = region
+        x, y, w, h = region
         patch = data[y : y + h, x : x + w]
         if patch.size == 0:
             self.last_reason = "patch region lies outside the image"
@@ -106,6 +136,7 @@ class PatchTracker:
             "accepted": self.accepted,
             "rejected": self.rejected,
             "state": self.last_reason,
+            "region": None if self.region is None else list(self.region),
         }
 
 

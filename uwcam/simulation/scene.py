@@ -25,6 +25,8 @@ MATERIALS: dict[str, Spectrum] = {
     "ball": Spectrum(wavelength_nm=_WL, reflectance=[0.10, 0.12, 0.30, 0.62, 0.75, 0.78, 0.80]),
     "ring": Spectrum(wavelength_nm=_WL, reflectance=[0.05, 0.06, 0.12, 0.45, 0.60, 0.62, 0.63]),
     "grey": Spectrum(wavelength_nm=_WL, reflectance=[0.25] * 7),
+    "white": Spectrum(wavelength_nm=_WL, reflectance=[0.8] * 7),
+    "black": Spectrum(wavelength_nm=_WL, reflectance=[0.03] * 7),
 }
 
 
@@ -275,10 +277,32 @@ SCENES: dict[str, str] = {
     "seabed-patch": "the seabed with a grey calibration patch on a bracket 0.8 m in front of the camera, lower right",
 }
 
-# The calibration patch of the "seabed-patch" scene, camera frame (m).
+# The calibration patch of the "seabed-patch" scene, camera frame (m), and the fiducial
+# marker (OpenCV ArUco, DICT_4X4_50) beside it that locates it in the image.
 PATCH_CENTRE_M = (0.28, 0.18)
 PATCH_DISTANCE_M = 0.8
 PATCH_SIZE_M = 0.1
+MARKER_ID = 7
+MARKER_CENTRE_M = (0.15, 0.18)
+MARKER_SIDE_M = 0.08
+
+
+def marker_plate(centre: tuple[float, float], side: float, distance: float, marker_id: int,
+                 dictionary: str = "DICT_4X4_50") -> Plane:
+    """A white plate with an ArUco marker (black cells, as patches) and a quiet zone around it."""
+    import cv2
+
+    cells = 6  # 4×4 bits and a one-cell border
+    bits = cv2.aruco.generateImageMarker(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary)),
+                                         marker_id, cells * 10)
+    black = cv2.resize(bits, (cells, cells), interpolation=cv2.INTER_AREA) < 128
+    cell = side / cells
+    patches = tuple(
+        ((-side / 2 + (j + 0.5) * cell, -side / 2 + (i + 0.5) * cell), (cell * 1.001, cell * 1.001), "black")
+        for i in range(cells) for j in range(cells) if black[i, j]
+    )
+    half = side * 0.75
+    return Plane((centre[0], centre[1], distance), (0.0, 0.0, -1.0), "white", half_size=(half, half), patches=patches)
 
 
 def build_scene(name: str, distance: float, rig: Rig | None = None, material: str | None = None) -> Scene:
@@ -308,7 +332,7 @@ def _build_scene(name: str, distance: float, rig: Rig | None) -> Scene:
     if name == "seabed-patch":
         x, y, d, half = PATCH_CENTRE_M[0], PATCH_CENTRE_M[1], PATCH_DISTANCE_M, PATCH_SIZE_M / 2
         patch = Plane((x, y, d), (0.0, 0.0, -1.0), "grey", half_size=(half, half))
-        return Scene(name, (seabed, patch))
+        return Scene(name, (seabed, patch, marker_plate(MARKER_CENTRE_M, MARKER_SIDE_M, d, MARKER_ID)), textured=("sand",))
     if name == "brick":
         proud = 0.10
         brick = Box((0.0, 0.0, z - proud / 2), (0.1075, 0.05125, proud / 2), 25.0, "brick")
