@@ -244,7 +244,6 @@ class FramePipeline:
             self.estimator = estimator
             self.tracker = tracker
             self.corrector = corrector
-            self._estimator_log_constant = self.profile.array("log_constant")
 
     def reconfigure(self, processing: ProcessingConfig) -> None:
         """Apply new processing settings from the next frame on (validated by the caller); the
@@ -357,12 +356,11 @@ class FramePipeline:
         ambient = self._ambient if processing.lamp_off_interval else None
         if tracker is not None and tracker.update(frame.data, ambient):
             estimator.set_attenuation_differences(tracker.tracked)
+        attenuation = tracker.tracked if tracker is not None else self.profile.array("attenuation_difference")
         if corrector is not None:
-            v = tracker.tracked if tracker is not None else self.profile.array("attenuation_difference")
-            b = corrector.update(frame, v, ambient)
-            if b is not None and np.max(np.abs(b - self._estimator_log_constant)) > processing.reflectance.tolerance:
+            b = corrector.update(frame, attenuation, ambient)
+            if b is not None and np.max(np.abs(b - estimator.log_constant)) > processing.reflectance.tolerance:
                 estimator.set_log_constants(b)
-                self._estimator_log_constant = b
         data = frame.data
         if processing.smoothing != "none" and processing.smoothing_stage == "before":
             data = cv2.blur(data, (3, 3)) if processing.smoothing == "mean" else cv2.medianBlur(data, 3)
@@ -370,8 +368,7 @@ class FramePipeline:
         if processing.smoothing != "none" and processing.smoothing_stage == "after":
             result = smooth_range_map(result, processing.smoothing)
         now = time.monotonic_ns()
-        published = Published(self.processed + 1, frame, result, now, tuple(float(v) for v in (
-            tracker.tracked if tracker is not None else self.profile.array("attenuation_difference"))))
+        published = Published(self.processed + 1, frame, result, now, tuple(float(v) for v in attenuation))
         with self._lock:
             self._latest = published
         self.processed += 1
