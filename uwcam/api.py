@@ -100,11 +100,16 @@ class Broadcaster:
         self.loop.call_soon_threadsafe(self.changed.set)
 
 
+def range_millimetres(range_m: np.ndarray) -> np.ndarray:
+    """Range in metres → little-endian uint16 millimetres, 0 where invalid (1 mm at the least)."""
+    return np.where(np.isfinite(range_m), np.clip(np.rint(range_m * 1000.0), 1, 65535), 0).astype("<u2")
+
+
 def encode_range(published: Published, encoding: str) -> bytes:
     r = published.result.range
     h, w = r.shape
     if encoding == "mm":
-        data = np.where(np.isfinite(r), np.clip(np.rint(r * 1000.0), 1, 65535), 0).astype("<u2")
+        data = range_millimetres(r)
         dtype, scale = UINT16_MILLIMETRES, 0.001
     else:
         data = r.astype("<f2")
@@ -211,7 +216,7 @@ def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
         if format == "png16":
             if kind != "range":
                 raise HTTPException(status_code=422, detail="png16 is for the range map (millimetres); use npy or tiff")
-            mm = np.where(np.isfinite(data), np.clip(np.rint(data * 1000.0), 1, 65535), 0).astype(np.uint16)
+            mm = range_millimetres(data)
             return Response(cv2.imencode(".png", mm)[1].tobytes(), media_type="image/png", headers=headers)
         if kind != "image":
             raise HTTPException(status_code=422, detail="png is for the colour image; use png16, npy or tiff for maps")
