@@ -30,10 +30,9 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 from uwcam.backscatter import BackscatterModel, compensated_range  # noqa: E402
-from uwcam.calibration import CalibrationInputs, calibrate, project_plate_box  # noqa: E402
 from uwcam.ranging import RangeEstimator, smooth_range_map  # noqa: E402
-from uwcam.rig import builtin_rig_path, load_rig  # noqa: E402
 from uwcam.simulation import CameraModel, Lamp, SimulatedWorld, water_preset  # noqa: E402
+from uwcam.simulation.tank import calibrate_in_simulation  # noqa: E402
 
 LAMP = Lamp(position=(0.3, 0.0, 0.0))
 FORWARD_SCATTER = 0.02  # G = c − 0.02 1/m: spectrally flat forward scattering
@@ -58,21 +57,7 @@ class Rig:
         """noise_free: plates and scenes as expected values (float, no noise, quantisation or fixed
         pattern), to isolate the water's effects as the published conditions 1–3 do."""
         self.water, self.size, self.gate, self.bits, self.noise_free = water, size, gate, bits, noise_free
-        rig = load_rig(builtin_rig_path("grey-plate"))
-        frames, exposure = [], None
-        for d in (1.0, 2.0):
-            w = SimulatedWorld(scene="plate", distance=d, size=size, water=water, lamp=LAMP, gate_width=gate,
-                               camera=self.camera(peak_code=0.7 * 2**bits), fixed_exposure=exposure, seed=int(d))
-            exposure = w.exposure
-            frames.append(w.noise_free_frame() if noise_free else w.frame(0))
-        intr, patch = w.intrinsics, rig.plate.black_patch
-        self.profile = calibrate(frames, [1.0, 2.0], CalibrationInputs(
-            channel_names=NAMES, wavelengths_nm=WAVELENGTHS, target_reflectance=np.full(3, 0.18),
-            black_reflectance=np.full(3, 0.03), lamp_position_m=LAMP.position, intrinsics=intr,
-            target_boxes=[project_plate_box((0, 0), rig.plate.size_m, d, intr) for d in (1.0, 2.0)],
-            black_boxes=[project_plate_box(patch.centre_m, patch.size_m, d, intr) for d in (1.0, 2.0)],
-            dark_level=np.full(3, w.camera.dark_level_dn), saturation_level=2**bits - 1, lamp_radius_m=LAMP.effective_radius,
-        ))
+        self.profile = calibrate_in_simulation(water, LAMP, size, self.camera(), gate_width=gate, noise_free=noise_free)
 
     def camera(self, **kw):
         return CameraModel(bits=self.bits, prnu=0.0 if self.noise_free else 0.01, **kw)

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 from uwcam.backscatter import BackscatterModel, compensated_range
-from uwcam.calibration import CalibrationInputs, calibrate, project_plate_box
 from uwcam.cli import main
 from uwcam.ranging import RangeEstimator
-from uwcam.rig import builtin_rig_path, load_rig, resolve_reflectance
+from uwcam.rig import resolve_reflectance
 from uwcam.simulation import CameraModel, Lamp, SimulatedWorld, water_preset
 from uwcam.simulation.scene import MATERIALS
+from uwcam.simulation.tank import calibrate_in_simulation
 
 LAMP = (0.3, 0.0, 0.0)
 SAND = resolve_reflectance(MATERIALS["sand"], ["R", "G", "B"], [675.0, 575.0, 475.0], "sand")
@@ -50,30 +50,19 @@ def test_brick_at_two_metres_within_one_percent(tmp_path, capsys):
     assert rms < 0.01 * 2.0, f"rms {rms:.4f} m"
 
 
-def study_world(scene, distance, beta, **kw):
+def study_water(beta):
     w = water_preset("ideal", [675, 575, 475])
-    w = w.with_overrides(forward_blur=0.010, scatter_attenuation=w.attenuation - 0.02, backscatter=beta)
-    return SimulatedWorld(scene=scene, distance=distance, water=w, lamp=Lamp(position=LAMP), **kw)
+    return w.with_overrides(forward_blur=0.010, scatter_attenuation=w.attenuation - 0.02, backscatter=beta)
+
+
+def study_world(scene, distance, beta, **kw):
+    return SimulatedWorld(scene=scene, distance=distance, water=study_water(beta), lamp=Lamp(position=LAMP), **kw)
 
 
 @pytest.mark.slow
 def test_backscatter_compensation_halves_the_error():
     beta, distance = 0.001, 2.0
-    rig = load_rig(builtin_rig_path("grey-plate"))
-    exposure = None
-    frames = []
-    for d in (1.0, 2.0):
-        w = study_world("plate", d, beta, camera=CameraModel(peak_code=45000.0), fixed_exposure=exposure, seed=int(d))
-        exposure = w.exposure
-        frames.append(w.frame(0))
-    patch = rig.plate.black_patch
-    intr = w.intrinsics
-    profile = calibrate(frames, [1.0, 2.0], CalibrationInputs(
-        channel_names=["R", "G", "B"], wavelengths_nm=[675.0, 575.0, 475.0], target_reflectance=np.full(3, 0.18),
-        black_reflectance=np.full(3, 0.03), lamp_position_m=LAMP, intrinsics=intr,
-        target_boxes=[project_plate_box((0, 0), rig.plate.size_m, d, intr) for d in (1.0, 2.0)],
-        black_boxes=[project_plate_box(patch.centre_m, patch.size_m, d, intr) for d in (1.0, 2.0)],
-        dark_level=np.full(3, w.camera.dark_level_dn), lamp_radius_m=Lamp().effective_radius))
+    profile = calibrate_in_simulation(study_water(beta), Lamp(position=LAMP), (640, 480), CameraModel(peak_code=45000.0))
     scene = study_world("brick", distance, beta, material="sand", seed=5)
     open_water = study_world("open-water", distance, beta, fixed_exposure=scene.exposure, seed=6)
     frame = scene.frame(0)

@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from uwcam.calibration import CalibrationInputs, calibrate, project_plate_box
+from uwcam.calibration import project_plate_box
 from uwcam.config import DaemonConfig, PatchConfig, ReflectanceConfig
 from uwcam.drivers import registry
 from uwcam.drivers.base import CameraSettings
@@ -23,9 +23,9 @@ from uwcam.drivers.supervisor import SupervisedCamera
 from uwcam.fileio import UserInputError
 from uwcam.pipeline import FramePipeline
 from uwcam.profile import CalibrationProfile, load_profile, save_profile
-from uwcam.rig import builtin_rig_path, load_rig
-from uwcam.simulation import Lamp, SimulatedWorld, water_preset
+from uwcam.simulation import Lamp, water_preset
 from uwcam.simulation.camera import CameraModel
+from uwcam.simulation.tank import calibrate_in_simulation
 from uwcam.simulation.scene import PATCH_CENTRE_M, PATCH_DISTANCE_M, PATCH_SIZE_M
 
 log = logging.getLogger(__name__)
@@ -34,25 +34,9 @@ SIMULATED = {"sim", "sim-ascii", "sim-ping1d"}
 
 def simulated_calibration(rig: SimulatedRig) -> CalibrationProfile:
     """Calibrate in the rig's simulated water: grey plate with black patch at 1 m and 2 m."""
-    plate = load_rig(builtin_rig_path("grey-plate"))
-    lamp = Lamp(position=tuple(rig.lamp_offset))
     water = water_preset(rig.water, [675.0, 575.0, 475.0])
-    frames, exposure, distances = [], None, [1.0, 2.0]
-    for d in distances:
-        w = SimulatedWorld(scene="plate", distance=d, size=tuple(rig.size), water=water, lamp=lamp,
-                           camera=CameraModel(bits=rig.bits, peak_code=0.7 * 2**rig.bits), fixed_exposure=exposure, seed=11 + int(d))
-        exposure = w.exposure
-        frames.append(w.frame(0))
-    intr, patch = w.intrinsics, plate.plate.black_patch
-    return calibrate(frames, distances, CalibrationInputs(
-        channel_names=["R", "G", "B"], wavelengths_nm=[675.0, 575.0, 475.0], target_reflectance=np.full(3, 0.18),
-        black_reflectance=np.full(3, 0.03), lamp_position_m=tuple(rig.lamp_offset), intrinsics=intr,
-        target_boxes=[project_plate_box((0, 0), plate.plate.size_m, d, intr) for d in distances],
-        black_boxes=[project_plate_box(patch.centre_m, patch.size_m, d, intr) for d in distances],
-        dark_level=np.full(3, w.camera.dark_level_dn), saturation_level=2**rig.bits - 1,
-        lamp_radius_m=lamp.effective_radius, name="simulated tank calibration",
-        target_description="grey plate in the simulated water",
-    ))
+    return calibrate_in_simulation(water, Lamp(position=tuple(rig.lamp_offset)), tuple(rig.size),
+                                   CameraModel(bits=rig.bits), seed_base=11)
 
 
 def simulated_patch(rig: SimulatedRig) -> PatchConfig:
