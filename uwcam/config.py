@@ -122,13 +122,18 @@ class ProcessingConfig(Strict):
 
 
 class ApiConfig(Strict):
-    host: str = "127.0.0.1"
+    host: Annotated[str, Field(min_length=1)] = "127.0.0.1"
+    """Address to listen on; only explicit loopback addresses (127.0.0.1, ::1, localhost) count as
+    loopback, and any other needs a token."""
     port: Annotated[int, Field(ge=0, le=65535)] = 8080
     token: str | None = None
     """Bearer token for endpoints that change state; required when listening beyond loopback.
     Also read from the UWCAM_TOKEN environment variable."""
     stream_rate_hz: Annotated[float, Field(gt=0, le=120)] = 30.0
     """Most frames per second sent to one WebSocket client."""
+    allowed_hosts: list[Annotated[str, Field(min_length=1)]] = []
+    """Host names (``*.example.org`` patterns allowed) by which the daemon may be reached besides
+    IP addresses, localhost and ``*.local``; others are refused to defeat DNS rebinding."""
 
 
 class DaemonConfig(Strict):

@@ -1,0 +1,22 @@
+#!/usr/bin/env bash
+# Install uwcam into a virtual environment, .venv beside this checkout. Stock Debian, Ubuntu and
+# Raspberry Pi OS refuse `pip install` into the system Python (PEP 668, "externally-managed-
+# environment"), so uwcam always lives in its own environment.
+#
+#   bash deploy/install.sh          # the daemon
+#   bash deploy/install.sh test     # the daemon and everything its tests need
+set -euo pipefail
+cd "$(dirname "$0")/.."
+extras="${1:-}"
+
+if ! python3 -c 'import ensurepip, venv' 2>/dev/null; then
+  # Debian ships venv's pip bootstrap in a package of its own.
+  if [ "$(id -u)" -eq 0 ]; then SUDO=""; else SUDO="sudo"; fi
+  echo "installing python3-venv (needed to create .venv)" >&2
+  $SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq python3-venv > /dev/null
+fi
+[ -x .venv/bin/python ] || python3 -m venv .venv
+export PIP_DISABLE_PIP_VERSION_CHECK=1
+.venv/bin/python -m pip install --quiet --upgrade pip
+.venv/bin/python -m pip install --quiet -e ".${extras:+[$extras]}"
+echo "uwcam installed in $(pwd)/.venv: run it as .venv/bin/uwcam" >&2

@@ -1,0 +1,45 @@
+"""GET/PUT /api/v1/lamp: the lamp's state and intensity."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, HTTPException
+from pydantic import BaseModel, ConfigDict, Field
+
+from uwcam.api.common import get_daemon
+from uwcam.daemon import Daemon
+
+router = APIRouter(prefix="/api/v1/lamp", tags=["lamp"])
+
+
+class LampCommand(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    on: bool | None = None
+    intensity: Annotated[float, Field(ge=0, le=100)] | None = None
+    """Percent."""
+
+
+@router.get("")
+def get_lamp(d: Daemon = Depends(get_daemon)) -> dict:
+    if d.lamp is None:
+        raise HTTPException(status_code=404, detail="no lamp configured")
+    s = d.lamp.status()
+    return {"on": s.on, "intensity": s.percent, "temperature_c": s.temperature_c, "fault": s.fault,
+            "health": d.lamp.health.as_dict()}
+
+
+@router.put("")
+def put_lamp(command: LampCommand, d: Daemon = Depends(get_daemon)) -> dict:
+    if d.lamp is None:
+        raise HTTPException(status_code=404, detail="no lamp configured")
+    try:
+        if command.intensity is not None:
+            d.lamp.set_intensity(command.intensity)
+        if command.on is True:
+            d.lamp.on()
+        elif command.on is False:
+            d.lamp.off()
+    except Exception as exc:
+        raise HTTPException(status_code=502, detail=f"lamp did not accept the command: {exc}") from None
+    return get_lamp(d)  # reads the lamp's status back, so status() shows it too

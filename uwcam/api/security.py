@@ -1,0 +1,156 @@
+"""Who may change state, declared once for every route.
+
+Every request passes :func:`guard`, installed as a dependency of the whole application, so a new
+route cannot forget it:
+
+* reads (GET, HEAD, OPTIONS) are open to anyone who can reach the daemon;
+* everything else (POST, PUT, PATCH, DELETE) needs, when a token is set, either
+  ``Authorization: Bearer <token>`` (tools, scripts) or the session cookie that
+  ``POST /api/v1/session`` hands to a browser in exchange for the token, together with the
+  ``X-CSRF-Token`` header that the same call returns (a page inside an iframe, such as BlueOS's or
+  Cockpit's, cannot send a bearer header of its own);
+* a state change whose ``Origin`` is not this daemon's own is refused, token or not, so that a web
+  page the operator happens to visit cannot drive the lamp through the operator's browser.
+
+Tokens are compared as bytes in constant time, so non-ASCII input is simply a wrong token.
+"""
+
+from __future__ import annotations
+
+import hmac
+import ipaddress
+import os
+import secrets
+from urllib.parse import urlsplit
+
+from fastapi import HTTPException, WebSocketException, status
+from starlette.requests import HTTPConnection
+
+from uwcam.config import DaemonConfig
+from uwcam.fileio import UserInputError
+
+SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
+SESSION_COOKIE = "uwcam_session"
+CSRF_HEADER = "x-csrf-token"
+
+
+def is_loopback(host: str) -> bool:
+    """True only for explicit loopback addresses and the name ``localhost``."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def required_token(config: DaemonConfig) -> str | None:
+    """The token for state-changing requests; UserInputError if one is needed and missing."""
+    token = config.api.token or os.environ.get("UWCAM_TOKEN")
+    if not is_loopback(config.api.host) and not token:
+        raise UserInputError(
+            f"refusing to listen on {config.api.host} without a token: set api.token in the configuration or UWCAM_TOKEN"
+        )
+    return token or None
+
+
+def _same(given: str, expected: str) -> bool:
+    return hmac.compare_digest(given.encode("utf-8", "surrogateescape"), expected.encode("utf-8", "surrogateescape"))
+
+
+class Sessions:
+    """Browser sessions: an opaque id (HttpOnly cookie) bound to a CSRF token (sent as a header)."""
+
+    def __init__(self, limit: int = 256) -> None:
+        self._csrf: dict[str, str] = {}
+        self._limit = limit
+
+    def open(self) -> tuple[str, str]:
+        if len(self._csrf) >= self._limit:  # forget the oldest
+            self._csrf.pop(next(iter(self._csrf)))
+        session, csrf = secrets.token_urlsafe(32), secrets.token_urlsafe(32)
+        self._csrf[session] = csrf
+        return session, csrf
+
+    def close(self, session: str) -> None:
+        self._csrf.pop(session, None)
+
+    def csrf_for(self, session: str) -> str | None:
+        return self._csrf.get(session)
+
+
+DEFAULT_HOST_NAMES = ("localhost", "*.localhost", "*.local")
+"""Names accepted in ``Host`` besides IP literals: loopback and mDNS names (BlueOS answers as
+blueos.local). A DNS-rebinding attack needs a public name that resolves to the vehicle; such a name
+is refused unless configured in ``api.allowed_hosts``."""
+
+
+def host_allowed(host_header: str, allowed: tuple[str, ...]) -> bool:
+    host = urlsplit(f"//{host_header}").hostname or ""
+    try:
+        ipaddress.ip_address(host)
+        return True
+    except ValueError:
+        pass
+    host = host.lower().rstrip(".")
+    for pattern in (*DEFAULT_HOST_NAMES, *allowed):
+        pattern = pattern.lower()
+        if host == pattern or (pattern.startswith("*.") and host.endswith(pattern[1:])):
+            return True
+    return False
+
+
+class Guard:
+    """The application-wide dependency: Host and Origin checks, and authorisation of state changes."""
+
+    def __init__(self, token: str | None, allowed_hosts: tuple[str, ...] = ()) -> None:
+        self.token = token
+        self.allowed_hosts = allowed_hosts
+        self.sessions = Sessions()
+
+    def authenticated(self, conn: HTTPConnection) -> bool:
+        """A valid bearer token, or a valid session cookie with its CSRF token."""
+        if self.token is None:
+            return True
+        given = conn.headers.get("authorization", "")
+        if given and _same(given, f"Bearer {self.token}"):
+            return True
+        session = conn.cookies.get(SESSION_COOKIE)
+        csrf = self.sessions.csrf_for(session) if session else None
+        return csrf is not None and _same(conn.headers.get(CSRF_HEADER, ""), csrf)
+
+    def check_origin(self, conn: HTTPConnection) -> None:
+        """Refuse a request from a page of another origin (a browser always sends Origin on those)."""
+        origin = conn.headers.get("origin")
+        if origin is None:
+            return  # not from a browser page, or a same-origin GET
+        host = conn.headers.get("host", "")
+        if origin == "null" or urlsplit(origin).netloc.lower() != host.lower():
+            raise HTTPException(status_code=403, detail=f"requests from the page at {origin} may not change this daemon's "
+                                                        "state; use uwcam's own page")
+
+    async def __call__(self, conn: HTTPConnection) -> None:
+        if conn.scope["type"] == "websocket":
+            try:
+                self._check(conn, "WEBSOCKET")
+            except HTTPException as exc:
+                raise WebSocketException(code=status.WS_1008_POLICY_VIOLATION, reason=str(exc.detail)[:120]) from None
+        else:
+            self._check(conn, conn.scope["method"])
+
+    def _check(self, conn: HTTPConnection, method: str) -> None:
+        host = conn.headers.get("host", "")
+        if not host_allowed(host, self.allowed_hosts):
+            raise HTTPException(status_code=421, detail=f"unknown host name {host!r}: add it to api.allowed_hosts "
+                                                        "if uwcam is reached through it")
+        if method in SAFE_METHODS:
+            return
+        self.check_origin(conn)
+        if method == "WEBSOCKET" or conn.url.path.endswith("/api/v1/session"):
+            return  # streams only read; the exchange of a token for a session checks the token itself
+        if not self.authenticated(conn):
+            raise HTTPException(status_code=401, detail="this request changes state: send 'Authorization: Bearer <token>', "
+                                                        "or sign in on the page")
+
+    def check_token(self, given: str) -> bool:
+        return self.token is None or _same(given, self.token)

@@ -1,0 +1,65 @@
+"""GET/PATCH /api/v1/config and POST /api/v1/config/restore: live processing settings."""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Depends, HTTPException
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from uwcam.api.common import get_daemon
+from uwcam.config import PatchConfig, ProcessingConfig
+from uwcam.daemon import Daemon
+
+router = APIRouter(prefix="/api/v1/config", tags=["config"])
+
+
+class ProcessingPatch(BaseModel):
+    """Live-tunable processing settings; omitted keys keep their value."""
+
+    model_config = ConfigDict(extra="forbid")
+    pair: tuple[str, str] | None = None
+    fuse: bool | None = None
+    """true: fuse all channels (clears pair)."""
+    smoothing: Literal["none", "mean", "median"] | None = None
+    smoothing_stage: Literal["after", "before"] | None = None
+    path_length_bounds: tuple[float, float] | None = None
+    patch: PatchConfig | None = None
+    lamp_off_interval: Annotated[int, Field(ge=0)] | None = None
+
+
+@router.get("")
+def get_config(d: Daemon = Depends(get_daemon)) -> dict:
+    """The live-tunable processing settings."""
+    return d.pipeline.processing.model_dump(mode="json")
+
+
+@router.patch("")
+def patch_config(change: ProcessingPatch, d: Daemon = Depends(get_daemon)) -> dict:
+    """Change processing settings; validated before they apply, the previous ones kept on error."""
+    current = d.pipeline.processing.model_dump()
+    update = change.model_dump(exclude_unset=True)
+    if update.pop("fuse", None):
+        current["pair"] = None
+    current.update(update)
+    try:
+        new = ProcessingConfig.model_validate(current)
+    except ValidationError as exc:
+        raise HTTPException(status_code=422, detail=exc.errors(include_url=False, include_context=False)) from None
+    names = d.pipeline.profile.channel_names
+    if new.pair is not None and (len(set(new.pair)) != 2 or any(p not in names for p in new.pair)):
+        raise HTTPException(status_code=422, detail=f"pair needs two different channels of {names}")
+    try:
+        d.pipeline.reconfigure(new)
+    except ValueError as exc:  # e.g. a lamp-off interval without a lamp
+        raise HTTPException(status_code=422, detail=str(exc)) from None
+    return new.model_dump(mode="json")
+
+
+@router.post("/restore")
+def restore_config(d: Daemon = Depends(get_daemon)) -> dict:
+    """Go back to the processing settings that were in force before the last change."""
+    try:
+        return d.pipeline.restore().model_dump(mode="json")
+    except ValueError as exc:
+        raise HTTPException(status_code=409, detail=str(exc)) from None

@@ -1,0 +1,79 @@
+"""GET /api/v1/snapshot/…: the latest processed frame as files (range, variance, reasons, image, point cloud)."""
+
+from __future__ import annotations
+
+import io
+from typing import Literal
+
+import cv2
+import numpy as np
+import tifffile
+from fastapi import APIRouter, Depends, HTTPException, Query
+from fastapi.responses import Response
+
+from uwcam.api.common import get_daemon, latest
+from uwcam.daemon import Daemon
+from uwcam.optics.geometry import pixel_rays
+
+router = APIRouter(prefix="/api/v1/snapshot", tags=["snapshots"])
+
+
+def range_millimetres(range_m: np.ndarray) -> np.ndarray:
+    """Range in metres → little-endian uint16 millimetres, 0 where invalid (1 mm at the least)."""
+    return np.where(np.isfinite(range_m), np.clip(np.rint(range_m * 1000.0), 1, 65535), 0).astype("<u2")
+
+
+# Registered before /{kind}, which would otherwise match it first.
+@router.get("/pointcloud", responses={200: {"content": {"application/octet-stream": {}}}})
+def pointcloud(d: Daemon = Depends(get_daemon)) -> Response:
+    """The latest range map as a binary PLY point cloud (camera frame, metres; colour from the image)."""
+    published = latest(d)
+    profile = d.profiles[d.profile_name]
+    intr = profile.camera_intrinsics()
+    if intr is None:
+        raise HTTPException(status_code=409, detail="a point cloud needs camera intrinsics in the calibration profile")
+    r = published.result.range
+    rays = pixel_rays(intr, *r.shape)
+    ok = np.isfinite(r)
+    xyz = (r[ok, None] * rays[ok]).astype("<f4")
+    img = published.frame.data[ok][:, :3].astype(np.float64)
+    peak = float(img.max()) if img.size else 1.0  # a frame may have no valid pixel at all (lamp off)
+    rgb = np.clip(img / max(peak, 1.0) * 255.0, 0, 255).astype(np.uint8)
+    vertex = np.empty(len(xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    vertex["x"], vertex["y"], vertex["z"] = xyz.T
+    vertex["red"], vertex["green"], vertex["blue"] = rgb.T
+    header = ("ply\nformat binary_little_endian 1.0\n"
+              f"comment uwcam frame {published.number}\nelement vertex {len(vertex)}\n"
+              "property float x\nproperty float y\nproperty float z\n"
+              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n").encode()
+    return Response(header + vertex.tobytes(), media_type="application/octet-stream",
+                    headers={"X-Frame-Number": str(published.number)})
+
+
+@router.get("/{kind}", responses={200: {"content": {"application/octet-stream": {}, "image/png": {}, "image/tiff": {}}}})
+def snapshot(kind: Literal["range", "variance", "reasons", "image"],
+             format: Literal["npy", "tiff", "png16", "png"] = Query("npy"),
+             d: Daemon = Depends(get_daemon)) -> Response:
+    """The latest processed frame's range (m), variance (m²), reason codes or colour image.
+    png16: range in millimetres as uint16, 0 invalid. png: the colour image (8 or 16 bit)."""
+    published = latest(d)
+    data = {"range": published.result.range, "variance": published.result.variance,
+            "reasons": published.result.reasons, "image": published.frame.data}[kind]
+    headers = {"X-Frame-Number": str(published.number), "X-Capture-Time": f"{published.frame.wall_time:.6f}"}
+    if format == "npy":
+        buf = io.BytesIO()
+        np.save(buf, data, allow_pickle=False)
+        return Response(buf.getvalue(), media_type="application/octet-stream", headers=headers)
+    if format == "tiff":
+        buf = io.BytesIO()
+        tifffile.imwrite(buf, data)
+        return Response(buf.getvalue(), media_type="image/tiff", headers=headers)
+    if format == "png16":
+        if kind != "range":
+            raise HTTPException(status_code=422, detail="png16 is for the range map (millimetres); use npy or tiff")
+        mm = range_millimetres(data)
+        return Response(cv2.imencode(".png", mm)[1].tobytes(), media_type="image/png", headers=headers)
+    if kind != "image":
+        raise HTTPException(status_code=422, detail="png is for the colour image; use png16, npy or tiff for maps")
+    bgr = cv2.cvtColor(data[:, :, :3], cv2.COLOR_RGB2BGR)
+    return Response(cv2.imencode(".png", bgr)[1].tobytes(), media_type="image/png", headers=headers)
