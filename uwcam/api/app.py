@@ -16,15 +16,18 @@ from fastapi import Depends, FastAPI, Request
 from fastapi.responses import JSONResponse
 
 from uwcam import __version__
-from uwcam.api import lamp, metrics, profiles, session, settings, snapshots, status, stream
+from fastapi.staticfiles import StaticFiles
+
+from uwcam.api import lamp, metrics, profiles, session, settings, snapshots, status, stream, view, web
 from uwcam.api.common import Broadcaster
+from uwcam.api.view import ViewEncoder
 from uwcam.api.security import Guard, required_token
 from uwcam.config import DaemonConfig
 from uwcam.daemon import Daemon
 from uwcam.fileio import UserInputError
 
 ROUTERS = (status.router, snapshots.router, settings.router, profiles.router, lamp.router, session.router,
-           stream.router, metrics.router)
+           stream.router, view.router, metrics.router, web.router)
 
 
 def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
@@ -36,6 +39,7 @@ def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
         await asyncio.to_thread(d.start)
         app.state.daemon = d
         app.state.broadcaster = Broadcaster(asyncio.get_running_loop())
+        app.state.view_encoder = ViewEncoder()
         d.pipeline.subscribe(app.state.broadcaster.publish)
         try:
             yield
@@ -43,7 +47,10 @@ def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
             d.pipeline.unsubscribe(app.state.broadcaster.publish)
             await asyncio.to_thread(d.stop)
 
+    # docs_url=None: /docs is served from the package's own Swagger UI copy (uwcam.api.web), and
+    # "." as the server makes "Try it out" work under a reverse proxy's path prefix.
     app = FastAPI(title="uwcam", version=__version__, lifespan=lifespan, dependencies=[Depends(guard)],
+                  docs_url=None, redoc_url=None, servers=[{"url": "."}],
                   description="Underwater ranging camera: range maps from colour attenuation, live.")
     app.state.config = config
     app.state.guard = guard
@@ -60,4 +67,6 @@ def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
 
     for router in ROUTERS:
         app.include_router(router)
+    app.mount("/static/docs", StaticFiles(packages=[("fastapi_offline", "static")]), name="docs-assets")
+    app.mount("/static", StaticFiles(packages=[("uwcam", "web")]), name="static")
     return app

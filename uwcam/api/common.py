@@ -24,16 +24,32 @@ def latest(d: Daemon) -> Published:
 
 
 class Broadcaster:
-    """Newest published frame, handed from the loop's thread to the event loop without blocking."""
+    """Newest published frame, handed from the loop's thread to the event loop without blocking.
+
+    Each client waits on an event of its own (:meth:`listen`), so that one client clearing its
+    event never hides a new frame from another."""
 
     def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
         self.loop = loop
         self.latest: Published | None = None
         self.changed = asyncio.Event()
+        self._listeners: set[asyncio.Event] = {self.changed}
+
+    def listen(self) -> asyncio.Event:
+        event = asyncio.Event()
+        self._listeners.add(event)
+        return event
+
+    def forget(self, event: asyncio.Event) -> None:
+        self._listeners.discard(event)
+
+    def _notify(self) -> None:
+        for event in self._listeners:
+            event.set()
 
     def publish(self, published: Published) -> None:  # called in the processing thread
         self.latest = published
-        self.loop.call_soon_threadsafe(self.changed.set)
+        self.loop.call_soon_threadsafe(self._notify)
 
 
 __all__ = ["Broadcaster", "Request", "get_daemon", "latest"]

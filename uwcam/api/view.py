@@ -1,0 +1,219 @@
+"""WS /api/v1/view: what the operator page draws — range, σ, reasons and the colour image.
+
+One binary message per frame, encoded once per frame however many pages watch (in a worker
+thread, never on the event loop or in the frame loop):
+
+    b"UWV1" | u32 header length | header (JSON, padded to 8 bytes) | sections
+
+The header's ``sections`` give each section's byte offset (from the start of the message),
+length and layout:
+
+* ``range``: uint16 little-endian, row-major, ``width × height`` of the range map sampled every
+  ``step`` pixels. Values below ``invalid_base`` (65500) are the camera range in millimetres
+  along the pixel's ray; ``invalid_base + r`` marks an invalid pixel with reason code r.
+* ``sigma``: float16, the range's standard deviation in millimetres, at half the range
+  section's resolution (σ varies slowly); NaN where invalid.
+* ``colour``: a JPEG of the colour image, display-stretched from the sensor's full bit depth
+  (per-channel percentiles, smoothed over frames, gamma 1/2.2) at half the image resolution.
+
+Flow control: a page acknowledges each frame it has painted (``{"ack": N}``); the daemon keeps at
+most ``window`` frames unacknowledged per page and otherwise skips to the newest, so a slow page
+or link shows fresh frames at a lower rate and never a backlog.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import struct
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from fastapi import APIRouter, WebSocket, WebSocketDisconnect
+from numpy.typing import NDArray
+
+from uwcam import __version__
+from uwcam.api.common import Broadcaster
+from uwcam.daemon import Daemon
+from uwcam.optics.validity import Reason
+from uwcam.pipeline import Published
+
+router = APIRouter(prefix="/api/v1", tags=["stream"])
+MAGIC = b"UWV1"
+INVALID_BASE = 65500
+WINDOW = 2
+"""Frames a page may have in flight (sent, not yet painted)."""
+
+
+def range_plane(range_m: NDArray[np.float32], reasons: NDArray[np.uint8], step: int) -> NDArray[np.uint16]:
+    """Millimetres where valid, ``INVALID_BASE + reason`` where not; every ``step``-th pixel."""
+    r = range_m[::step, ::step]
+    mm = np.rint(r * 1000.0)
+    np.clip(mm, 1.0, INVALID_BASE - 1.0, out=mm, where=np.isfinite(mm))
+    out = np.where(np.isfinite(mm), mm, 0.0).astype("<u2")
+    invalid = ~np.isfinite(r)
+    out[invalid] = INVALID_BASE + np.maximum(reasons[::step, ::step][invalid], 1).astype(np.uint16)
+    return out
+
+
+def sigma_plane(variance_m2: NDArray[np.float32], step: int) -> NDArray[np.float16]:
+    """σ in millimetres at every ``step``-th pixel, float16 (NaN where invalid)."""
+    v = variance_m2[::step, ::step]
+    return (np.sqrt(v, dtype=np.float32) * 1000.0).astype("<f2")
+
+
+@dataclass
+class Stretch:
+    """Display stretch of the colour image, smoothed over frames so that it does not flicker."""
+
+    low: NDArray[np.float32] | None = None
+    high: NDArray[np.float32] | None = None
+    smoothing: float = 0.2
+
+    def __call__(self, image: NDArray) -> NDArray[np.uint8]:
+        """(H, W, C) at any bit depth → (H/2, W/2, 3) uint8 BGR for JPEG."""
+        h, w = image.shape[:2]
+        rgb = np.ascontiguousarray(image[:, :, :3]) if image.shape[2] >= 3 else np.repeat(image[:, :, :1], 3, axis=2)
+        small = cv2.resize(rgb, (max(w // 2, 1), max(h // 2, 1)), interpolation=cv2.INTER_AREA).astype(np.float32)
+        sample = small[::4, ::4].reshape(-1, 3)
+        low = np.percentile(sample, 1.0, axis=0).astype(np.float32)
+        high = np.percentile(sample, 99.7, axis=0).astype(np.float32)
+        if self.low is None:
+            self.low, self.high = low, high
+        else:
+            self.low += self.smoothing * (low - self.low)
+            self.high += self.smoothing * (high - self.high)
+        span = np.maximum(self.high - self.low, 1.0)
+        small -= self.low
+        small *= 1.0 / span
+        np.clip(small, 0.0, 1.0, out=small)
+        # Linear sensor values look dark on a display: a gamma of 1/2.2 as sRGB roughly does.
+        cv2.pow(small, 1.0 / 2.2, small)
+        small *= 255.0
+        return cv2.cvtColor(small.astype(np.uint8), cv2.COLOR_RGB2BGR)
+
+
+def encode_view(published: Published, step: int, stretch: Stretch) -> bytes:
+    result = published.result
+    rng = range_plane(result.range, result.reasons, step)
+    sig = sigma_plane(result.variance, step * 2)
+    colour = cv2.imencode(".jpg", stretch(published.frame.data), [cv2.IMWRITE_JPEG_QUALITY, 80])[1].tobytes()
+    h, w = result.range.shape
+    ch, cw = (h // 2, w // 2)
+    sections = []
+    header = {
+        "frame": published.number, "capture_time_ns": int(published.frame.wall_time * 1e9),
+        "encoded_time_ns": time.time_ns(), "image_width": w, "image_height": h,
+        "lamp_on": published.frame.lamp_on, "latency_ms": round(published.latency_s * 1000.0, 2),
+        "attenuation_differences": list(published.attenuation_differences),
+    }
+    blobs = [(b"", None)]
+    for name, data, meta in (
+        ("range", rng.tobytes(), {"dtype": "uint16", "unit": "mm", "step": step, "width": rng.shape[1],
+                                  "height": rng.shape[0], "invalid_base": INVALID_BASE}),
+        ("sigma", sig.tobytes(), {"dtype": "float16", "unit": "mm", "step": step * 2, "width": sig.shape[1],
+                                  "height": sig.shape[0]}),
+        ("colour", colour, {"mime": "image/jpeg", "width": cw, "height": ch}),
+    ):
+        sections.append({"name": name, **meta, "length": len(data)})
+        blobs.append((data, name))
+    header["sections"] = sections
+    # Offsets depend on the header's own length: lay out once with placeholders, then fix.
+    for _ in range(2):
+        text = json.dumps(header, separators=(",", ":")).encode()
+        start = 8 + len(text)
+        start += (-start) % 8
+        offset = start
+        for section in sections:
+            section["offset"] = offset
+            offset += section["length"] + (-section["length"]) % 8
+    text = json.dumps(header, separators=(",", ":")).encode()
+    head = MAGIC + struct.pack("<I", len(text)) + text
+    parts = [head, b"\0" * (sections[0]["offset"] - len(head))]
+    for section, (data, _) in zip(sections, blobs[1:]):
+        parts.append(data)
+        parts.append(b"\0" * ((-len(data)) % 8))
+    return b"".join(parts)
+
+
+@dataclass
+class ViewEncoder:
+    """Encodes each published frame once per resolution step, in a worker thread, on demand."""
+
+    stretch: Stretch = field(default_factory=Stretch)
+    _tasks: dict[tuple[int, int], asyncio.Task] = field(default_factory=dict)
+
+    async def get(self, published: Published, step: int) -> bytes:
+        key = (published.number, step)
+        task = self._tasks.get(key)
+        if task is None:
+            task = asyncio.ensure_future(asyncio.to_thread(encode_view, published, step, self.stretch))
+            self._tasks[key] = task
+            for old in [k for k in self._tasks if k[0] < published.number - 2]:
+                del self._tasks[old]
+        return await asyncio.shield(task)
+
+
+def hello(d: Daemon, step: int) -> dict:
+    profile = d.pipeline.profile
+    intr = profile.camera_intrinsics()
+    return {
+        "type": "hello", "version": __version__, "magic": MAGIC.decode(), "step": step, "window": WINDOW,
+        "channels": profile.channel_names,
+        "intrinsics": None if intr is None else {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy},
+        "reasons": {str(k): v for k, v in Reason.describe().items()}, "invalid_base": INVALID_BASE,
+        "path_length_bounds": list(d.pipeline.processing.path_length_bounds),
+    }
+
+
+@router.websocket("/view")
+async def view(ws: WebSocket, step: int = 1) -> None:
+    """The operator page's stream: hello (JSON), then one binary message per frame (see module doc);
+    the page answers ``{"ack": frame}`` once it has painted a frame. ``step``: 1, 2 or 4 (resolution)."""
+    await ws.accept()
+    if step not in (1, 2, 4):
+        await ws.close(code=1008, reason="step must be 1, 2 or 4")
+        return
+    b: Broadcaster = ws.app.state.broadcaster
+    encoder: ViewEncoder = ws.app.state.view_encoder
+    d: Daemon = ws.app.state.daemon
+    await ws.send_text(json.dumps(hello(d, step)))
+    last_sent = 0
+    unacked: set[int] = set()
+    changed = b.listen()
+
+    async def read_acks() -> None:
+        while True:
+            message = await ws.receive_text()
+            try:
+                n = int(json.loads(message)["ack"])
+            except (ValueError, KeyError, TypeError):
+                continue  # a page's noise must not end its stream
+            unacked.difference_update({k for k in unacked if k <= n})
+            changed.set()  # a slot opened: look for the newest frame now
+
+    reader = asyncio.ensure_future(read_acks())
+    try:
+        while not reader.done():
+            published = b.latest
+            if published is None or published.number == last_sent or len(unacked) >= WINDOW:
+                waiter = asyncio.ensure_future(changed.wait())
+                await asyncio.wait({waiter, reader}, timeout=0.5, return_when=asyncio.FIRST_COMPLETED)
+                waiter.cancel()
+                changed.clear()
+                continue
+            payload = await encoder.get(published, step)
+            await ws.send_bytes(payload)
+            last_sent = published.number
+            unacked.add(published.number)
+    except (WebSocketDisconnect, RuntimeError):
+        pass
+    finally:
+        b.forget(changed)
+        reader.cancel()
+        try:
+            await reader
+        except (asyncio.CancelledError, WebSocketDisconnect, RuntimeError):
+            pass

@@ -1,0 +1,687 @@
+// uwcam operator page: live colour and range views, readout, pins, line profile, 3-D, health
+// and controls. Talks only to the daemon's public API, always by relative URL (so it works under
+// a reverse proxy's path prefix, e.g. BlueOS's /extensionv2/uwcam/).
+
+import { COLOUR_MAPS, REASON_COLOURS, cssColour, lut, reasonColour } from "./colormap.js";
+import { ViewStream, float16, sample } from "./stream.js";
+import { PointCloudView } from "./viewer3d.js";
+
+const $ = (id) => document.getElementById(id);
+const STALE_AFTER_MS = 1500;
+const MAX_PINS = 8;
+
+const state = {
+  hello: null,
+  frame: null,        // newest decoded frame, painted or not
+  shown: null,        // the frame on screen
+  colourBitmap: null,
+  paused: false,
+  mode: "side",
+  showSigma: false,
+  table: lut("turbo"),
+  limits: { auto: true, min: 0.5, max: 5 },
+  autoLimits: null,
+  tool: "inspect",
+  pointer: null,      // image pixel under the pointer
+  pins: [],
+  line: null,         // {x0, y0, x1, y1} in image pixels
+  patchDraft: null,
+  drag: null,
+  status: null,
+  statusAt: 0,
+  config: null,
+  csrf: sessionStorage.getItem("uwcam-csrf"),
+  session: { token_required: false, signed_in: true },
+  // Figures a benchmark or a test reads: frames painted and their age (capture → painted).
+  stats: { displayed: 0, lastDisplayed: 0, ages: [], connectedAt: 0 },
+};
+window.uwcam = state;
+
+// ---------------------------------------------------------------- API helpers
+
+function message(text, ok = false) {
+  const el = $("message");
+  el.textContent = text;
+  el.className = ok ? "ok" : "";
+}
+
+async function api(path, { method = "GET", body, type = "application/json" } = {}) {
+  const headers = {};
+  if (body !== undefined) headers["Content-Type"] = type;
+  if (method !== "GET" && state.csrf) headers["X-CSRF-Token"] = state.csrf;
+  const response = await fetch(path, {
+    method, headers, credentials: "same-origin",
+    body: body === undefined ? undefined : type === "application/json" ? JSON.stringify(body) : body,
+  });
+  const text = await response.text();
+  let data = null;
+  try { data = text ? JSON.parse(text) : null; } catch { data = text; }
+  if (!response.ok) {
+    if (response.status === 401) { state.session.signed_in = false; renderAuth(); }
+    const detail = data && (data.detail || data.error);
+    const why = typeof detail === "string" ? detail : JSON.stringify(detail);
+    throw new Error(`${method} ${path}: ${response.status} ${why || response.statusText}`);
+  }
+  return data;
+}
+
+async function change(what, path, options) {
+  try {
+    const result = await api(path, options);
+    message(`${what}: done`, true);
+    return result;
+  } catch (error) {
+    message(`${what} failed — ${error.message}`);
+    return null;
+  }
+}
+
+// ---------------------------------------------------------------- sign-in
+
+function renderAuth() {
+  const box = $("auth");
+  const locked = state.session.token_required && !state.session.signed_in;
+  document.querySelectorAll(".control").forEach((el) => { el.disabled = locked; });
+  box.replaceChildren();
+  if (!state.session.token_required) return;
+  if (state.session.signed_in) {
+    const out = document.createElement("button");
+    out.textContent = "Sign out";
+    out.onclick = async () => {
+      await change("Sign out", "api/v1/session", { method: "DELETE" });
+      state.csrf = null;
+      sessionStorage.removeItem("uwcam-csrf");
+      state.session.signed_in = false;
+      renderAuth();
+    };
+    box.append("signed in ", out);
+    return;
+  }
+  const input = document.createElement("input");
+  input.type = "password";
+  input.placeholder = "token";
+  input.id = "token";
+  const button = document.createElement("button");
+  button.textContent = "Sign in";
+  button.id = "sign-in";
+  const signIn = async () => {
+    const result = await change("Sign in", "api/v1/session", { method: "POST", body: { token: input.value } });
+    if (result) {
+      state.csrf = result.csrf_token;
+      sessionStorage.setItem("uwcam-csrf", state.csrf);
+      state.session.signed_in = true;
+      renderAuth();
+    }
+  };
+  button.onclick = signIn;
+  input.onkeydown = (e) => { if (e.key === "Enter") signIn(); };
+  box.append("controls locked: ", input, button);
+}
+
+async function loadSession() {
+  try {
+    state.session = await api("api/v1/session");
+    if (state.session.signed_in === false) state.csrf = null;
+  } catch (error) {
+    message(error.message);
+  }
+  renderAuth();
+}
+
+// ---------------------------------------------------------------- drawing
+
+function percentileLimits(range) {
+  // 2nd and 98th percentile of valid ranges from a histogram of every 7th pixel (1 cm bins).
+  const bins = new Uint32Array(6600);
+  let count = 0;
+  const data = range.data, base = range.invalid_base;
+  for (let i = 0; i < data.length; i += 7) {
+    const v = data[i];
+    if (v < base) { bins[(v / 10) | 0]++; count++; }
+  }
+  if (count < 20) return null;
+  let acc = 0, lo = null, hi = null;
+  for (let b = 0; b < bins.length; b++) {
+    acc += bins[b];
+    if (lo === null && acc >= 0.02 * count) lo = b / 100;
+    if (acc >= 0.98 * count) { hi = (b + 1) / 100; break; }
+  }
+  if (hi - lo < 0.05) { lo -= 0.025; hi += 0.025; }
+  return { min: Math.max(0, lo), max: hi };
+}
+
+function currentLimits(frame) {
+  if (state.showSigma) {
+    return state.sigmaLimits || { min: 0, max: 0.05 };
+  }
+  if (!state.limits.auto) return state.limits;
+  const fresh = percentileLimits(frame.range);
+  if (fresh) {
+    // Smoothed so that the colours do not flicker from frame to frame.
+    const a = state.autoLimits;
+    state.autoLimits = a ? { min: a.min + 0.3 * (fresh.min - a.min), max: a.max + 0.3 * (fresh.max - a.max) } : fresh;
+  }
+  return state.autoLimits || state.limits;
+}
+
+let rangeImage = null, sigmaCanvas = null, sigmaImage = null;
+const reasonTable = new Uint32Array(64).map((_, code) => reasonColour(code));
+
+function drawRange(frame) {
+  const canvas = $("range");
+  const r = frame.range;
+  if (canvas.width !== r.width || canvas.height !== r.height) {
+    canvas.width = r.width; canvas.height = r.height;
+    $("marks").width = r.width; $("marks").height = r.height;
+    rangeImage = null;
+  }
+  const ctx = canvas.getContext("2d");
+  const limits = currentLimits(frame);
+  const table = state.table;
+  if (state.showSigma) {
+    const s = frame.sigma;
+    if (!sigmaCanvas || sigmaCanvas.width !== s.width || sigmaCanvas.height !== s.height) {
+      sigmaCanvas = new OffscreenCanvas(s.width, s.height);
+      sigmaImage = new ImageData(s.width, s.height);
+    }
+    const out = new Uint32Array(sigmaImage.data.buffer);
+    const lo = limits.min * 1000, scale = 255 / Math.max((limits.max - limits.min) * 1000, 1e-6);
+    let top = 0;
+    for (let i = 0; i < s.data.length; i++) {
+      const v = float16(s.data[i]);
+      if (Number.isNaN(v)) { out[i] = reasonTable[1]; continue; }
+      if (v > top) top = v;
+      let t = ((v - lo) * scale) | 0;
+      out[i] = table[t < 0 ? 0 : t > 255 ? 255 : t];
+    }
+    state.sigmaLimits = { min: 0, max: Math.max(top / 1000, 0.001) };
+    sigmaCanvas.getContext("2d").putImageData(sigmaImage, 0, 0);
+    ctx.imageSmoothingEnabled = false;
+    ctx.drawImage(sigmaCanvas, 0, 0, r.width, r.height);
+  } else {
+    if (!rangeImage) rangeImage = new ImageData(r.width, r.height);
+    const out = new Uint32Array(rangeImage.data.buffer);
+    const data = r.data, base = r.invalid_base;
+    const lo = limits.min * 1000, scale = 255 / Math.max((limits.max - limits.min) * 1000, 1);
+    for (let i = 0; i < data.length; i++) {
+      const v = data[i];
+      if (v >= base) { out[i] = reasonTable[v - base]; continue; }
+      let t = ((v - lo) * scale) | 0;
+      out[i] = table[t < 0 ? 0 : t > 255 ? 255 : t];
+    }
+    ctx.putImageData(rangeImage, 0, 0);
+  }
+  drawColourbar(limits);
+}
+
+function drawColourbar(limits) {
+  const bar = $("colourbar");
+  const ctx = bar.getContext("2d");
+  for (let x = 0; x < bar.width; x++) {
+    ctx.fillStyle = cssColour(state.table[Math.round((x / (bar.width - 1)) * 255)]);
+    ctx.fillRect(x, 0, 1, bar.height);
+  }
+  const digits = limits.max - limits.min < 0.5 ? 3 : 2;
+  $("bar-min").textContent = limits.min.toFixed(digits);
+  $("bar-max").textContent = limits.max.toFixed(digits);
+  $("bar-unit").textContent = state.showSigma ? "σ, m" : "range, m";
+  $("range-label").textContent = state.showSigma ? "σ of range" : "range";
+}
+
+function drawColour() {
+  if (!state.colourBitmap) return;
+  const canvas = $("colour");
+  const bitmap = state.colourBitmap;
+  if (canvas.width !== bitmap.width || canvas.height !== bitmap.height) {
+    canvas.width = bitmap.width; canvas.height = bitmap.height;
+  }
+  canvas.getContext("2d").drawImage(bitmap, 0, 0);
+}
+
+function drawMarks() {
+  const canvas = $("marks");
+  const frame = state.shown;
+  if (!frame) return;
+  const step = frame.range.step;
+  const ctx = canvas.getContext("2d");
+  ctx.clearRect(0, 0, canvas.width, canvas.height);
+  ctx.lineWidth = Math.max(1, canvas.width / 640);
+  ctx.font = `${Math.round(canvas.width / 60)}px sans-serif`;
+  state.pins.forEach((p, i) => {
+    const x = p.x / step, y = p.y / step;
+    ctx.strokeStyle = "#fff"; ctx.fillStyle = "#fff";
+    ctx.beginPath(); ctx.arc(x, y, canvas.width / 160, 0, 2 * Math.PI); ctx.stroke();
+    ctx.fillText(String(i + 1), x + canvas.width / 120, y - canvas.width / 120);
+  });
+  const line = state.line;
+  if (line) {
+    ctx.strokeStyle = "#ff0"; ctx.beginPath();
+    ctx.moveTo(line.x0 / step, line.y0 / step); ctx.lineTo(line.x1 / step, line.y1 / step); ctx.stroke();
+  }
+  const patch = state.patchDraft || state.patchRegion;
+  if (patch) {
+    ctx.strokeStyle = state.patchDraft ? "#0ff" : "rgba(0,255,255,.6)";
+    ctx.setLineDash(state.patchDraft ? [6, 4] : []);
+    ctx.strokeRect(patch[0] / step, patch[1] / step, patch[2] / step, patch[3] / step);
+    ctx.setLineDash([]);
+  }
+}
+
+function formatReading(reading) {
+  if (reading.range === null) {
+    return `no range: ${state.hello?.reasons?.[reading.reason] ?? `reason ${reading.reason}`}`;
+  }
+  return `${reading.range.toFixed(3)} m ± ${reading.sigma.toFixed(3)} m`;
+}
+
+function updateReadout() {
+  const frame = state.shown;
+  const el = $("readout");
+  if (!frame || !state.pointer) return;
+  const { x, y } = state.pointer;
+  const reading = sample(frame, x, y);
+  el.textContent = `${formatReading(reading)} · px (${x}, ${y}) · frame ${frame.number}`;
+  el.dataset.frame = frame.number;
+  el.dataset.x = x; el.dataset.y = y;
+}
+
+function updatePins() {
+  const frame = state.shown;
+  const list = $("pins");
+  list.replaceChildren(...state.pins.map((p, i) => {
+    const li = document.createElement("li");
+    li.textContent = `(${p.x}, ${p.y}) ${frame ? formatReading(sample(frame, p.x, p.y)) : ""} `;
+    const remove = document.createElement("button");
+    remove.textContent = "×";
+    remove.title = "remove this pin";
+    remove.onclick = () => { state.pins.splice(i, 1); updatePins(); drawMarks(); };
+    li.append(remove);
+    return li;
+  }));
+}
+
+function drawProfile() {
+  const canvas = $("profile");
+  const ctx = canvas.getContext("2d");
+  ctx.clearRect(0, 0, canvas.width, canvas.height);
+  const frame = state.shown, line = state.line;
+  ctx.fillStyle = "#7f95a5"; ctx.font = "11px sans-serif";
+  if (!frame || !line) { ctx.fillText("choose the line tool and drag across the range view", 8, 20); return; }
+  const length = Math.hypot(line.x1 - line.x0, line.y1 - line.y0);
+  const n = Math.max(2, Math.min(400, Math.round(length / frame.range.step)));
+  const values = [];
+  for (let i = 0; i < n; i++) {
+    const t = i / (n - 1);
+    values.push(sample(frame, Math.round(line.x0 + t * (line.x1 - line.x0)), Math.round(line.y0 + t * (line.y1 - line.y0))).range);
+  }
+  const valid = values.filter((v) => v !== null);
+  if (!valid.length) { ctx.fillText("no valid range along the line", 8, 20); return; }
+  let lo = Math.min(...valid), hi = Math.max(...valid);
+  if (hi - lo < 0.01) { lo -= 0.005; hi += 0.005; }
+  const left = 44, bottom = canvas.height - 16, top = 8, right = canvas.width - 6;
+  ctx.strokeStyle = "#2e4a5e"; ctx.strokeRect(left, top, right - left, bottom - top);
+  ctx.fillText(`${hi.toFixed(2)} m`, 2, top + 8);
+  ctx.fillText(`${lo.toFixed(2)} m`, 2, bottom);
+  ctx.fillText(`0 … ${Math.round(length)} px along the line`, left, canvas.height - 3);
+  ctx.strokeStyle = "#4fc3f7"; ctx.lineWidth = 1.5; ctx.beginPath();
+  let pen = false;
+  values.forEach((v, i) => {
+    if (v === null) { pen = false; return; }
+    const x = left + (i / (n - 1)) * (right - left), y = bottom - ((v - lo) / (hi - lo)) * (bottom - top);
+    if (pen) ctx.lineTo(x, y); else ctx.moveTo(x, y);
+    pen = true;
+  });
+  ctx.stroke();
+}
+
+function drawLegend() {
+  const reasons = state.hello?.reasons || {};
+  $("legend").replaceChildren(...Object.entries(reasons).filter(([code]) => code !== "0").map(([code, name]) => {
+    const li = document.createElement("li");
+    const swatch = document.createElement("i");
+    const c = REASON_COLOURS[code] || [128, 128, 128];
+    swatch.style.background = `rgb(${c.join(",")})`;
+    li.append(swatch, name);
+    return li;
+  }));
+}
+
+// ---------------------------------------------------------------- frames
+
+let paintScheduled = false;
+let cloud = null;
+let cloudUpdatedAt = 0;
+
+function onFrame(frame) {
+  state.frame = frame;
+  if (state.paused) { stream.ack(frame.number); return; }
+  createImageBitmap(frame.colour.blob).then((bitmap) => {
+    if (state.frame !== frame) { bitmap.close(); return; }  // a newer frame arrived meanwhile
+    state.pendingBitmap?.close();
+    state.pendingBitmap = bitmap;
+    if (!paintScheduled) { paintScheduled = true; requestAnimationFrame(paint); }
+  }, () => stream.ack(frame.number));
+}
+
+function paint() {
+  paintScheduled = false;
+  const frame = state.frame;
+  if (!frame || state.paused) return;
+  state.colourBitmap?.close();
+  state.colourBitmap = state.pendingBitmap;
+  state.pendingBitmap = null;
+  state.shown = frame;
+  if (state.mode !== "range" && state.mode !== "cloud") drawColour();
+  if (state.mode !== "cloud") drawRange(frame);
+  else if (performance.now() - cloudUpdatedAt > 400) { cloudUpdatedAt = performance.now(); cloud?.update(frame, state.colourBitmap, state.hello); }
+  drawMarks();
+  updateReadout();
+  updatePins();
+  if (state.line) drawProfile();
+  const stats = state.stats;
+  stats.displayed++;
+  stats.lastDisplayed = frame.number;
+  stats.ages.push(Date.now() - frame.captureMs);
+  if (stats.ages.length > 2000) stats.ages.splice(0, 1000);
+  $("frame-info").textContent = `frame ${frame.number} · ${Math.round(Date.now() - frame.captureMs)} ms old`;
+  stream.ack(frame.number);
+}
+
+// ---------------------------------------------------------------- staleness
+
+function checkStale() {
+  const frameAge = state.shown ? Date.now() - state.shown.captureMs : Infinity;
+  const camera = state.status?.camera?.health;
+  const stale = $("stale");
+  let text = "";
+  if (!state.shown) text = "waiting for the first frame…";
+  else if (frameAge > STALE_AFTER_MS) text = `STALE — last frame ${(frameAge / 1000).toFixed(1)} s old`;
+  if (camera && camera.state !== "ok") text += `${text ? " · " : ""}camera ${camera.state}: ${camera.reason}`;
+  stale.hidden = !text;
+  stale.textContent = text;
+  $("panes").classList.toggle("stale-view", frameAge > STALE_AFTER_MS);
+  const statusAge = Date.now() - state.statusAt;
+  $("health-box").classList.toggle("stale", statusAge > 3000);
+  $("health-age").textContent = statusAge > 3000 ? `no answer for ${(statusAge / 1000).toFixed(0)} s` : "";
+}
+
+// ---------------------------------------------------------------- health
+
+function cell(text, cls) {
+  const td = document.createElement("td");
+  td.textContent = text;
+  if (cls) td.className = cls;
+  return td;
+}
+
+function ago(seconds) {
+  if (seconds === null || seconds === undefined) return "";
+  return seconds < 60 ? `${seconds.toFixed(seconds < 10 ? 1 : 0)} s` : seconds < 3600 ? `${(seconds / 60).toFixed(0)} min` : `${(seconds / 3600).toFixed(1)} h`;
+}
+
+function renderHealth(s) {
+  const rows = [];
+  const device = (name, health) => {
+    const tr = document.createElement("tr");
+    if (!health) { tr.append(cell(name), cell("not configured", "muted")); return tr; }
+    tr.append(cell(name), cell(health.state, `state-${health.state}`), cell(`${health.reason} · ${ago(health.for_s)}`, "muted"));
+    return tr;
+  };
+  rows.push(device("camera", s.camera?.health));
+  rows.push(device("lamp", s.lamp?.health));
+  rows.push(device("rangefinder", s.rangefinder?.health));
+  $("devices").replaceChildren(...rows);
+
+  const figures = [];
+  const add = (term, value, cls) => {
+    const dt = document.createElement("dt"); dt.textContent = term;
+    const dd = document.createElement("dd"); dd.textContent = value;
+    if (cls) dd.className = cls;
+    figures.push(dt, dd);
+  };
+  const f = s.frames;
+  add("frame rate", `${f.fps.toFixed(1)} fps`, f.fps === 0 ? "state-lost" : "");
+  add("frames", `${f.processed} processed · ${f.dropped} dropped`);
+  if (s.latency_ms) add("latency", `p50 ${s.latency_ms.p50} ms · p99 ${s.latency_ms.p99} ms`);
+  const cal = s.calibration;
+  if (cal) {
+    const created = cal.created ? new Date(cal.created) : null;
+    add("calibration", `${cal.name}${created ? ` · ${ago((Date.now() - created) / 1000)} old` : ""}`);
+    if (cal.tracking) {
+      const diffs = Object.entries(cal.tracking.attenuation_differences)
+        .map(([k, v]) => `${k} ${v.toFixed(4)} (${cal.tracking.drift[k] >= 0 ? "+" : ""}${cal.tracking.drift[k].toFixed(4)})`).join(", ");
+      add("patch tracking", `${diffs} 1/m · ${cal.tracking.state}`);
+      if (cal.tracking.region && !state.patchDraft) state.patchRegion = cal.tracking.region;
+    }
+    if (cal.reflectance) add("reflectance", cal.reflectance.state);
+  }
+  const rf = s.rangefinder;
+  if (rf) {
+    const stale = rf.age_s === null || rf.age_s > 2;
+    add("rangefinder", rf.range_m === null ? "no reading" :
+      `${rf.range_m.toFixed(2)} m · confidence ${rf.confidence === null ? "?" : Math.round(rf.confidence * 100)} % · ${ago(rf.age_s)} old`, stale ? "stale" : "");
+  }
+  const lamp = s.lamp;
+  if (lamp) {
+    add("lamp", lamp.on === null ? "unknown" : `${lamp.on ? "on" : "off"} · ${lamp.percent ?? "?"} %`);
+    $("lamp-state").textContent = lamp.on === null ? "" : lamp.on ? "on" : "off";
+    if (document.activeElement !== $("lamp-intensity") && lamp.percent !== null) {
+      $("lamp-intensity").value = lamp.percent;
+      $("lamp-intensity-value").textContent = Math.round(lamp.percent);
+    }
+  }
+  $("figures").replaceChildren(...figures);
+}
+
+async function pollStatus() {
+  try {
+    state.status = await api("api/v1/status");
+    state.statusAt = Date.now();
+    renderHealth(state.status);
+  } catch (error) {
+    // the age shown in the health box says how long the daemon has not answered
+  }
+  setTimeout(pollStatus, 1000);
+}
+
+// ---------------------------------------------------------------- controls
+
+async function loadConfig() {
+  try {
+    state.config = await api("api/v1/config");
+  } catch (error) { message(error.message); return; }
+  const c = state.config;
+  const channels = state.hello?.channels || [];
+  const pair = $("pair");
+  const options = [["fuse", "all channels fused"]];
+  for (let i = 0; i < channels.length; i++) {
+    for (let j = i + 1; j < channels.length; j++) options.push([`${channels[i]},${channels[j]}`, `${channels[i]}/${channels[j]} pair`]);
+  }
+  pair.replaceChildren(...options.map(([value, label]) => new Option(label, value)));
+  pair.value = c.pair ? c.pair.join(",") : "fuse";
+  $("smoothing").value = c.smoothing;
+  $("smoothing-stage").value = c.smoothing_stage;
+  $("lamp-off-interval").value = c.lamp_off_interval;
+  if (c.patch?.path_length_m) $("patch-path").value = c.patch.path_length_m;
+}
+
+async function patchConfig(what, body) {
+  const result = await change(what, "api/v1/config", { method: "PATCH", body });
+  await loadConfig();
+  return result;
+}
+
+async function loadProfiles() {
+  let profiles;
+  try { profiles = await api("api/v1/calibration/profiles"); } catch (error) { message(error.message); return; }
+  $("profiles").replaceChildren(...profiles.map((p) => {
+    const li = document.createElement("li");
+    li.textContent = `${p.name} (${p.channels.join(", ")}) `;
+    if (p.active) {
+      const b = document.createElement("b"); b.textContent = "active"; li.append(b);
+    } else {
+      const button = document.createElement("button");
+      button.textContent = "activate";
+      button.className = "control";
+      button.onclick = async () => {
+        await change(`Activate ${p.name}`, `api/v1/calibration/profiles/${encodeURIComponent(p.name)}/activate`, { method: "POST" });
+        loadProfiles();
+      };
+      li.append(button);
+    }
+    return li;
+  }));
+  renderAuth();
+}
+
+function wireControls() {
+  $("lamp-on").onclick = () => change("Lamp on", "api/v1/lamp", { method: "PUT", body: { on: true } });
+  $("lamp-off").onclick = () => change("Lamp off", "api/v1/lamp", { method: "PUT", body: { on: false } });
+  $("lamp-intensity").oninput = () => { $("lamp-intensity-value").textContent = $("lamp-intensity").value; };
+  $("lamp-intensity").onchange = () => change("Lamp intensity", "api/v1/lamp", { method: "PUT", body: { intensity: Number($("lamp-intensity").value) } });
+  $("pair").onchange = () => {
+    const v = $("pair").value;
+    patchConfig("Channels", v === "fuse" ? { fuse: true } : { pair: v.split(",") });
+  };
+  $("smoothing").onchange = () => patchConfig("Smoothing", { smoothing: $("smoothing").value });
+  $("smoothing-stage").onchange = () => patchConfig("Smoothing stage", { smoothing_stage: $("smoothing-stage").value });
+  $("lamp-off-interval").onchange = () => {
+    const n = Number($("lamp-off-interval").value);
+    if (!Number.isInteger(n) || n < 0) { message("the lamp-off interval is a whole number of frames, 0 or more"); return; }
+    patchConfig("Lamp-off interval", { lamp_off_interval: n });
+  };
+  $("profile-upload").onclick = async () => {
+    const file = $("profile-file").files[0];
+    const name = $("profile-name").value.trim() || file?.name.replace(/\.(ya?ml|json)$/, "");
+    if (!file || !name) { message("choose a profile file (YAML or JSON) and a name"); return; }
+    const type = file.name.endsWith(".json") ? "application/json" : "application/x-yaml";
+    await change(`Upload ${name}`, `api/v1/calibration/profiles/${encodeURIComponent(name)}`, { method: "PUT", body: await file.text(), type });
+    loadProfiles();
+  };
+  $("patch-apply").onclick = async () => {
+    const region = state.patchDraft;
+    const path = Number($("patch-path").value);
+    if (!region || !(path > 0)) { message("drag a patch region and give its path length in metres"); return; }
+    const result = await patchConfig("Patch region", { patch: { region, path_length_m: path } });
+    if (result) { state.patchRegion = region; state.patchDraft = null; $("patch-form").hidden = true; drawMarks(); }
+  };
+  $("patch-cancel").onclick = () => { state.patchDraft = null; $("patch-form").hidden = true; drawMarks(); };
+}
+
+// ---------------------------------------------------------------- view settings and pointer tools
+
+function wireView() {
+  const mapSelect = $("colour-map");
+  mapSelect.replaceChildren(...COLOUR_MAPS.map((name) => new Option(name, name)));
+  mapSelect.onchange = () => { state.table = lut(mapSelect.value); repaint(); };
+  $("mode").onchange = () => {
+    state.mode = $("mode").value;
+    $("panes").className = `mode-${state.mode}`;
+    $("cloud-pane").hidden = state.mode !== "cloud";
+    $("opacity-box").hidden = state.mode !== "overlay";
+    if (state.mode === "cloud" && !cloud) cloud = new PointCloudView($("cloud"));
+    $("range-pane").style.opacity = state.mode === "overlay" ? $("opacity").value : "";
+    repaint();
+  };
+  $("opacity-box").hidden = true;
+  $("opacity").oninput = () => { if (state.mode === "overlay") $("range-pane").style.opacity = $("opacity").value; };
+  $("show-sigma").onchange = () => { state.showSigma = $("show-sigma").checked; repaint(); };
+  $("limits").onchange = () => {
+    state.limits.auto = $("limits").value === "auto";
+    $("fixed-limits").hidden = state.limits.auto;
+    repaint();
+  };
+  const setFixed = () => {
+    const lo = Number($("limit-min").value), hi = Number($("limit-max").value);
+    if (!(Number.isFinite(lo) && Number.isFinite(hi) && hi > lo && lo >= 0)) { message("fixed limits need 0 ≤ lowest < highest"); return; }
+    state.limits.min = lo; state.limits.max = hi; repaint();
+  };
+  $("limit-min").onchange = setFixed;
+  $("limit-max").onchange = setFixed;
+  $("tool").onchange = () => { state.tool = $("tool").value; };
+  $("pause").onclick = () => {
+    state.paused = !state.paused;
+    $("pause").textContent = state.paused ? "Resume" : "Pause";
+  };
+  $("clear-pins").onclick = () => { state.pins = []; updatePins(); drawMarks(); };
+
+  const pane = $("range-pane");
+  const toImage = (event) => {
+    const canvas = $("range");
+    const rect = canvas.getBoundingClientRect();
+    const frame = state.shown;
+    if (!frame) return null;
+    const w = frame.header.image_width, h = frame.header.image_height;
+    const x = Math.floor(((event.clientX - rect.left) / rect.width) * w);
+    const y = Math.floor(((event.clientY - rect.top) / rect.height) * h);
+    return { x: Math.min(w - 1, Math.max(0, x)), y: Math.min(h - 1, Math.max(0, y)) };
+  };
+  pane.addEventListener("pointermove", (event) => {
+    const p = toImage(event);
+    if (!p) return;
+    state.pointer = p;
+    updateReadout();
+    if (state.drag) {
+      const d = state.drag;
+      if (state.tool === "line") state.line = { x0: d.x, y0: d.y, x1: p.x, y1: p.y };
+      if (state.tool === "patch") {
+        state.patchDraft = [Math.min(d.x, p.x), Math.min(d.y, p.y), Math.max(1, Math.abs(p.x - d.x)), Math.max(1, Math.abs(p.y - d.y))];
+      }
+      drawMarks();
+      if (state.tool === "line") drawProfile();
+    }
+  });
+  pane.addEventListener("pointerdown", (event) => {
+    const p = toImage(event);
+    if (!p) return;
+    if (state.tool === "inspect") {
+      if (state.pins.length >= MAX_PINS) state.pins.shift();
+      state.pins.push(p);
+      updatePins(); drawMarks();
+      return;
+    }
+    state.drag = p;
+    pane.setPointerCapture(event.pointerId);
+  });
+  pane.addEventListener("pointerup", () => {
+    if (state.drag && state.tool === "patch" && state.patchDraft) {
+      $("patch-form").hidden = false;
+      $("patch-region").textContent = `x ${state.patchDraft[0]}, y ${state.patchDraft[1]}, ${state.patchDraft[2]} × ${state.patchDraft[3]} px`;
+    }
+    state.drag = null;
+  });
+  pane.addEventListener("pointerleave", () => { if (!state.drag) { state.pointer = null; } });
+}
+
+function repaint() {
+  if (!state.shown) return;
+  if (state.mode !== "cloud") { drawColour(); drawRange(state.shown); }
+  else cloud?.update(state.shown, state.colourBitmap, state.hello);
+  drawMarks();
+}
+
+// ---------------------------------------------------------------- start
+
+const stream = new ViewStream({
+  step: Number(new URLSearchParams(location.search).get("step") || 1),
+  onHello: (hello) => {
+    state.hello = hello;
+    drawLegend();
+    loadConfig();
+  },
+  onFrame,
+  onState: (s) => {
+    const badge = $("connection");
+    badge.textContent = s === "connected" ? "live" : "reconnecting…";
+    badge.className = `badge ${s === "connected" ? "live" : "down"}`;
+    if (s === "connected") state.stats.connectedAt = Date.now();
+  },
+});
+
+wireView();
+wireControls();
+drawProfile();
+loadSession();
+loadProfiles();
+pollStatus();
+setInterval(checkStale, 250);

@@ -1,0 +1,86 @@
+// The daemon's view stream (WS api/v1/view): connect, decode frames, acknowledge painted ones.
+// Message layout: see uwcam/api/view.py.
+
+const F16 = (() => {
+  // float16 bit pattern → float32, for all 65536 patterns (σ planes are decoded through it).
+  const table = new Float32Array(65536);
+  for (let h = 0; h < 65536; h++) {
+    const s = h & 0x8000 ? -1 : 1, e = (h >> 10) & 0x1f, f = h & 0x3ff;
+    table[h] = e === 0 ? s * Math.pow(2, -14) * (f / 1024)
+      : e === 31 ? (f ? NaN : s * Infinity)
+      : s * Math.pow(2, e - 15) * (1 + f / 1024);
+  }
+  return table;
+})();
+
+export function float16(bits) {
+  return F16[bits];
+}
+
+export function decodeFrame(buffer) {
+  const view = new DataView(buffer);
+  const magic = String.fromCharCode(...new Uint8Array(buffer, 0, 4));
+  if (magic !== "UWV1") throw new Error(`unexpected stream message (${magic})`);
+  const length = view.getUint32(4, true);
+  const header = JSON.parse(new TextDecoder().decode(new Uint8Array(buffer, 8, length)));
+  const frame = { header, number: header.frame, captureMs: header.capture_time_ns / 1e6 };
+  for (const s of header.sections) {
+    if (s.name === "range") frame.range = { data: new Uint16Array(buffer, s.offset, s.width * s.height), ...s };
+    else if (s.name === "sigma") frame.sigma = { data: new Uint16Array(buffer, s.offset, s.width * s.height), ...s };
+    else if (s.name === "colour") frame.colour = { blob: new Blob([new Uint8Array(buffer, s.offset, s.length)], { type: s.mime }), ...s };
+  }
+  return frame;
+}
+
+// Range in metres at image pixel (x, y) of a frame, or null with the reason code when invalid.
+export function sample(frame, x, y) {
+  const r = frame.range;
+  const i = Math.min(r.height - 1, Math.max(0, Math.floor(y / r.step))) * r.width
+    + Math.min(r.width - 1, Math.max(0, Math.floor(x / r.step)));
+  const v = r.data[i];
+  const s = frame.sigma;
+  const j = Math.min(s.height - 1, Math.max(0, Math.floor(y / s.step))) * s.width
+    + Math.min(s.width - 1, Math.max(0, Math.floor(x / s.step)));
+  if (v >= r.invalid_base) return { range: null, reason: v - r.invalid_base };
+  return { range: v / 1000, sigma: F16[s.data[j]] / 1000, reason: 0 };
+}
+
+export function wsUrl(path) {
+  const url = new URL(path, document.baseURI);
+  url.protocol = url.protocol === "https:" ? "wss:" : "ws:";
+  return url.href;
+}
+
+// Keeps a view stream open (reconnecting with backoff) and hands each decoded frame to onFrame.
+// The caller calls ack(number) once it has painted a frame.
+export class ViewStream {
+  constructor({ step = 1, onHello, onFrame, onState }) {
+    Object.assign(this, { step, onHello, onFrame, onState });
+    this.retry = 500;
+    this.connect();
+  }
+
+  connect() {
+    const ws = new WebSocket(wsUrl(`api/v1/view?step=${this.step}`));
+    ws.binaryType = "arraybuffer";
+    this.ws = ws;
+    ws.onopen = () => { this.retry = 500; this.onState?.("connected"); };
+    ws.onmessage = (event) => {
+      if (typeof event.data === "string") {
+        const message = JSON.parse(event.data);
+        if (message.type === "hello") this.onHello?.(message);
+        return;
+      }
+      this.onFrame(decodeFrame(event.data));
+    };
+    ws.onclose = () => {
+      this.onState?.("disconnected");
+      setTimeout(() => this.connect(), this.retry);
+      this.retry = Math.min(this.retry * 2, 5000);
+    };
+  }
+
+  ack(number) {
+    if (this.ws.readyState === WebSocket.OPEN) this.ws.send(JSON.stringify({ ack: number }));
+  }
+}
