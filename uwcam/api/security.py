@@ -100,6 +100,23 @@ def host_allowed(host_header: str, allowed: tuple[str, ...]) -> bool:
     return False
 
 
+def same_origin(origin: str, host_header: str) -> bool:
+    """Whether a page at ``origin`` belongs to the daemon reached as ``host_header``.
+
+    A reverse proxy may pass on the host name without its port (BlueOS's nginx sets
+    ``Host $host``): then the names alone are compared."""
+    page = urlsplit(origin)
+    host = urlsplit(f"//{host_header}")
+    try:
+        page_port, host_port = page.port, host.port
+    except ValueError:
+        return False
+    if (page.hostname or "").lower() != (host.hostname or "").lower():
+        return False
+    default = {"http": 80, "https": 443}.get(page.scheme)
+    return host_port is None or (page_port or default) == host_port
+
+
 class Guard:
     """The application-wide dependency: Host and Origin checks, and authorisation of state changes."""
 
@@ -124,8 +141,7 @@ class Guard:
         origin = conn.headers.get("origin")
         if origin is None:
             return  # not from a browser page, or a same-origin GET
-        host = conn.headers.get("host", "")
-        if origin == "null" or urlsplit(origin).netloc.lower() != host.lower():
+        if origin == "null" or not same_origin(origin, conn.headers.get("host", "")):
             raise HTTPException(status_code=403, detail=f"requests from the page at {origin} may not change this daemon's "
                                                         "state; use uwcam's own page")
 

@@ -1,0 +1,406 @@
+"""The operator page, the Cockpit widget and BlueOS discovery: a real daemon, real Chromium
+(Debian's, driven by Playwright), and a real nginx reverse proxy serving uwcam under a path
+prefix as BlueOS does."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import socket
+import struct
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+import websockets.sync.client
+
+from tests.test_api import SERIAL, Server, small_config
+from tests.waiting import wait_for
+from uwcam.drivers.sim import SimulatedCamera
+
+pytestmark = pytest.mark.browser
+CHROMIUM = "/usr/bin/chromium"
+
+
+def decode_view(message: bytes) -> tuple[dict, dict]:
+    """The view stream's binary message, decoded from its documented layout (uwcam/api/view.py)."""
+    assert message[:4] == b"UWV1"
+    (length,) = struct.unpack_from("<I", message, 4)
+    header = json.loads(message[8 : 8 + length])
+    planes = {}
+    for s in header["sections"]:
+        raw = message[s["offset"] : s["offset"] + s["length"]]
+        if s["name"] == "range":
+            planes["range"] = np.frombuffer(raw, "<u2").reshape(s["height"], s["width"])
+        elif s["name"] == "sigma":
+            planes["sigma"] = np.frombuffer(raw, "<f2").reshape(s["height"], s["width"])
+        else:
+            planes[s["name"]] = raw
+    return header, planes
+
+
+class Frames:
+    """Keeps the last published frames by number, so a test can compare what was sent with them."""
+
+    def __init__(self, daemon) -> None:
+        self.daemon = daemon
+        self.by_number: dict[int, object] = {}
+        self.lock = threading.Lock()
+
+    def __call__(self, published) -> None:
+        with self.lock:
+            self.by_number[published.number] = published
+            for n in [n for n in self.by_number if n < published.number - 60]:
+                del self.by_number[n]
+
+    def __enter__(self) -> "Frames":
+        self.daemon.pipeline.subscribe(self)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.daemon.pipeline.unsubscribe(self)
+
+
+@pytest.fixture(autouse=True)
+def no_leaked_threads():
+    """The module's server lives across tests; its request worker threads start lazily. Checked
+    at module end instead (see the ``server`` fixture)."""
+    yield
+
+
+@pytest.fixture(scope="module")
+def server():
+    before = set(threading.enumerate())
+    with Server(small_config()) as s:
+        assert wait_for(lambda: s.daemon.pipeline.latest is not None, 60.0)
+        yield s
+    assert wait_for(lambda: not [t for t in threading.enumerate() if t not in before and t.is_alive()], 10.0), \
+        [t.name for t in threading.enumerate() if t not in before]
+
+
+@pytest.fixture(scope="module")
+def browser():
+    from playwright.sync_api import sync_playwright
+
+    assert Path(CHROMIUM).exists(), "Debian's chromium is needed for the page tests: .ci/run installs it"
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=["--headless", "--no-sandbox"])
+        yield b
+        b.close()
+
+
+def open_page(browser, url: str, allowed_prefix: str):
+    """A page whose console errors and requests are recorded; any request to a host other than
+    the daemon's (or the proxy's) is refused and recorded as outside."""
+    page = browser.new_page(viewport={"width": 1400, "height": 900})
+    page.errors, page.outside = [], []
+    page.on("console", lambda m: page.errors.append(m.text) if m.type == "error" else None)
+    page.on("pageerror", lambda e: page.errors.append(str(e)))
+
+    def route(r):
+        if r.request.url.startswith(allowed_prefix) or r.request.url.startswith(allowed_prefix.replace("http", "ws", 1)):
+            r.continue_()
+        else:
+            page.outside.append(r.request.url)
+            r.abort()
+
+    page.route("**/*", route)
+    page.goto(url)
+    return page
+
+
+def displayed(page) -> int:
+    return page.evaluate("window.uwcam ? window.uwcam.stats.displayed : 0")
+
+
+# ---------------------------------------------------------------- without a browser
+
+def test_view_stream_carries_range_reasons_sigma_and_colour_of_a_published_frame(server):
+    with Frames(server.daemon) as frames, websockets.sync.client.connect(server.url.replace("http", "ws") + "/api/v1/view") as ws:
+        hello = json.loads(ws.recv(timeout=10))
+        assert hello["type"] == "hello" and hello["intrinsics"]["fx"] > 0 and hello["reasons"]["1"] == "below noise floor"
+        for _ in range(20):  # the first frames may have been published before Frames listened
+            header, planes = decode_view(ws.recv(timeout=10))
+            ws.send(json.dumps({"ack": header["frame"]}))
+            if header["frame"] in frames.by_number:
+                break
+        published = frames.by_number[header["frame"]]
+    r = published.result.range
+    valid = np.isfinite(r)
+    assert planes["range"].shape == r.shape
+    # Valid pixels: millimetres, rounded; invalid ones: 65500 + the reason code.
+    assert np.array_equal(planes["range"][valid], np.rint(r[valid] * 1000).astype(np.uint16))
+    assert np.array_equal(planes["range"][~valid], 65500 + published.result.reasons[~valid].astype(np.int64))
+    sigma = planes["sigma"].astype(np.float64)
+    expected = np.sqrt(published.result.variance[::2, ::2].astype(np.float64)) * 1000
+    ok = np.isfinite(expected)
+    assert np.allclose(sigma[ok], expected[ok], rtol=2e-3) and np.all(np.isnan(sigma[~ok]))
+    import cv2
+
+    colour = cv2.imdecode(np.frombuffer(planes["colour"], np.uint8), cv2.IMREAD_COLOR)
+    assert colour.shape[:2] == (r.shape[0] // 2, r.shape[1] // 2) and colour.std() > 1
+
+
+def test_a_page_that_does_not_acknowledge_gets_no_backlog_only_the_newest_frame(server):
+    with websockets.sync.client.connect(server.url.replace("http", "ws") + "/api/v1/view?step=2") as ws:
+        ws.recv(timeout=10)
+        first = [decode_view(ws.recv(timeout=10))[0]["frame"] for _ in range(2)]
+        with pytest.raises(TimeoutError):
+            ws.recv(timeout=1.0)  # two frames in flight and none painted: nothing more is sent
+        time.sleep(1.0)  # the daemon goes on (20 fps)
+        ws.send(json.dumps({"ack": first[-1]}))
+        header, planes = decode_view(ws.recv(timeout=10))
+        newest = server.daemon.pipeline.latest.number
+        assert header["frame"] >= newest - 2 > first[-1] + 5  # the newest, not the next in line
+        assert planes["range"].shape == (60, 80)  # step 2 of 160×120
+
+
+def test_register_service_and_cockpit_extras_follow_blueos_conventions(server):
+    meta = server.http.get("/register_service").json()
+    for key in ("name", "description", "icon", "company", "version", "webpage", "api"):
+        assert isinstance(meta[key], str) and meta[key], key
+    assert meta["icon"].startswith("mdi-") and meta["works_in_relative_paths"] is True
+    assert not meta["api"].startswith("/") and not meta["extras"]["cockpit"].startswith("/")
+    extras = server.http.get("/" + meta["extras"]["cockpit"]).json()
+    widget = extras["widgets"][0]
+    assert {"name", "iframe_url", "iframe_icon"} <= widget.keys() and not widget["iframe_url"].startswith("/")
+    assert server.http.get("/" + widget["iframe_url"]).status_code == 200
+    assert server.http.get("/" + widget["iframe_icon"]).status_code == 200
+    bodies = {json.loads(a["config"]["body"])["on"] for a in extras["actions"]}
+    assert bodies == {True, False} and all(a["config"]["url"] == "api/v1/lamp" for a in extras["actions"])
+
+
+def test_docs_work_offline_from_the_package(server):
+    html = server.http.get("/docs").text
+    assert "https://" not in html and "static/docs/swagger-ui-bundle.js" in html and "'openapi.json'" in html
+    assert len(server.http.get("/static/docs/swagger-ui-bundle.js").content) > 100_000
+    assert server.http.get("/static/docs/swagger-ui.css").status_code == 200
+
+
+def test_browser_session_cookie_needs_its_csrf_token_and_the_daemons_origin():
+    with Server(small_config(token="s3cret")) as s:
+        assert s.http.post("/api/v1/session", json={"token": "wrong"}).status_code == 401
+        signed = s.http.post("/api/v1/session", json={"token": "s3cret"})
+        assert signed.status_code == 200 and "httponly" in signed.headers["set-cookie"].lower()
+        assert "samesite=strict" in signed.headers["set-cookie"].lower()
+        csrf = signed.json()["csrf_token"]
+        assert s.http.put("/api/v1/lamp", json={"on": False}).status_code == 401  # cookie alone
+        assert s.http.put("/api/v1/lamp", json={"on": False}, headers={"X-CSRF-Token": "x" + csrf}).status_code == 401
+        ok = s.http.put("/api/v1/lamp", json={"on": False}, headers={"X-CSRF-Token": csrf})
+        assert ok.status_code == 200 and ok.json()["on"] is False
+        foreign = s.http.put("/api/v1/lamp", json={"on": True}, headers={"X-CSRF-Token": csrf, "Origin": "http://evil.example"})
+        assert foreign.status_code == 403
+        own = s.http.put("/api/v1/lamp", json={"on": True}, headers={"X-CSRF-Token": csrf, "Origin": s.url})
+        assert own.status_code == 200 and own.json()["on"] is True
+        s.http.delete("/api/v1/session", headers={"X-CSRF-Token": csrf})
+        assert s.http.put("/api/v1/lamp", json={"on": False}, headers={"X-CSRF-Token": csrf}).status_code == 401
+
+
+# ---------------------------------------------------------------- in Chromium
+
+def test_page_loads_without_errors_and_without_leaving_the_machine(server, browser):
+    page = open_page(browser, server.url + "/", server.url)
+    try:
+        assert wait_for(lambda: displayed(page) > 10, 30.0), "the page painted no frames"
+        page.select_option("#mode", "cloud")
+        assert wait_for(lambda: page.evaluate("document.getElementById('cloud').toDataURL().length") > 5000, 10.0)
+        page.select_option("#mode", "overlay")
+        page.check("#show-sigma")
+        time.sleep(0.5)
+        assert page.errors == [] and page.outside == []
+        assert page.evaluate("getComputedStyle(document.getElementById('range')).display") != "none"
+    finally:
+        page.close()
+
+
+def test_readout_agrees_with_the_range_snapshot_at_that_pixel(server, browser):
+    page = open_page(browser, server.url + "/", server.url)
+    try:
+        assert wait_for(lambda: displayed(page) > 3, 30.0)
+        SimulatedCamera.stall(SERIAL)  # hold the scene still: page and snapshot show one frame
+        try:
+            time.sleep(1.0)
+            box = page.locator("#range").bounding_box()
+            checked = 0
+            for fx, fy in ((0.3, 0.4), (0.6, 0.5), (0.8, 0.2)):
+                page.mouse.move(box["x"] + fx * box["width"], box["y"] + fy * box["height"])
+                time.sleep(0.2)
+                text = page.inner_text("#readout")
+                x, y = int(page.get_attribute("#readout", "data-x")), int(page.get_attribute("#readout", "data-y"))
+                snap = server.http.get("/api/v1/snapshot/range")
+                assert page.get_attribute("#readout", "data-frame") == snap.headers["X-Frame-Number"]
+                import io
+
+                truth = float(np.load(io.BytesIO(snap.content))[y, x])
+                if np.isfinite(truth):
+                    shown = float(text.split(" m")[0])
+                    assert shown == pytest.approx(truth, abs=0.0011), (text, truth)
+                    checked += 1
+                else:
+                    assert text.startswith("no range"), text
+            assert checked >= 2
+        finally:
+            SimulatedCamera.stall(SERIAL, False)
+    finally:
+        page.close()
+
+
+def test_unplugged_camera_shows_as_stale_and_recovering(server, browser):
+    page = open_page(browser, server.url + "/", server.url)
+    try:
+        assert wait_for(lambda: displayed(page) > 3, 30.0)
+        SimulatedCamera.unplug(SERIAL)
+        try:
+            assert wait_for(lambda: "STALE" in page.inner_text("#stale"), 15.0)
+            assert wait_for(lambda: page.locator("#devices .state-recovering, #devices .state-lost").count() > 0, 15.0)
+            assert "camera" in page.inner_text("#stale")
+        finally:
+            SimulatedCamera.plug(SERIAL)
+        assert wait_for(lambda: page.locator("#stale").is_hidden(), 30.0), page.inner_text("#stale")
+    finally:
+        page.close()
+
+
+def test_controls_need_sign_in_when_a_token_is_set(browser):
+    with Server(small_config(token="s3cret")) as s:
+        assert wait_for(lambda: s.daemon.pipeline.latest is not None, 60.0)
+        page = open_page(browser, s.url + "/", s.url)
+        try:
+            assert wait_for(lambda: page.locator("#sign-in").count() == 1, 15.0)
+            assert page.locator("#lamp-off").is_disabled()
+            refused = page.evaluate("fetch('api/v1/lamp', {method: 'PUT', headers: {'Content-Type': 'application/json'},"
+                                    " body: JSON.stringify({on: false})}).then(r => r.status)")
+            assert refused == 401 and s.daemon.lamp.last_status.on is True
+            page.errors.clear()  # the browser logs that refusal, which is what this step checks
+            assert wait_for(lambda: page.locator("#pair option").count() > 1, 15.0)  # settings loaded
+            page.fill("#token", "s3cret")
+            page.click("#sign-in")
+            assert wait_for(lambda: page.locator("#lamp-off").is_enabled(), 10.0)
+            page.click("#lamp-off")
+            assert wait_for(lambda: s.daemon.lamp.last_status.on is False, 10.0)
+            page.click("#lamp-on")
+            assert wait_for(lambda: s.daemon.lamp.last_status.on is True, 10.0)
+            page.select_option("#smoothing", "median")
+            assert wait_for(lambda: s.daemon.pipeline.processing.smoothing == "median", 10.0), page.inner_text("#message")
+            assert page.errors == [], page.errors
+        finally:
+            page.close()
+
+
+def test_controls_without_a_token(server, browser):
+    page = open_page(browser, server.url + "/", server.url)
+    try:
+        assert wait_for(lambda: page.locator("#lamp-intensity").is_enabled() and displayed(page) > 0, 15.0)
+        page.locator("#lamp-intensity").fill("40")
+        page.locator("#lamp-intensity").dispatch_event("change")
+        assert wait_for(lambda: abs(server.daemon.lamp.last_status.percent - 40) < 1, 10.0)
+        page.locator("#lamp-intensity").fill("100")
+        page.locator("#lamp-intensity").dispatch_event("change")
+        assert wait_for(lambda: abs(server.daemon.lamp.last_status.percent - 100) < 1, 10.0)
+    finally:
+        page.close()
+
+
+# ---------------------------------------------------------------- behind BlueOS's reverse proxy
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def proxy(server, tmp_path):
+    """nginx with BlueOS's extension route (core/services/helper: `location /extensionv2/<name>/`,
+    `proxy_pass http://127.0.0.1:<port>/`, `Host $host`) plus WebSocket upgrade, and a host page
+    that embeds uwcam's page and widget in iframes as BlueOS and Cockpit do."""
+    nginx = shutil.which("nginx") or "/usr/sbin/nginx"
+    assert Path(nginx).exists(), "nginx is needed for the reverse-proxy test: .ci/run installs nginx-light"
+    port = free_port()
+    (tmp_path / "www").mkdir()
+    (tmp_path / "www" / "host.html").write_text(
+        '<!doctype html><title>vehicle</title>'
+        '<iframe id="page" src="/extensionv2/uwcam/" width="1200" height="800"></iframe>'
+        '<iframe id="widget" src="/extensionv2/uwcam/widget" width="300" height="200"></iframe>')
+    conf = tmp_path / "nginx.conf"
+    # As root, nginx's workers would drop to "nobody", who cannot read pytest's private tmp folder.
+    user = "user root root;" if os.geteuid() == 0 else ""
+    conf.write_text(f"""
+{user}
+worker_processes 1;
+daemon off;
+pid {tmp_path}/nginx.pid;
+error_log {tmp_path}/error.log warn;
+events {{}}
+http {{
+  access_log off;
+  client_body_temp_path {tmp_path}/body; proxy_temp_path {tmp_path}/proxy;
+  fastcgi_temp_path {tmp_path}/fastcgi; uwsgi_temp_path {tmp_path}/uwsgi; scgi_temp_path {tmp_path}/scgi;
+  map $http_upgrade $connection_upgrade {{ default upgrade; '' close; }}
+  server {{
+    listen 127.0.0.1:{port};
+    location = /host.html {{ root {tmp_path}/www; }}
+    location /extensionv2/uwcam/ {{
+      proxy_pass http://127.0.0.1:{server.port}/;
+      proxy_set_header Host $host;
+      proxy_set_header X-Real-IP $remote_addr;
+      proxy_set_header X-Forwarded-For $proxy_add_x_forwarded_for;
+      proxy_set_header X-Forwarded-Proto $scheme;
+      proxy_http_version 1.1;
+      proxy_set_header Upgrade $http_upgrade;
+      proxy_set_header Connection $connection_upgrade;
+    }}
+  }}
+}}
+""")
+    proc = subprocess.Popen([nginx, "-p", str(tmp_path), "-c", str(conf)], stderr=subprocess.PIPE)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        assert wait_for(lambda: _answers(url + "/host.html"), 10.0), "nginx did not start"
+        yield url
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+        proc.stderr.close()
+
+
+def _answers(url: str) -> bool:
+    try:
+        return httpx.get(url, timeout=1.0).status_code == 200
+    except httpx.HTTPError:
+        return False
+
+
+def test_page_and_widget_work_in_iframes_under_a_path_prefix(server, browser, proxy):
+    prefix = proxy + "/extensionv2/uwcam/"
+    meta = httpx.get(prefix + "register_service").json()
+    assert httpx.get(prefix + meta["api"]).status_code == 200
+    assert httpx.get(prefix + meta["extras"]["cockpit"]).json()["widgets"]
+    page = open_page(browser, proxy + "/host.html", proxy)
+    try:
+        frame = page.frame_locator("#page")
+        widget = page.frame_locator("#widget")
+        inner = next(f for f in page.frames if f.url.endswith("/extensionv2/uwcam/"))
+        assert wait_for(lambda: inner.evaluate("window.uwcam ? window.uwcam.stats.displayed : 0") > 5, 30.0)
+        assert wait_for(lambda: widget.locator("#centre").inner_text().endswith(" m"), 20.0)
+        centre = float(widget.locator("#centre").inner_text().split(" m")[0])
+        assert centre == pytest.approx(2.0, abs=0.3)  # the simulated seabed, 2 m below
+        # A state change through the proxy, from the page in the iframe: Origin and Host agree.
+        frame.locator("#lamp-off").click()
+        assert wait_for(lambda: server.daemon.lamp.last_status.on is False, 10.0)
+        frame.locator("#lamp-on").click()
+        assert wait_for(lambda: server.daemon.lamp.last_status.on is True, 10.0)
+        docs = browser.new_page()
+        try:
+            docs.goto(prefix + "docs")
+            assert wait_for(lambda: docs.locator(".opblock").count() > 5, 20.0), "Swagger UI did not load under the prefix"
+        finally:
+            docs.close()
+        assert page.errors == [] and page.outside == [], (page.errors, page.outside)
+    finally:
+        page.close()
