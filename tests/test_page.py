@@ -404,3 +404,16 @@ def test_page_and_widget_work_in_iframes_under_a_path_prefix(server, browser, pr
         assert page.errors == [] and page.outside == [], (page.errors, page.outside)
     finally:
         page.close()
+
+
+def test_range_png_is_a_false_colour_picture_with_its_limits(server):
+    import cv2
+
+    snap = server.http.get("/api/v1/snapshot/range?format=png&low=1.5&high=2.5")
+    assert snap.status_code == 200 and snap.headers["X-Colour-Limits"] == "1.5000,2.5000"
+    picture = cv2.imdecode(np.frombuffer(snap.content, np.uint8), cv2.IMREAD_COLOR)
+    assert picture.dtype == np.uint8 and picture.shape[2] == 3
+    assert picture.mean() > 40  # not the near-black of png16 millimetres in an image viewer
+    assert server.http.get("/api/v1/snapshot/range?format=png&low=3&high=2").status_code == 422
+    assert server.http.get("/api/v1/snapshot/range?format=png&low=nan").status_code == 422
+    assert server.http.get("/api/v1/snapshot/reasons?format=png").status_code == 422

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import io
-from typing import Literal
+from typing import Annotated, Literal
 
 import cv2
 import numpy as np
@@ -21,6 +21,20 @@ router = APIRouter(prefix="/api/v1/snapshot", tags=["snapshots"])
 def range_millimetres(range_m: np.ndarray) -> np.ndarray:
     """Range in metres → little-endian uint16 millimetres, 0 where invalid (1 mm at the least)."""
     return np.where(np.isfinite(range_m), np.clip(np.rint(range_m * 1000.0), 1, 65535), 0).astype("<u2")
+
+
+def false_colour(values: np.ndarray, low: float | None, high: float | None) -> tuple[np.ndarray, float, float]:
+    """Metres → BGR false colour (turbo) between low and high; NaN → black. Returns the limits used."""
+    finite = values[np.isfinite(values)]
+    if low is None:
+        low = float(np.percentile(finite, 2)) if finite.size else 0.0
+    if high is None:
+        high = float(np.percentile(finite, 98)) if finite.size else low + 1.0
+    high = max(high, low + 1e-6)
+    level = np.clip((np.nan_to_num(values, nan=low) - low) * (255.0 / (high - low)), 0, 255).astype(np.uint8)
+    picture = cv2.applyColorMap(level, cv2.COLORMAP_TURBO)
+    picture[~np.isfinite(values)] = 0
+    return picture, low, high
 
 
 # Registered before /{kind}, which would otherwise match it first.
@@ -53,9 +67,16 @@ def pointcloud(d: Daemon = Depends(get_daemon)) -> Response:
 @router.get("/{kind}", responses={200: {"content": {"application/octet-stream": {}, "image/png": {}, "image/tiff": {}}}})
 def snapshot(kind: Literal["range", "variance", "reasons", "image"],
              format: Literal["npy", "tiff", "png16", "png"] = Query("npy"),
+             low: Annotated[float | None, Query(ge=0, le=1000, allow_inf_nan=False)] = None,
+             high: Annotated[float | None, Query(gt=0, le=1000, allow_inf_nan=False)] = None,
              d: Daemon = Depends(get_daemon)) -> Response:
     """The latest processed frame's range (m), variance (m²), reason codes or colour image.
-    png16: range in millimetres as uint16, 0 invalid. png: the colour image (8 or 16 bit)."""
+    png16: range in millimetres as uint16, 0 invalid (data for tools; it looks black in a viewer).
+    png: a picture — the colour image (8 or 16 bit), or range / σ (for variance) in false colour
+    (turbo, near = blue) between ``low`` and ``high`` metres (default: 2nd and 98th percentile;
+    the limits used are in the X-Colour-Limits header), invalid pixels black."""
+    if low is not None and high is not None and low >= high:
+        raise HTTPException(status_code=422, detail="low must be below high (metres)")
     published = latest(d)
     data = {"range": published.result.range, "variance": published.result.variance,
             "reasons": published.result.reasons, "image": published.frame.data}[kind]
@@ -73,7 +94,12 @@ def snapshot(kind: Literal["range", "variance", "reasons", "image"],
             raise HTTPException(status_code=422, detail="png16 is for the range map (millimetres); use npy or tiff")
         mm = range_millimetres(data)
         return Response(cv2.imencode(".png", mm)[1].tobytes(), media_type="image/png", headers=headers)
+    if kind == "reasons":
+        raise HTTPException(status_code=422, detail="png is for pictures of the image, range or σ; use npy or tiff for reasons")
     if kind != "image":
-        raise HTTPException(status_code=422, detail="png is for the colour image; use png16, npy or tiff for maps")
+        values = np.sqrt(data) if kind == "variance" else data
+        picture = false_colour(values, low, high)
+        headers["X-Colour-Limits"] = f"{picture[1]:.4f},{picture[2]:.4f}"
+        return Response(cv2.imencode(".png", picture[0])[1].tobytes(), media_type="image/png", headers=headers)
     bgr = cv2.cvtColor(data[:, :, :3], cv2.COLOR_RGB2BGR)
     return Response(cv2.imencode(".png", bgr)[1].tobytes(), media_type="image/png", headers=headers)
