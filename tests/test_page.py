@@ -421,3 +421,41 @@ def test_range_png_is_a_false_colour_picture_with_its_limits(server):
     assert server.http.get("/api/v1/snapshot/range?format=png&low=3&high=2").status_code == 422
     assert server.http.get("/api/v1/snapshot/range?format=png&low=nan").status_code == 422
     assert server.http.get("/api/v1/snapshot/reasons?format=png").status_code == 422
+
+
+def test_pins_line_profile_and_patch_region_drawn_on_the_image(server, browser):
+    page = open_page(browser, server.url + "/", server.url)
+    try:
+        assert wait_for(lambda: displayed(page) > 3 and page.locator("#pair option").count() > 1, 30.0)
+        box = page.locator("#range").bounding_box()
+        at = lambda fx, fy: (box["x"] + fx * box["width"], box["y"] + fy * box["height"])  # noqa: E731
+        page.mouse.click(*at(0.3, 0.3))
+        page.mouse.click(*at(0.5, 0.5))
+        assert wait_for(lambda: page.locator("#pins li").count() == 2, 5.0)
+        assert all(" m ± " in t or "no range" in t for t in page.locator("#pins li").all_inner_texts())
+        page.select_option("#tool", "line")
+        page.mouse.move(*at(0.1, 0.2))
+        page.mouse.down()
+        page.mouse.move(*at(0.9, 0.25), steps=5)
+        page.mouse.up()
+        line = page.evaluate("uwcam.line")
+        assert line["x0"] < 40 and line["x1"] > 120  # image pixels of the 160-pixel-wide frame
+        # The profile plot: something other than the background was drawn.
+        assert page.evaluate("""(() => { const c = document.getElementById('profile');
+            const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+            let n = 0; for (let i = 0; i < d.length; i += 4) if (d[i + 2] > 200 && d[i] < 120) n++; return n; })()""") > 50
+        page.select_option("#tool", "patch")
+        page.mouse.move(*at(0.10, 0.10))
+        page.mouse.down()
+        page.mouse.move(*at(0.20, 0.25), steps=4)
+        page.mouse.up()
+        assert page.locator("#patch-form").is_visible()
+        page.fill("#patch-path", "4.2")
+        page.click("#patch-apply")
+        assert wait_for(lambda: (server.daemon.pipeline.processing.patch or None) is not None
+                        and server.daemon.pipeline.processing.patch.path_length_m == 4.2, 10.0), page.inner_text("#message")
+        x, y, w, h = server.daemon.pipeline.processing.patch.region
+        assert abs(x - 16) <= 2 and abs(y - 12) <= 2 and abs(w - 16) <= 2 and abs(h - 18) <= 2
+    finally:
+        server.http.post("/api/v1/config/restore")
+        page.close()
