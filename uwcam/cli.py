@@ -344,7 +344,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     app = create_app(config)
     where = "embedded default (simulated rig)" if not args.config else args.config
-    print(f"uwcam {__version__}: {where}; API on http://{config.api.host}:{config.api.port}/docs", flush=True)
+    host = f"[{config.api.host}]" if ":" in config.api.host else config.api.host  # IPv6 literal
+    root = f"http://{host}:{config.api.port}"
+    print(f"uwcam {__version__}: {where}; operator page {root}/, API {root}/docs", flush=True)
     # uvicorn handles SIGINT/SIGTERM: the lifespan then stops the loop, switches the lamp off
     # and releases the devices.
     # No per-message deflate: zlib on every multi-megabyte range map cost a third of the CPU
