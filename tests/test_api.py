@@ -235,9 +235,11 @@ def test_config_restore_and_pointcloud(server):
     ply = response.content
     head, _, body = ply.partition(b"end_header\n")
     count = int(head.split(b"element vertex ")[1].split(b"\n")[0])
-    points = np.frombuffer(body, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
+    points = np.frombuffer(body, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("nx", "<f4"), ("ny", "<f4"),
+                                        ("nz", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
     assert count == len(points) > 0.9 * 160 * 120
     assert np.median(points["z"]) == pytest.approx(2.0, abs=0.3)  # the seabed, square to the camera at 2 m
+    assert b"property float nx" in head and np.median(points["nz"]) < -0.9  # its normal faces the camera
 
 
 @pytest.mark.slow

@@ -459,3 +459,18 @@ def test_pins_line_profile_and_patch_region_drawn_on_the_image(server, browser):
     finally:
         server.http.post("/api/v1/config/restore")
         page.close()
+
+
+def test_normals_snapshot_of_the_flat_seabed_faces_the_camera(server):
+    import io
+
+    response = server.http.get("/api/v1/snapshot/normals")
+    assert response.status_code == 200
+    n = np.load(io.BytesIO(response.content))
+    assert n.shape == (120, 160, 3) and n.dtype == np.float32
+    ok = np.isfinite(n).all(axis=-1)
+    assert ok.mean() > 0.5
+    assert np.allclose(np.linalg.norm(n[ok], axis=-1), 1.0, atol=1e-4)
+    # The simulated seabed is square to the optical axis: its normal is (0, 0, −1), blurred by noise.
+    assert np.median(n[ok][:, 2]) < -0.9
+    assert server.http.get("/api/v1/snapshot/normals?format=png").headers["content-type"] == "image/png"

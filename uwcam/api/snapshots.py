@@ -14,6 +14,7 @@ from fastapi.responses import Response
 from uwcam.api.common import get_daemon, latest
 from uwcam.daemon import Daemon
 from uwcam.optics.geometry import pixel_rays
+from uwcam.optics.orientation import normals_from_range
 
 router = APIRouter(prefix="/api/v1/snapshot", tags=["snapshots"])
 
@@ -21,6 +22,16 @@ router = APIRouter(prefix="/api/v1/snapshot", tags=["snapshots"])
 def range_millimetres(range_m: np.ndarray) -> np.ndarray:
     """Range in metres → little-endian uint16 millimetres, 0 where invalid (1 mm at the least)."""
     return np.where(np.isfinite(range_m), np.clip(np.rint(range_m * 1000.0), 1, 65535), 0).astype("<u2")
+
+
+def array_response(data: np.ndarray, format: str, headers: dict) -> Response:
+    """An array as .npy or TIFF bytes."""
+    buf = io.BytesIO()
+    if format == "npy":
+        np.save(buf, data, allow_pickle=False)
+        return Response(buf.getvalue(), media_type="application/octet-stream", headers=headers)
+    tifffile.imwrite(buf, data)
+    return Response(buf.getvalue(), media_type="image/tiff", headers=headers)
 
 
 def false_colour(values: np.ndarray, low: float | None, high: float | None) -> tuple[np.ndarray, float, float]:
@@ -37,7 +48,25 @@ def false_colour(values: np.ndarray, low: float | None, high: float | None) -> t
     return picture, low, high
 
 
-# Registered before /{kind}, which would otherwise match it first.
+# Registered before /{kind}, which would otherwise match them first.
+@router.get("/normals", responses={200: {"content": {"application/octet-stream": {}, "image/png": {}, "image/tiff": {}}}})
+def normals(format: Literal["npy", "tiff", "png"] = Query("npy"), d: Daemon = Depends(get_daemon)) -> Response:
+    """Unit surface normals (H, W, 3, float32) of the latest range map in the camera frame (x right,
+    y down, z forward), facing the camera, from the range map's gradient; NaN where a pixel or a
+    neighbour has no range. png: a picture, (n + 1)/2 as RGB, black where NaN."""
+    published = latest(d)
+    intr = d.profiles[d.profile_name].camera_intrinsics()
+    if intr is None:
+        raise HTTPException(status_code=409, detail="normals need camera intrinsics in the calibration profile")
+    n = normals_from_range(published.result.range, intr)
+    headers = {"X-Frame-Number": str(published.number), "X-Capture-Time": f"{published.frame.wall_time:.6f}"}
+    if format == "png":
+        rgb = np.clip((np.nan_to_num(n, nan=-1.0) + 1.0) * 127.5, 0, 255).astype(np.uint8)
+        return Response(cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))[1].tobytes(), media_type="image/png",
+                        headers=headers)
+    return array_response(n, format, headers)
+
+
 @router.get("/pointcloud", responses={200: {"content": {"application/octet-stream": {}}}})
 def pointcloud(d: Daemon = Depends(get_daemon)) -> Response:
     """The latest range map as a binary PLY point cloud (camera frame, metres; colour from the image)."""
@@ -48,17 +77,22 @@ def pointcloud(d: Daemon = Depends(get_daemon)) -> Response:
         raise HTTPException(status_code=409, detail="a point cloud needs camera intrinsics in the calibration profile")
     r = published.result.range
     rays = pixel_rays(intr, *r.shape)
+    normals = normals_from_range(r, intr)
     ok = np.isfinite(r)
     xyz = (r[ok, None] * rays[ok]).astype("<f4")
+    nxyz = np.nan_to_num(normals[ok], nan=0.0).astype("<f4")  # 0,0,0 where a neighbour has no range
     img = published.frame.data[ok][:, :3].astype(np.float64)
     peak = float(img.max()) if img.size else 1.0  # a frame may have no valid pixel at all (lamp off)
     rgb = np.clip(img / max(peak, 1.0) * 255.0, 0, 255).astype(np.uint8)
-    vertex = np.empty(len(xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    vertex = np.empty(len(xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("nx", "<f4"), ("ny", "<f4"),
+                                       ("nz", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
     vertex["x"], vertex["y"], vertex["z"] = xyz.T
+    vertex["nx"], vertex["ny"], vertex["nz"] = nxyz.T
     vertex["red"], vertex["green"], vertex["blue"] = rgb.T
     header = ("ply\nformat binary_little_endian 1.0\n"
               f"comment uwcam frame {published.number}\nelement vertex {len(vertex)}\n"
               "property float x\nproperty float y\nproperty float z\n"
+              "property float nx\nproperty float ny\nproperty float nz\n"
               "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n").encode()
     return Response(header + vertex.tobytes(), media_type="application/octet-stream",
                     headers={"X-Frame-Number": str(published.number)})
@@ -81,14 +115,8 @@ def snapshot(kind: Literal["range", "variance", "reasons", "image"],
     data = {"range": published.result.range, "variance": published.result.variance,
             "reasons": published.result.reasons, "image": published.frame.data}[kind]
     headers = {"X-Frame-Number": str(published.number), "X-Capture-Time": f"{published.frame.wall_time:.6f}"}
-    if format == "npy":
-        buf = io.BytesIO()
-        np.save(buf, data, allow_pickle=False)
-        return Response(buf.getvalue(), media_type="application/octet-stream", headers=headers)
-    if format == "tiff":
-        buf = io.BytesIO()
-        tifffile.imwrite(buf, data)
-        return Response(buf.getvalue(), media_type="image/tiff", headers=headers)
+    if format in ("npy", "tiff"):
+        return array_response(data, format, headers)
     if format == "png16":
         if kind != "range":
             raise HTTPException(status_code=422, detail="png16 is for the range map (millimetres); use npy or tiff")

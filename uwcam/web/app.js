@@ -634,6 +634,8 @@ function wireView() {
   pane.addEventListener("pointerdown", (event) => {
     const p = toImage(event);
     if (!p) return;
+    state.pointer = p;  // a tap on a touch screen reads out like a hover
+    updateReadout();
     if (state.tool === "inspect") {
       if (state.pins.length >= MAX_PINS) state.pins.shift();
       state.pins.push(p);
