@@ -26,6 +26,7 @@ from __future__ import annotations
 import asyncio
 import json
 import struct
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -71,6 +72,7 @@ class Stretch:
     low: NDArray[np.float32] | None = None
     high: NDArray[np.float32] | None = None
     smoothing: float = 0.2
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     def __call__(self, image: NDArray) -> NDArray[np.uint8]:
         """(H, W, C) at any bit depth → (H/2, W/2, 3) uint8 BGR for JPEG."""
@@ -80,13 +82,15 @@ class Stretch:
         sample = small[::4, ::4].reshape(-1, 3)
         low = np.percentile(sample, 1.0, axis=0).astype(np.float32)
         high = np.percentile(sample, 99.7, axis=0).astype(np.float32)
-        if self.low is None:
-            self.low, self.high = low, high
-        else:
-            self.low += self.smoothing * (low - self.low)
-            self.high += self.smoothing * (high - self.high)
-        span = np.maximum(self.high - self.low, 1.0)
-        small -= self.low
+        with self._lock:  # two resolutions may be encoded at once
+            if self.low is None:
+                self.low, self.high = low, high
+            else:
+                self.low = self.low + self.smoothing * (low - self.low)
+                self.high = self.high + self.smoothing * (high - self.high)
+            low, high = self.low, self.high
+        span = np.maximum(high - low, 1.0)
+        small -= low
         small *= 1.0 / span
         np.clip(small, 0.0, 1.0, out=small)
         # Linear sensor values look dark on a display: a gamma of 1/2.2 as sRGB roughly does.
