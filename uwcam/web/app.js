@@ -3,7 +3,7 @@
 // a reverse proxy's path prefix, e.g. BlueOS's /extensionv2/uwcam/).
 
 import { COLOUR_MAPS, REASON_COLOURS, cssColour, lut, reasonColour } from "./colormap.js";
-import { ViewStream, float16, sample } from "./stream.js";
+import { ViewStream, centreAndMinimum, float16, sample } from "./stream.js";
 import { PointCloudView } from "./viewer3d.js";
 
 const $ = (id) => document.getElementById(id);
@@ -384,6 +384,11 @@ function paint() {
   stats.ages.push(Date.now() - frame.captureMs);
   if (stats.ages.length > 2000) stats.ages.splice(0, 1000);
   $("frame-info").textContent = `frame ${frame.number} · ${Math.round(Date.now() - frame.captureMs)} ms old`;
+  if (stats.displayed % 3 === 1) {  // ten times a second is plenty for digits
+    const m = centreAndMinimum(frame.range);
+    $("centre-range").textContent = m.centre === null ? "—" : `${m.centre.toFixed(2)} m`;
+    $("minimum-range").textContent = m.minimum === null ? "—" : `${m.minimum.toFixed(2)} m`;
+  }
   stream.ack(frame.number);
 }
 

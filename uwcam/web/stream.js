@@ -45,6 +45,46 @@ export function sample(frame, x, y) {
   return { range: v / 1000, sigma: F16[s.data[j]] / 1000, reason: 0 };
 }
 
+export function centreAndMinimum(range) {
+  // Centre: median of valid ranges in the middle 10 % of the image. Minimum: the smallest median
+  // of the blocks (about 1/32 of the image width) that are at least half valid — a median over a
+  // block is robust to the noisy pixels of a dark corner, which must not read as an obstacle.
+  // Blocks are sampled on a grid of at most ~20 000 pixels so that this costs little at any size.
+  const { data, width, height, invalid_base: base } = range;
+  const stride = Math.max(1, Math.floor(Math.sqrt((width * height) / 20000)));
+  const block = Math.max(4 * stride, Math.round(width / 32));
+  const median = (values) => {
+    const sorted = Uint16Array.from(values).sort();
+    return sorted[sorted.length >> 1] / 1000;
+  };
+  let minimum = null;
+  for (let by = 0; by < height; by += block) {
+    for (let bx = 0; bx < width; bx += block) {
+      const values = [];
+      let seen = 0;
+      for (let y = by; y < Math.min(by + block, height); y += stride) {
+        for (let x = bx; x < Math.min(bx + block, width); x += stride) {
+          seen++;
+          const v = data[y * width + x];
+          if (v < base) values.push(v);
+        }
+      }
+      if (values.length * 2 < seen) continue;
+      const m = median(values);
+      if (minimum === null || m < minimum) minimum = m;
+    }
+  }
+  const centre = [];
+  const x0 = Math.floor(width * 0.45), x1 = Math.ceil(width * 0.55), y0 = Math.floor(height * 0.45), y1 = Math.ceil(height * 0.55);
+  for (let y = y0; y < y1; y++) {
+    for (let x = x0; x < x1; x++) {
+      const v = data[y * width + x];
+      if (v < base) centre.push(v);
+    }
+  }
+  return { centre: centre.length ? median(centre) : null, minimum };
+}
+
 export function wsUrl(path) {
   const url = new URL(path, document.baseURI);
   url.protocol = url.protocol === "https:" ? "wss:" : "ws:";

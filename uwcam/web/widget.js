@@ -2,35 +2,13 @@
 // false-colour strip of the range map, transparent background. Quarter resolution is plenty.
 
 import { lut } from "./colormap.js";
-import { ViewStream } from "./stream.js";
+import { ViewStream, centreAndMinimum } from "./stream.js";
 
 const $ = (id) => document.getElementById(id);
 const table = lut("turbo");
 let latest = null;
 const state = { frame: null, centre: null, minimum: null };
 window.uwcamWidget = state;
-
-function centreAndMinimum(range) {
-  // Centre: median of valid ranges in the middle 10 % of the image; minimum: 2nd percentile of
-  // all valid ranges (one noisy pixel must not read as an obstacle).
-  const { data, width, height, invalid_base: base } = range;
-  const centre = [], all = [];
-  const x0 = Math.floor(width * 0.45), x1 = Math.ceil(width * 0.55), y0 = Math.floor(height * 0.45), y1 = Math.ceil(height * 0.55);
-  for (let y = 0; y < height; y++) {
-    for (let x = 0; x < width; x++) {
-      const v = data[y * width + x];
-      if (v >= base) continue;
-      all.push(v);
-      if (x >= x0 && x < x1 && y >= y0 && y < y1) centre.push(v);
-    }
-  }
-  const pick = (values, q) => {
-    if (!values.length) return null;
-    values.sort((a, b) => a - b);
-    return values[Math.min(values.length - 1, Math.floor(q * values.length))] / 1000;
-  };
-  return { centre: pick(centre, 0.5), minimum: pick(all, 0.02), low: pick(all.slice(), 0.02), high: pick(all, 0.98) };
-}
 
 function drawStrip(range, low, high) {
   const canvas = $("strip");
@@ -56,7 +34,7 @@ function paint() {
   state.frame = frame.number; state.centre = m.centre; state.minimum = m.minimum;
   $("centre").textContent = m.centre === null ? "—" : `${m.centre.toFixed(2)} m`;
   $("minimum").textContent = m.minimum === null ? "—" : `${m.minimum.toFixed(2)} m`;
-  drawStrip(frame.range, m.low, m.high);
+  drawStrip(frame.range, m.minimum, m.centre === null ? null : Math.max(m.centre * 1.5, (m.minimum ?? 0) + 0.5));
   stream.ack(frame.number);
 }
 
