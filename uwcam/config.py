@@ -134,6 +134,10 @@ class ApiConfig(Strict):
     allowed_hosts: list[Annotated[str, Field(min_length=1)]] = []
     """Host names (``*.example.org`` patterns allowed) by which the daemon may be reached besides
     IP addresses, localhost and ``*.local``; others are refused to defeat DNS rebinding."""
+    allowed_origins: list[Annotated[str, Field(pattern=r"^https?://[^/\s]+$")]] = []
+    """Web origins (``http://host:port``) besides the daemon's own whose pages may change state
+    and call the API from the browser (CORS), e.g. Cockpit served from another port; and that
+    may show uwcam's pages in a frame."""
 
 
 class DaemonConfig(Strict):

@@ -16,22 +16,42 @@ from fastapi import Depends, FastAPI, Request
 from fastapi.responses import JSONResponse
 
 from uwcam import __version__
+from fastapi.middleware.cors import CORSMiddleware
+from fastapi.openapi.utils import get_openapi
 from fastapi.staticfiles import StaticFiles
 
 from uwcam.api import lamp, metrics, profiles, session, settings, snapshots, status, stream, view, web
 from uwcam.api.common import Broadcaster
 from uwcam.api.view import ViewEncoder
-from uwcam.api.security import Guard, required_token
+from uwcam.api.security import SAFE_METHODS, SESSION_COOKIE, SESSION_PATH, Guard, required_token
 from uwcam.config import DaemonConfig
 from uwcam.daemon import Daemon
 from uwcam.fileio import UserInputError
+
+def openapi_with_bearer(app: FastAPI) -> dict:
+    """The OpenAPI document, declaring the bearer token on every state-changing operation so that
+    the Swagger UI at /docs offers to authorise (the guard, not this, enforces it)."""
+    if app.openapi_schema is None:
+        schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes,
+                             servers=app.servers)
+        schema.setdefault("components", {})["securitySchemes"] = {
+            "bearer": {"type": "http", "scheme": "bearer",
+                       "description": "api.token or UWCAM_TOKEN; needed for state changes when one is set"}}
+        for path in schema["paths"].values():
+            for method, operation in path.items():
+                if method.upper() not in SAFE_METHODS and path is not schema["paths"].get(SESSION_PATH):
+                    operation["security"] = [{"bearer": []}]
+        app.openapi_schema = schema
+    return app.openapi_schema
+
 
 ROUTERS = (status.router, snapshots.router, settings.router, profiles.router, lamp.router, session.router,
            stream.router, view.router, metrics.router, web.router)
 
 
 def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
-    guard = Guard(required_token(config), tuple(config.api.allowed_hosts))
+    guard = Guard(required_token(config), tuple(config.api.allowed_hosts), tuple(config.api.allowed_origins),
+                  cookie=f"{SESSION_COOKIE}_{config.api.port}")
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
@@ -67,6 +87,13 @@ def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
 
     for router in ROUTERS:
         app.include_router(router)
+    if config.api.allowed_origins:
+        # Pages of these origins (e.g. Cockpit on another port) may call the API from the browser;
+        # the guard admits their state changes. No other origin gets CORS headers.
+        app.add_middleware(CORSMiddleware, allow_origins=list(config.api.allowed_origins), allow_credentials=True,
+                           allow_methods=["GET", "PUT", "PATCH", "POST", "DELETE"],
+                           allow_headers=["Content-Type", "Authorization", "X-CSRF-Token"])
+    app.openapi = lambda: openapi_with_bearer(app)
     app.mount("/static/docs", StaticFiles(packages=[("fastapi_offline", "static")]), name="docs-assets")
     app.mount("/static", StaticFiles(packages=[("uwcam", "web")]), name="static")
     return app

@@ -21,6 +21,8 @@ import hmac
 import ipaddress
 import os
 import secrets
+import threading
+import time
 from urllib.parse import urlsplit
 
 from fastapi import HTTPException, WebSocketException, status
@@ -30,6 +32,8 @@ from uwcam.config import DaemonConfig
 from uwcam.fileio import UserInputError
 
 SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
+SESSION_PATH = "/api/v1/session"
+"""Checks the token itself: exchanging it for a session, and ending one."""
 SESSION_COOKIE = "uwcam_session"
 CSRF_HEADER = "x-csrf-token"
 
@@ -59,24 +63,59 @@ def _same(given: str, expected: str) -> bool:
 
 
 class Sessions:
-    """Browser sessions: an opaque id (HttpOnly cookie) bound to a CSRF token (sent as a header)."""
+    """Browser sessions: an opaque id (HttpOnly cookie) bound to a CSRF token (sent as a header).
 
-    def __init__(self, limit: int = 256) -> None:
-        self._csrf: dict[str, str] = {}
-        self._limit = limit
+    A session ends after ``idle_s`` without use or ``lifetime_s`` in all; at most ``limit`` are
+    kept (the oldest forgotten first). Sign-in routes run in a thread pool: a lock guards the table."""
+
+    def __init__(self, limit: int = 256, idle_s: float = 12 * 3600.0, lifetime_s: float = 7 * 24 * 3600.0) -> None:
+        self._table: dict[str, tuple[str, float, float]] = {}  # id → (csrf, opened, last used), monotonic s
+        self._limit, self._idle_s, self._lifetime_s = limit, idle_s, lifetime_s
+        self._lock = threading.Lock()
 
     def open(self) -> tuple[str, str]:
-        if len(self._csrf) >= self._limit:  # forget the oldest
-            self._csrf.pop(next(iter(self._csrf)))
         session, csrf = secrets.token_urlsafe(32), secrets.token_urlsafe(32)
-        self._csrf[session] = csrf
+        now = time.monotonic()
+        with self._lock:
+            while len(self._table) >= self._limit:
+                self._table.pop(next(iter(self._table)))
+            self._table[session] = (csrf, now, now)
         return session, csrf
 
     def close(self, session: str) -> None:
-        self._csrf.pop(session, None)
+        with self._lock:
+            self._table.pop(session, None)
 
     def csrf_for(self, session: str) -> str | None:
-        return self._csrf.get(session)
+        """The session's CSRF token while it is valid (and marks it used); None otherwise."""
+        now = time.monotonic()
+        with self._lock:
+            entry = self._table.get(session)
+            if entry is None:
+                return None
+            csrf, opened, used = entry
+            if now - used > self._idle_s or now - opened > self._lifetime_s:
+                del self._table[session]
+                return None
+            self._table[session] = (csrf, opened, now)
+            return csrf
+
+
+class SignInThrottle:
+    """Slows down guessing: every wrong token in a row costs the next attempt more waiting."""
+
+    def __init__(self, step_s: float = 0.25, most_s: float = 5.0) -> None:
+        self._failures = 0
+        self._step_s, self._most_s = step_s, most_s
+        self._lock = threading.Lock()
+
+    def delay_s(self) -> float:
+        with self._lock:
+            return min(self._failures * self._step_s, self._most_s)
+
+    def record(self, ok: bool) -> None:
+        with self._lock:
+            self._failures = 0 if ok else self._failures + 1
 
 
 DEFAULT_HOST_NAMES = ("localhost", "*.localhost", "*.local")
@@ -100,39 +139,47 @@ def host_allowed(host_header: str, allowed: tuple[str, ...]) -> bool:
     return False
 
 
-def same_origin(origin: str, host_header: str) -> bool:
+def same_origin(origin: str, host_header: str, forwarded_port: str | None = None) -> bool:
     """Whether a page at ``origin`` belongs to the daemon reached as ``host_header``.
 
     A reverse proxy may pass on the host name without its port (BlueOS's nginx sets
-    ``Host $host``): then the names alone are compared."""
+    ``Host $host``): then the page's port must be the one the proxy says it received the request
+    on (``X-Forwarded-Port``), or else the scheme's default port (BlueOS serves on port 80)."""
     page = urlsplit(origin)
     host = urlsplit(f"//{host_header}")
     try:
         page_port, host_port = page.port, host.port
+        proxied_port = int(forwarded_port) if forwarded_port else None
     except ValueError:
         return False
     if (page.hostname or "").lower() != (host.hostname or "").lower():
         return False
     default = {"http": 80, "https": 443}.get(page.scheme)
-    return host_port is None or (page_port or default) == host_port
+    expected = host_port or proxied_port or default
+    return (page_port or default) == expected
 
 
 class Guard:
     """The application-wide dependency: Host and Origin checks, and authorisation of state changes."""
 
-    def __init__(self, token: str | None, allowed_hosts: tuple[str, ...] = ()) -> None:
+    def __init__(self, token: str | None, allowed_hosts: tuple[str, ...] = (), allowed_origins: tuple[str, ...] = (),
+                 cookie: str = SESSION_COOKIE) -> None:
         self.token = token
         self.allowed_hosts = allowed_hosts
+        self.allowed_origins = tuple(o.rstrip("/").lower() for o in allowed_origins)
+        self.cookie = cookie
+        """Session cookie name: one per daemon port, since cookies ignore ports."""
         self.sessions = Sessions()
+        self.throttle = SignInThrottle()
 
     def authenticated(self, conn: HTTPConnection) -> bool:
         """A valid bearer token, or a valid session cookie with its CSRF token."""
         if self.token is None:
             return True
-        given = conn.headers.get("authorization", "")
-        if given and _same(given, f"Bearer {self.token}"):
+        scheme, _, given = conn.headers.get("authorization", "").partition(" ")
+        if scheme.lower() == "bearer" and _same(given.strip(), self.token):  # the scheme is case-insensitive
             return True
-        session = conn.cookies.get(SESSION_COOKIE)
+        session = conn.cookies.get(self.cookie)
         csrf = self.sessions.csrf_for(session) if session else None
         return csrf is not None and _same(conn.headers.get(CSRF_HEADER, ""), csrf)
 
@@ -141,7 +188,9 @@ class Guard:
         origin = conn.headers.get("origin")
         if origin is None:
             return  # not from a browser page, or a same-origin GET
-        if origin == "null" or not same_origin(origin, conn.headers.get("host", "")):
+        if origin.rstrip("/").lower() in self.allowed_origins:
+            return  # configured, e.g. Cockpit served from another port
+        if origin == "null" or not same_origin(origin, conn.headers.get("host", ""), conn.headers.get("x-forwarded-port")):
             raise HTTPException(status_code=403, detail=f"requests from the page at {origin} may not change this daemon's "
                                                         "state; use uwcam's own page")
 
@@ -162,7 +211,7 @@ class Guard:
         if method in SAFE_METHODS:
             return
         self.check_origin(conn)
-        if method == "WEBSOCKET" or conn.url.path.endswith("/api/v1/session"):
+        if method == "WEBSOCKET" or getattr(conn.scope.get("route"), "path", None) == SESSION_PATH:
             return  # streams only read; the exchange of a token for a session checks the token itself
         if not self.authenticated(conn):
             raise HTTPException(status_code=401, detail="this request changes state: send 'Authorization: Bearer <token>', "

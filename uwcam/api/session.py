@@ -10,9 +10,12 @@ from __future__ import annotations
 from fastapi import APIRouter, HTTPException, Request, Response
 from pydantic import BaseModel, ConfigDict, Field
 
-from uwcam.api.security import SESSION_COOKIE, Guard
+import time
 
-router = APIRouter(prefix="/api/v1/session", tags=["session"])
+from uwcam.api.security import SESSION_PATH, Guard
+
+router = APIRouter(prefix=SESSION_PATH, tags=["session"])
+COOKIE_MAX_AGE_S = 12 * 3600
 
 
 class SignIn(BaseModel):
@@ -22,21 +25,27 @@ class SignIn(BaseModel):
 
 @router.get("")
 def session_state(request: Request) -> dict:
-    """Whether state changes need signing in, and whether this browser is signed in."""
+    """Whether state changes need signing in, and whether this browser is signed in; a signed-in
+    browser gets its CSRF token again (a second tab has none of its own). Pages of other origins
+    cannot read this answer: uwcam sends no CORS headers for it."""
     guard: Guard = request.app.state.guard
-    session = request.cookies.get(SESSION_COOKIE)
-    return {"token_required": guard.token is not None,
-            "signed_in": guard.token is None or (session is not None and guard.sessions.csrf_for(session) is not None)}
+    session = request.cookies.get(guard.cookie)
+    csrf = guard.sessions.csrf_for(session) if session else None
+    return {"token_required": guard.token is not None, "signed_in": guard.token is None or csrf is not None,
+            "csrf_token": csrf}
 
 
 @router.post("")
 def sign_in(body: SignIn, request: Request, response: Response) -> dict:
     """Exchange the token for a session cookie; returns the CSRF token to send as X-CSRF-Token."""
     guard: Guard = request.app.state.guard
-    if not guard.check_token(body.token):
+    time.sleep(guard.throttle.delay_s())  # a thread-pool route: the wait holds no one else up
+    ok = guard.check_token(body.token)
+    guard.throttle.record(ok)
+    if not ok:
         raise HTTPException(status_code=401, detail="wrong token")
     session, csrf = guard.sessions.open()
-    response.set_cookie(SESSION_COOKIE, session, httponly=True, samesite="strict", path="/",
+    response.set_cookie(guard.cookie, session, httponly=True, samesite="strict", path="/", max_age=COOKIE_MAX_AGE_S,
                         secure=request.url.scheme == "https")
     return {"csrf_token": csrf, "token_required": guard.token is not None}
 
@@ -44,8 +53,8 @@ def sign_in(body: SignIn, request: Request, response: Response) -> dict:
 @router.delete("")
 def sign_out(request: Request, response: Response) -> dict:
     guard: Guard = request.app.state.guard
-    session = request.cookies.get(SESSION_COOKIE)
+    session = request.cookies.get(guard.cookie)
     if session:
         guard.sessions.close(session)
-    response.delete_cookie(SESSION_COOKIE, path="/")
+    response.delete_cookie(guard.cookie, path="/")
     return {"signed_in": False}

@@ -19,21 +19,30 @@ router = APIRouter(tags=["page"])
 WEB = resources.files("uwcam") / "web"
 
 
-def _page(name: str) -> HTMLResponse:
+FRAME_ANCESTORS = "'self' http://localhost:* http://127.0.0.1:* http://*.local http://*.local:*"
+"""Who may show uwcam's pages in a frame: BlueOS and Cockpit on the vehicle (mDNS names) or on
+this computer, plus ``api.allowed_origins``; any other site framing them could trick clicks."""
+
+
+def _page(name: str, request: Request) -> HTMLResponse:
+    ancestors = " ".join([FRAME_ANCESTORS, *request.app.state.config.api.allowed_origins])
+    policy = ("default-src 'self'; img-src 'self' blob: data:; style-src 'self' 'unsafe-inline'; "
+              f"connect-src 'self' ws: wss:; frame-ancestors {ancestors}")
     # No caching of the HTML: a new uwcam version must not run against an old page.
-    return HTMLResponse((WEB / name).read_text(encoding="utf-8"), headers={"Cache-Control": "no-cache"})
+    return HTMLResponse((WEB / name).read_text(encoding="utf-8"),
+                        headers={"Cache-Control": "no-cache", "Content-Security-Policy": policy})
 
 
 @router.get("/", include_in_schema=False)
-def index() -> HTMLResponse:
+def index(request: Request) -> HTMLResponse:
     """The operator page."""
-    return _page("index.html")
+    return _page("index.html", request)
 
 
 @router.get("/widget", include_in_schema=False)
-def widget() -> HTMLResponse:
+def widget(request: Request) -> HTMLResponse:
     """A compact range view for Cockpit: centre and minimum range, a false-colour strip."""
-    return _page("widget.html")
+    return _page("widget.html", request)
 
 
 @router.get("/docs", include_in_schema=False)
