@@ -355,6 +355,8 @@ http {{
       proxy_set_header X-Real-IP $remote_addr;
       proxy_set_header X-Forwarded-For $proxy_add_x_forwarded_for;
       proxy_set_header X-Forwarded-Proto $scheme;
+      # BlueOS serves on port 80, the Origin's default; this test's nginx listens elsewhere and says so.
+      proxy_set_header X-Forwarded-Port $server_port;
       proxy_http_version 1.1;
       proxy_set_header Upgrade $http_upgrade;
       proxy_set_header Connection $connection_upgrade;
@@ -474,3 +476,15 @@ def test_normals_snapshot_of_the_flat_seabed_faces_the_camera(server):
     # The simulated seabed is square to the optical axis: its normal is (0, 0, −1), blurred by noise.
     assert np.median(n[ok][:, 2]) < -0.9
     assert server.http.get("/api/v1/snapshot/normals?format=png").headers["content-type"] == "image/png"
+
+
+def test_view_stream_without_colour_and_survives_binary_noise_from_the_page(server):
+    with websockets.sync.client.connect(server.url.replace("http", "ws") + "/api/v1/view?step=4&colour=false") as ws:
+        ws.recv(timeout=10)
+        header, planes = decode_view(ws.recv(timeout=10))
+        assert [s["name"] for s in header["sections"]] == ["range", "sigma"] and "colour" not in planes
+        assert planes["range"].shape == (30, 40)
+        ws.send(b"\x00\x01garbage")  # binary, not an acknowledgement
+        ws.send("not json")
+        ws.send(json.dumps({"ack": header["frame"]}))
+        assert decode_view(ws.recv(timeout=10))[0]["frame"] > header["frame"]

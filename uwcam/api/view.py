@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import struct
 import threading
 import time
@@ -99,65 +100,71 @@ class Stretch:
         return cv2.cvtColor(small.astype(np.uint8), cv2.COLOR_RGB2BGR)
 
 
-def encode_view(published: Published, step: int, stretch: Stretch) -> bytes:
+def colour_section(published: Published, stretch: Stretch) -> bytes:
+    """The colour image as JPEG, display-stretched, at half resolution."""
+    return cv2.imencode(".jpg", stretch(published.frame.data), [cv2.IMWRITE_JPEG_QUALITY, 80])[1].tobytes()
+
+
+def encode_view(published: Published, step: int, colour: bytes | None) -> bytes:
+    """One view message; ``colour`` (JPEG) is left out when None."""
     result = published.result
     rng = range_plane(result.range, result.reasons, step)
     sig = sigma_plane(result.variance, step * 2)
-    colour = cv2.imencode(".jpg", stretch(published.frame.data), [cv2.IMWRITE_JPEG_QUALITY, 80])[1].tobytes()
     h, w = result.range.shape
-    ch, cw = (h // 2, w // 2)
-    sections = []
     header = {
         "frame": published.number, "capture_time_ns": int(published.frame.wall_time * 1e9),
         "encoded_time_ns": time.time_ns(), "image_width": w, "image_height": h,
         "lamp_on": published.frame.lamp_on, "latency_ms": round(published.latency_s * 1000.0, 2),
         "attenuation_differences": list(published.attenuation_differences),
     }
-    blobs = [(b"", None)]
-    for name, data, meta in (
-        ("range", rng.tobytes(), {"dtype": "uint16", "unit": "mm", "step": step, "width": rng.shape[1],
-                                  "height": rng.shape[0], "invalid_base": INVALID_BASE}),
-        ("sigma", sig.tobytes(), {"dtype": "float16", "unit": "mm", "step": step * 2, "width": sig.shape[1],
-                                  "height": sig.shape[0]}),
-        ("colour", colour, {"mime": "image/jpeg", "width": cw, "height": ch}),
-    ):
-        sections.append({"name": name, **meta, "length": len(data)})
-        blobs.append((data, name))
+    pieces = [
+        (rng.tobytes(), {"name": "range", "dtype": "uint16", "unit": "mm", "step": step, "width": rng.shape[1],
+                         "height": rng.shape[0], "invalid_base": INVALID_BASE}),
+        (sig.tobytes(), {"name": "sigma", "dtype": "float16", "unit": "mm", "step": step * 2, "width": sig.shape[1],
+                         "height": sig.shape[0]}),
+    ]
+    if colour is not None:
+        pieces.append((colour, {"name": "colour", "mime": "image/jpeg", "width": w // 2, "height": h // 2}))
+    sections = [{**meta, "length": len(data)} for data, meta in pieces]
     header["sections"] = sections
-    # Offsets depend on the header's own length: lay out once with placeholders, then fix.
+    # Offsets depend on the header's own length, which depends on the offsets' digits: settle it
+    # in two passes. Each section starts 8-byte aligned, so typed arrays can view it in place.
     for _ in range(2):
-        text = json.dumps(header, separators=(",", ":")).encode()
-        start = 8 + len(text)
-        start += (-start) % 8
-        offset = start
+        offset = 8 + len(json.dumps(header, separators=(",", ":")).encode())
         for section in sections:
+            offset += (-offset) % 8
             section["offset"] = offset
-            offset += section["length"] + (-section["length"]) % 8
+            offset += section["length"]
     text = json.dumps(header, separators=(",", ":")).encode()
-    head = MAGIC + struct.pack("<I", len(text)) + text
-    parts = [head, b"\0" * (sections[0]["offset"] - len(head))]
-    for section, (data, _) in zip(sections, blobs[1:]):
+    parts, position = [MAGIC, struct.pack("<I", len(text)), text], 8 + len(text)
+    for (data, _), section in zip(pieces, sections):
+        parts.append(b"\0" * (section["offset"] - position))
         parts.append(data)
-        parts.append(b"\0" * ((-len(data)) % 8))
+        position = section["offset"] + len(data)
     return b"".join(parts)
 
 
 @dataclass
 class ViewEncoder:
-    """Encodes each published frame once per resolution step, in a worker thread, on demand."""
+    """Encodes each published frame on demand in worker threads: the colour JPEG once per frame,
+    the range and σ planes once per resolution step, however many pages watch."""
 
     stretch: Stretch = field(default_factory=Stretch)
-    _tasks: dict[tuple[int, int], asyncio.Task] = field(default_factory=dict)
+    _tasks: dict[tuple, asyncio.Future] = field(default_factory=dict)
 
-    async def get(self, published: Published, step: int) -> bytes:
-        key = (published.number, step)
+    def _once(self, key: tuple, number: int, func, *args) -> asyncio.Future:
         task = self._tasks.get(key)
         if task is None:
-            task = asyncio.ensure_future(asyncio.to_thread(encode_view, published, step, self.stretch))
+            task = asyncio.ensure_future(asyncio.to_thread(func, *args))
             self._tasks[key] = task
-            for old in [k for k in self._tasks if k[0] < published.number - 2]:
+            for old in [k for k in self._tasks if k[1] < number - 2]:
                 del self._tasks[old]
-        return await asyncio.shield(task)
+        return task
+
+    async def get(self, published: Published, step: int, colour: bool = True) -> bytes:
+        n = published.number
+        jpeg = await asyncio.shield(self._once(("colour", n), n, colour_section, published, self.stretch)) if colour else None
+        return await asyncio.shield(self._once(("view", n, step, colour), n, encode_view, published, step, jpeg))
 
 
 def hello(d: Daemon, step: int) -> dict:
@@ -173,9 +180,10 @@ def hello(d: Daemon, step: int) -> dict:
 
 
 @router.websocket("/view")
-async def view(ws: WebSocket, step: int = 1) -> None:
+async def view(ws: WebSocket, step: int = 1, colour: bool = True) -> None:
     """The operator page's stream: hello (JSON), then one binary message per frame (see module doc);
-    the page answers ``{"ack": frame}`` once it has painted a frame. ``step``: 1, 2 or 4 (resolution)."""
+    the page answers ``{"ack": frame}`` once it has painted a frame. ``step``: 1, 2 or 4 (resolution);
+    ``colour=false`` leaves the colour image out (the Cockpit widget needs range only)."""
     await ws.accept()
     if step not in (1, 2, 4):
         await ws.close(code=1008, reason="step must be 1, 2 or 4")
@@ -190,11 +198,13 @@ async def view(ws: WebSocket, step: int = 1) -> None:
 
     async def read_acks() -> None:
         while True:
-            message = await ws.receive_text()
+            message = await ws.receive()
+            if message["type"] == "websocket.disconnect":
+                return
             try:
-                n = int(json.loads(message)["ack"])
+                n = int(json.loads(message.get("text") or "")["ack"])
             except (ValueError, KeyError, TypeError):
-                continue  # a page's noise must not end its stream
+                continue  # a page's noise (binary, malformed) must not end its stream
             unacked.difference_update({k for k in unacked if k <= n})
             changed.set()  # a slot opened: look for the newest frame now
 
@@ -208,7 +218,7 @@ async def view(ws: WebSocket, step: int = 1) -> None:
                 waiter.cancel()
                 changed.clear()
                 continue
-            payload = await encoder.get(published, step)
+            payload = await encoder.get(published, step, colour)
             await ws.send_bytes(payload)
             last_sent = published.number
             unacked.add(published.number)
@@ -221,3 +231,5 @@ async def view(ws: WebSocket, step: int = 1) -> None:
             await reader
         except (asyncio.CancelledError, WebSocketDisconnect, RuntimeError):
             pass
+        except Exception:  # the stream is over; its reader's trouble is only worth a debug line
+            logging.getLogger("uwcam.api").debug("view stream reader ended", exc_info=True)

@@ -94,14 +94,14 @@ export function wsUrl(path) {
 // Keeps a view stream open (reconnecting with backoff) and hands each decoded frame to onFrame.
 // The caller calls ack(number) once it has painted a frame.
 export class ViewStream {
-  constructor({ step = 1, onHello, onFrame, onState }) {
-    Object.assign(this, { step, onHello, onFrame, onState });
+  constructor({ step = 1, colour = true, onHello, onFrame, onState }) {
+    Object.assign(this, { step, colour, onHello, onFrame, onState });
     this.retry = 500;
     this.connect();
   }
 
   connect() {
-    const ws = new WebSocket(wsUrl(`api/v1/view?step=${this.step}`));
+    const ws = new WebSocket(wsUrl(`api/v1/view?step=${this.step}&colour=${this.colour}`));
     ws.binaryType = "arraybuffer";
     this.ws = ws;
     ws.onopen = () => { this.retry = 500; this.onState?.("connected"); };

@@ -40,6 +40,7 @@ function paint() {
 
 const stream = new ViewStream({
   step: 4,
+  colour: false,
   onFrame: (frame) => {
     if (!latest) requestAnimationFrame(paint);
     latest = frame;
