@@ -51,6 +51,8 @@ class SimulatedRig:
     _world: SimulatedWorld | None = field(default=None, repr=False)
     _cache: dict = field(default_factory=dict, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+    _lamp_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+    """Guards lamp_on and lamp_intensity together, so a frame sees one consistent lamp state."""
 
     @property
     def world(self) -> SimulatedWorld:
@@ -65,10 +67,24 @@ class SimulatedRig:
                 )
             return self._world
 
-    def expected(self) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-        """Mean and σ (DN) for the lamp's present state; lamp light scales with its intensity."""
-        on = self.lamp_on and self.lamp_intensity > 0
-        level = round(self.lamp_intensity, 2) if on else 0.0
+    def set_lamp(self, on: bool | None = None, intensity: float | None = None) -> None:
+        """Change the lamp (the simulated lamp device calls this); both values change together."""
+        with self._lamp_lock:
+            if on is not None:
+                self.lamp_on = bool(on)
+            if intensity is not None:
+                self.lamp_intensity = float(intensity)
+
+    def lamp_state(self) -> tuple[bool, float]:
+        """(lit, level 0–1) read once, atomically: a frame is rendered from this snapshot and
+        labelled with it, so a lamp switched mid-frame cannot give a lit frame a dark label."""
+        with self._lamp_lock:
+            on = self.lamp_on and self.lamp_intensity > 0
+            return on, (round(self.lamp_intensity, 2) if on else 0.0)
+
+    def expected(self, state: tuple[bool, float] | None = None) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Mean and σ (DN) for a lamp state (default: the present one); lamp light scales with its level."""
+        on, level = self.lamp_state() if state is None else state
         key = (on, level)
         if key not in self._cache:
             w = self.world
@@ -175,7 +191,9 @@ class SimulatedCamera(CameraDriver):
         if self.serial_number in self._corrupt_next:
             self._corrupt_next.discard(self.serial_number)
             raise CorruptFrame("simulated damaged frame")
-        mean, std = self.rig.expected()
+        # The lamp state is read once: the frame is rendered from it and labelled with it.
+        lit, level = self.rig.lamp_state()
+        mean, std = self.rig.expected((lit, level))
         world = self.rig.world
         # One numba thread (a per-thread setting): the simulated sensor stands in for hardware
         # that costs the host nothing, and must not compete with the frame loop for cores.
@@ -184,7 +202,7 @@ class SimulatedCamera(CameraDriver):
         return Frame(
             data=data, sequence=self._sequence, host_monotonic_ns=time.monotonic_ns(), wall_time=time.time(),
             device_timestamp_ns=None, exposure_us=None, gain_db=None,
-            lamp_on=self.rig.lamp_on and self.rig.lamp_intensity > 0, channel_names=("R", "G", "B"),
+            lamp_on=lit, channel_names=("R", "G", "B"),
             bit_depth=world.camera.bits,
         )
 
