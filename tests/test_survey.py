@@ -50,8 +50,8 @@ def test_flat_seabed_range_is_the_ray_plane_intersection(altitude):
     _, _, z0 = world.pose(t)
     truth = (0.3 - z0) / unit_rays(world)[..., 2]  # seabed plane z = 0.3 m (world), camera at depth z0
     rendered = world.camera_range(t)
-    np.testing.assert_allclose(rendered[1:-1, 1:-1], truth[1:-1, 1:-1], rtol=1e-4)
-    np.testing.assert_allclose(rendered, truth, rtol=3e-3)  # the outermost pixels hold their neighbours' values
+    np.testing.assert_allclose(rendered[2:-2, 2:-2], truth[2:-2, 2:-2], rtol=1e-4)
+    np.testing.assert_allclose(rendered, truth, rtol=5e-3)  # the outermost two pixels hold the nearest values
     assert world.axis_range(t) == pytest.approx(0.3 - z0, abs=1e-6)  # the height map holds float32
 
 
