@@ -252,3 +252,40 @@ def test_marker_locates_the_patch_on_survey_frames(terrain):
         assert region is not None, f"marker not found at t={t}"
         x, y, w, h = region
         assert abs(x - fx) < 0.2 * fw and abs(y - fy) < 0.2 * fh
+
+
+@pytest.mark.slow
+def test_daemon_on_the_survey_tracks_the_patch_and_ranges_the_moving_seabed():
+    from uwcam.config import CameraConfig, DeviceConfig
+    from uwcam.daemon import Daemon
+
+    config = DaemonConfig(
+        camera=CameraConfig(driver="sim", options={"fps": 15.0, "serial_number": "SIM-SURVEY-DAEMON"}),
+        lamp=DeviceConfig(driver="sim"), rangefinder=DeviceConfig(driver="sim-ping1d", options={"rate_hz": 20}),
+        simulation={"scene": "survey", "size": [320, 180], "water": "jerlov-IA", "lamp_offset": [0.3, -0.8, 0.0],
+                    "speed": 0.4, "altitude": [1.5, 4.0], "altitude_period": 60.0})
+    daemon = Daemon(config)
+    daemon.start()
+    try:
+        def status():
+            return daemon.status()
+
+        assert wait_for(lambda: status()["frames"]["processed"] >= 10 and (status()["calibration"]["tracking"] or {}).get("accepted", 0) >= 3, 60.0), status()
+        st = status()
+        assert st["calibration"]["tracking"]["state"] == "tracking"
+        assert abs(st["calibration"]["tracking"]["drift"]["G"]) < 0.02
+        # The range map agrees with the renderer's ground truth for the frame's moment (the survey
+        # clock is the monotonic clock the frame's capture time is stamped with).
+        rig = daemon.rig
+        errors = []
+        for _ in range(4):
+            latest = daemon.pipeline.latest
+            t = latest.frame.host_monotonic_ns / 1e9 - rig._t0
+            truth = rig.world.camera_range(t)
+            left = (slice(10, 170), slice(10, 150))  # clear of the bracket (lower right)
+            errors.append(np.nanmedian(latest.result.range[left] / truth[left] - 1))
+            first = latest.number
+            assert wait_for(lambda: daemon.pipeline.latest.number > first + 3, 10.0)
+        assert np.median(np.abs(errors)) < 0.03, errors
+    finally:
+        daemon.stop()
