@@ -1,4 +1,4 @@
-"""Image formation after Jaffe and McGlamery (DESIGN.md §10), per channel.
+"""Image formation after Jaffe and McGlamery, per channel.
 
 All quantities are radiometrically relative (the camera's auto-exposure fixes the scale):
 
