@@ -11,8 +11,8 @@ from __future__ import annotations
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import Callable, NamedTuple
 
-import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -28,11 +28,24 @@ from uwcam.drivers.base import (
     FrameTimeout,
 )
 from uwcam.simulation import Ambient, CameraModel, Lamp, SimulatedWorld, water_preset
+from uwcam.simulation._jit import set_threads
+from uwcam.simulation.survey import SurveyMotion, SurveyWorld
+
+
+class RigState(NamedTuple):
+    """What a frame is rendered from, read once: lamp lit, its level 0–1, survey time (s)."""
+
+    lit: bool
+    level: float
+    t: float
 
 
 @dataclass
 class SimulatedRig:
-    """One simulated world seen by camera, lamp and rangefinder alike."""
+    """One simulated world seen by camera, lamp and rangefinder alike.
+
+    scene ``survey``: a vehicle surveying a varied seabed (:mod:`uwcam.simulation.survey`),
+    moving with the rig's clock; other scenes are static, at ``distance``."""
 
     scene: str = "seabed"
     distance: float = 2.0
@@ -48,27 +61,77 @@ class SimulatedRig:
     lamp_on: bool = True
     lamp_intensity: float = 1.0
     """0–1, set by the simulated lamp."""
-    _world: SimulatedWorld | None = field(default=None, repr=False)
+    speed: float = 0.4
+    """Survey: the vehicle's speed over ground, m/s."""
+    altitude: tuple[float, float] = (1.5, 4.0)
+    """Survey: lowest and highest altitude above the smooth seabed, m."""
+    altitude_period: float = 120.0
+    """Survey: seconds from lowest to highest and back."""
+    clock: Callable[[], float] = field(default=time.monotonic, repr=False)
+    """Survey time source (s); the survey starts when the world is built."""
+    _world: SimulatedWorld | SurveyWorld | None = field(default=None, repr=False)
+    _t0: float = field(default=0.0, repr=False)
     _cache: dict = field(default_factory=dict, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+    _lamp_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+    """Guards lamp_on and lamp_intensity together, so a frame sees one consistent lamp state."""
 
     @property
-    def world(self) -> SimulatedWorld:
+    def world(self) -> SimulatedWorld | SurveyWorld:
         with self._lock:
             if self._world is None:
                 wl = (675.0, 575.0, 475.0)
-                self._world = SimulatedWorld(
-                    scene=self.scene, distance=self.distance, size=self.size,
-                    water=water_preset(self.water, list(wl)), lamp=Lamp(position=self.lamp_offset),
-                    camera=CameraModel(bits=self.bits), seed=self.seed, material=self.material,
-                    ambient=None if self.ambient is None else Ambient(tuple(self.ambient)),
-                )
+                common = dict(water=water_preset(self.water, list(wl)), lamp=Lamp(position=tuple(self.lamp_offset)),
+                              camera=CameraModel(bits=self.bits), seed=self.seed, material=self.material,
+                              ambient=None if self.ambient is None else Ambient(tuple(self.ambient)))
+                if self.scene == "survey":
+                    motion = SurveyMotion(speed=self.speed, altitude=tuple(self.altitude),
+                                          altitude_period=self.altitude_period)
+                    self._world = SurveyWorld(size=tuple(self.size), motion=motion, **common)
+                else:
+                    self._world = SimulatedWorld(scene=self.scene, distance=self.distance, size=tuple(self.size), **common)
+                self._t0 = self.clock()
             return self._world
 
-    def expected(self) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-        """Mean and σ (DN) for the lamp's present state; lamp light scales with its intensity."""
-        on = self.lamp_on and self.lamp_intensity > 0
-        level = round(self.lamp_intensity, 2) if on else 0.0
+    @property
+    def moving(self) -> bool:
+        return self.scene == "survey"
+
+    def now(self) -> float:
+        """Survey time (s) since the world was built."""
+        _ = self.world
+        return self.clock() - self._t0
+
+    def snapshot(self) -> RigState:
+        """The lamp state and the survey time, read once, atomically: a frame is rendered from
+        this and labelled with it, so a lamp switched mid-frame cannot relabel a lit frame."""
+        t = self.now()
+        with self._lamp_lock:
+            on = self.lamp_on and self.lamp_intensity > 0
+            return RigState(on, round(self.lamp_intensity, 2) if on else 0.0, t)
+
+    def render(self, state: RigState, index: int) -> NDArray:
+        """Frame number ``index`` (the noise counter) of the rig in ``state``, (H, W, 3)."""
+        world = self.world
+        if isinstance(world, SurveyWorld):
+            return world.frame(state.t, index, state.level)
+        mean, std = self.expected((state.lit, state.level))
+        return world.camera.digitise(mean, std, world.seed, index)
+
+    def set_lamp(self, on: bool | None = None, intensity: float | None = None) -> None:
+        """Change the lamp (the simulated lamp device calls this); both values change together."""
+        with self._lamp_lock:
+            if on is not None:
+                self.lamp_on = bool(on)
+            if intensity is not None:
+                self.lamp_intensity = float(intensity)
+
+    def expected(self, state: tuple[bool, float] | None = None) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Static scenes: mean and σ (DN) for a lamp state (lit, level; default: the present one);
+        lamp light scales with its level."""
+        if state is None:
+            state = self.snapshot()[:2]
+        on, level = state
         key = (on, level)
         if key not in self._cache:
             w = self.world
@@ -82,8 +145,12 @@ class SimulatedRig:
         return self._cache[key]
 
     def true_range(self) -> float:
-        """Camera range (m) at the image centre, where the rangefinder points."""
-        truth = self.world.camera_range
+        """Camera range (m) at the image centre, where the rangefinder points: for the survey,
+        along the optical axis to the seabed under the vehicle now."""
+        world = self.world
+        if isinstance(world, SurveyWorld):
+            return world.axis_range(self.now())
+        truth = world.camera_range
         h, w = truth.shape
         return float(truth[h // 2, w // 2])
 
@@ -138,7 +205,8 @@ class SimulatedCamera(CameraDriver):
 
     def open(self) -> DeviceInfo:
         self._check_present()
-        _ = self.rig.world  # build the scene now, not on the first frame
+        # Build the scene (and compile the survey's kernels) now, not on the first frame.
+        self.rig.render(self.rig.snapshot(), 0)
         self._open = True
         self._closed.clear()
         return DeviceInfo(f"sim:{self.serial_number}", self.serial_number or "", "simulated 3-chip RGB", "uwcam")
@@ -175,16 +243,17 @@ class SimulatedCamera(CameraDriver):
         if self.serial_number in self._corrupt_next:
             self._corrupt_next.discard(self.serial_number)
             raise CorruptFrame("simulated damaged frame")
-        mean, std = self.rig.expected()
-        world = self.rig.world
         # One numba thread (a per-thread setting): the simulated sensor stands in for hardware
         # that costs the host nothing, and must not compete with the frame loop for cores.
-        numba.set_num_threads(1)
-        data = world.camera.digitise(mean, std, world.seed, self._sequence)
+        set_threads(1)
+        # The lamp state (and survey time) is read once: the frame is rendered from it and labelled with it.
+        state = self.rig.snapshot()
+        data = self.rig.render(state, self._sequence)
+        world = self.rig.world
         return Frame(
             data=data, sequence=self._sequence, host_monotonic_ns=time.monotonic_ns(), wall_time=time.time(),
             device_timestamp_ns=None, exposure_us=None, gain_db=None,
-            lamp_on=self.rig.lamp_on and self.rig.lamp_intensity > 0, channel_names=("R", "G", "B"),
+            lamp_on=state.lit, channel_names=("R", "G", "B"),
             bit_depth=world.camera.bits,
         )
 

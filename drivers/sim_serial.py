@@ -163,11 +163,10 @@ class SimulatedLampDevice(PtyDevice):
     def answer(self, command: str) -> str:
         rig = self.rig
         if command == "ON":
-            rig.lamp_on = True
-            rig.lamp_intensity = self.percent / 100
+            rig.set_lamp(on=True, intensity=self.percent / 100)
             return "OK"
         if command == "OFF":
-            rig.lamp_on = False
+            rig.set_lamp(on=False)
             return "OK"
         if command.startswith("PWM "):
             try:
@@ -177,7 +176,7 @@ class SimulatedLampDevice(PtyDevice):
             if not 0 <= value <= 100:
                 return "ERR out of range"
             self.percent = value
-            rig.lamp_intensity = value / 100
+            rig.set_lamp(intensity=value / 100)
             return "OK"
         if command == "STATUS?":
             fault = f" FAULT={self.fault}" if self.fault else ""

@@ -1,7 +1,7 @@
 """Daemon configuration: a YAML file validated strictly; errors name the file, key and what is expected.
 
 Without a file, ``uwcam run`` uses :func:`default_config`: a simulated camera, lamp and Ping1D
-sharing one simulated seabed with a calibration patch in view.
+on one simulated vehicle surveying a varied seabed, with a calibration patch in view.
 """
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from __future__ import annotations
 import os
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from uwcam.fileio import UserInputError, explain_validation_error, load_yaml_mapping
 
@@ -150,9 +150,17 @@ class DaemonConfig(Strict):
     profiles_dir: str | None = None
     """Folder of calibration profiles (*.yaml): loaded at start, and where uploads are saved."""
     simulation: dict[str, Any] = {}
-    """Options of the shared simulated rig (scene, distance, size, water, lamp_offset...) when devices are simulated."""
+    """Options of the shared simulated rig (scene, distance, size, water, lamp_offset, speed,
+    altitude...) when devices are simulated; see uwcam.simulation.options."""
     processing: ProcessingConfig = ProcessingConfig()
     api: ApiConfig = ApiConfig()
+
+    @field_validator("simulation")
+    @classmethod
+    def _simulation(cls, v: dict[str, Any]) -> dict[str, Any]:
+        from uwcam.simulation.options import check_simulation_options
+
+        return check_simulation_options(v)
 
     @model_validator(mode="after")
     def _calibration_needed(self) -> "DaemonConfig":
@@ -171,11 +179,13 @@ def load_config(path: str | os.PathLike[str]) -> DaemonConfig:
 
 
 def default_config() -> DaemonConfig:
-    """The embedded default: a simulated rig, API on 127.0.0.1:8080."""
+    """The embedded default: a simulated vehicle surveying a varied seabed at 1280×720, 30 fps
+    (its altitude rising and falling between 1.5 and 4 m, its lamp 0.85 m from the camera, the
+    calibration patch and marker on a bracket in view), API on 127.0.0.1:8080."""
     return DaemonConfig(
-        camera=CameraConfig(driver="sim", options={"fps": 10.0}),
+        camera=CameraConfig(driver="sim", options={"fps": 30.0}),
         lamp=DeviceConfig(driver="sim"),
         rangefinder=DeviceConfig(driver="sim-ping1d"),
-        simulation={"scene": "seabed-patch", "distance": 2.0, "size": [640, 480], "water": "jerlov-IB",
-                    "lamp_offset": [0.3, 0.0, 0.0], "material": "grey"},
+        simulation={"scene": "survey", "size": [1280, 720], "water": "jerlov-IA", "lamp_offset": [0.3, -0.8, 0.0],
+                    "speed": 0.4, "altitude": [1.5, 4.0], "altitude_period": 120.0, "seed": 0},
     )

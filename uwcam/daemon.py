@@ -30,17 +30,27 @@ from uwcam.simulation.scene import PATCH_CENTRE_M, PATCH_DISTANCE_M, PATCH_SIZE_
 
 log = logging.getLogger(__name__)
 SIMULATED = {"sim", "sim-ascii", "sim-ping1d"}
+PATCH_SCENES = ("seabed-patch", "survey")
+"""Simulated scenes with the calibration patch (and its marker) on a bracket in view."""
+CALIBRATION_WIDTH = 640
+"""Simulated tank calibration renders the plate at most this wide (same field of view): the
+physics does not depend on the pixel count, and start-up stays short."""
 
 
 def simulated_calibration(rig: SimulatedRig) -> CalibrationProfile:
-    """Calibrate in the rig's simulated water: grey plate with black patch at 1 m and 2 m."""
+    """Calibrate in the rig's simulated water: grey plate with black patch at 1 m and 2 m, with
+    the rig's lamp; the profile's intrinsics are the rig camera's."""
     water = water_preset(rig.water, [675.0, 575.0, 475.0])
-    return calibrate_in_simulation(water, Lamp(position=tuple(rig.lamp_offset)), tuple(rig.size),
-                                   CameraModel(bits=rig.bits), seed_base=11)
+    w, h = rig.size
+    factor = max(1, -(-w // CALIBRATION_WIDTH))
+    profile = calibrate_in_simulation(water, Lamp(position=tuple(rig.lamp_offset)), (max(w // factor, 2), max(h // factor, 2)),
+                                      CameraModel(bits=rig.bits), seed_base=11)
+    intr = rig.world.intrinsics
+    return profile.model_copy(update={"intrinsics": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy}})
 
 
 def simulated_patch(rig: SimulatedRig) -> PatchConfig:
-    """Where the seabed-patch scene's calibration patch appears, and its path length."""
+    """Where the calibration patch on the bracket appears (scenes seabed-patch and survey), and its path length."""
     intr = rig.world.intrinsics
     x, y, w, h = project_plate_box(PATCH_CENTRE_M, (PATCH_SIZE_M, PATCH_SIZE_M), PATCH_DISTANCE_M, intr)
     inset = max(1, min(w, h) // 5)  # keep clear of the patch's blurred edges
@@ -94,7 +104,7 @@ class Daemon:
             self._load_profiles_dir()
             self.profiles[profile.name] = profile
             processing = cfg.processing
-            if processing.patch is None and self.rig is not None and self.rig.scene == "seabed-patch":
+            if processing.patch is None and self.rig is not None and self.rig.scene in PATCH_SCENES:
                 processing = processing.model_copy(update={"patch": simulated_patch(self.rig)})
             if processing.reflectance is None and self.rig is not None and cfg.rangefinder is not None \
                     and cfg.rangefinder.driver in SIMULATED:

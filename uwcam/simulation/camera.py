@@ -5,7 +5,8 @@ Noise is drawn by a compiled, counter-based generator: the normal deviate of pix
 frame f comes from a SplitMix64 hash of (seed, f, p) and a tabulated inverse normal CDF
 (16-bit index, linear interpolation on 16 more bits, Acklam's rational formula in the two
 extreme bins). Frames are therefore identical whatever the thread count, and a
-1280×720×3 frame costs about 10 ms rather than numpy's ~40 ms. Shot noise is Gaussian
+1280×720×3 frame costs about 10 ms rather than numpy's ~40 ms. Without numba, a numpy twin
+(:func:`digitise_numpy`) draws exactly the same deviates, more slowly. Shot noise is Gaussian
 with variance equal to the mean electron count, exact in mean and variance and a close
 approximation to Poisson above a few tens of electrons.
 """
@@ -18,10 +19,15 @@ from functools import lru_cache
 from statistics import NormalDist
 
 import numpy as np
-from numba import njit, prange, uint64
 from numpy.typing import NDArray
 
 from uwcam.fileio import UserInputError
+from uwcam.simulation._jit import HAVE_NUMBA, njit, prange
+
+if HAVE_NUMBA:
+    from numba import uint64
+else:  # pragma: no cover
+    uint64 = np.uint64
 
 # Auto-exposure target: the brightest pixel's expected value (DN) for each bit depth.
 TARGET_CODE = {8: 226.0, 12: 4077.0, 16: 65250.0}
@@ -92,8 +98,9 @@ class CameraModel:
         """One noisy frame: mean + std·N(0, 1), rounded and clipped to [0, max_code]."""
         if out is None:
             out = np.empty(mean.shape, dtype=self.dtype)
-        _digitise(mean.reshape(-1), std.reshape(-1), _frame_key(seed, frame_index), float(self.max_code),
-                  _inverse_normal_table(), out.reshape(-1))
+        kernel = _digitise if HAVE_NUMBA else digitise_numpy
+        kernel(mean.reshape(-1), std.reshape(-1), _frame_key(seed, frame_index), float(self.max_code),
+               _inverse_normal_table(), out.reshape(-1))
         return out
 
 
@@ -105,10 +112,30 @@ def _splitmix(x):
     return z ^ (z >> uint64(31))
 
 
+_MASK64 = (1 << 64) - 1
+
+
+def _splitmix_int(x: int) -> int:
+    """SplitMix64 on a Python int (the same function as the compiled ``_splitmix``)."""
+    x = (x + 0x9E3779B97F4A7C15) & _MASK64
+    z = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & _MASK64
+    z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & _MASK64
+    return z ^ (z >> 31)
+
+
 def _frame_key(seed: int, frame_index: int) -> np.uint64:
-    mask = (1 << 64) - 1
-    key = int(_splitmix(np.uint64(seed & mask)))
-    return np.uint64(int(_splitmix(np.uint64((key ^ (frame_index * 0xD1B54A32D192ED03)) & mask))))
+    key = _splitmix_int(seed & _MASK64)
+    return np.uint64(_splitmix_int((key ^ (frame_index * 0xD1B54A32D192ED03)) & _MASK64))
+
+
+def frame_key(seed: int, frame_index: int) -> np.uint64:
+    """The noise key of frame ``frame_index`` of a sensor seeded ``seed`` (for fused kernels)."""
+    return _frame_key(seed, frame_index)
+
+
+def inverse_normal_table() -> NDArray[np.float64]:
+    """Φ⁻¹ at 65,537 equally spaced probabilities (ends 0: the tails are computed)."""
+    return _inverse_normal_table()
 
 
 @lru_cache(maxsize=1)
@@ -150,3 +177,57 @@ def _digitise(mean, std, key, top, table, out):
         if i + 1 < n:
             v = mean[i + 1] + std[i + 1] * _normal(np.int64(r & uint64(0xFFFFFFFF)), table)
             out[i + 1] = min(max(round(v), 0.0), top)
+
+
+# numpy twins: the same arithmetic, in the same order, on whole arrays -------------------
+
+def splitmix_numpy(x: NDArray[np.uint64]) -> NDArray[np.uint64]:
+    """SplitMix64 of each element (uint64 arithmetic wraps modulo 2⁶⁴, as in the kernel)."""
+    x = x + np.uint64(0x9E3779B97F4A7C15)
+    z = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
+def _lower_tail_numpy(p: NDArray[np.float64]) -> NDArray[np.float64]:
+    q = np.sqrt(-2.0 * np.log(p))
+    num = ((((-7.784894002430293e-03 * q - 3.223964580411365e-01) * q - 2.400758277161838) * q
+            - 2.549732539343734) * q + 4.374664141464968) * q + 2.938163982698783
+    den = (((7.784695709041462e-03 * q + 3.224671290700398e-01) * q + 2.445134137142996) * q
+           + 3.754408661907416) * q + 1.0
+    return num / den
+
+
+def normal_numpy(bits32: NDArray[np.int64], table: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Standard normal deviates from 32 random bits each (the kernel's ``_normal``)."""
+    idx = bits32 >> 16
+    frac = (bits32 & 0xFFFF) * (1.0 / 65536.0) + 0.5 / 65536.0
+    value = table[idx] + (frac - 0.5 / 65536.0) * (table[np.minimum(idx + 1, 65536)] - table[idx])
+    low, high = idx == 0, idx == 65535
+    if low.any():
+        value[low] = _lower_tail_numpy(frac[low] / 65536.0)
+    if high.any():
+        value[high] = -_lower_tail_numpy((1.0 - frac[high]) / 65536.0)
+    return value
+
+
+def deviates_numpy(key: np.uint64, start: int, count: int, table: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Normal deviates of samples ``start … start+count−1`` of the frame with noise key ``key``:
+    sample s takes the high (s even) or low (s odd) 32 bits of SplitMix64(key + s // 2)."""
+    first, last = start // 2, (start + count - 1) // 2
+    r = splitmix_numpy(np.uint64(key) + np.arange(first, last + 1, dtype=np.uint64))
+    bits = np.empty(2 * r.size, dtype=np.int64)
+    bits[0::2] = (r >> np.uint64(32)).astype(np.int64)
+    bits[1::2] = (r & np.uint64(0xFFFFFFFF)).astype(np.int64)
+    offset = start - 2 * first
+    return normal_numpy(bits[offset : offset + count], table)
+
+
+def digitise_numpy(mean: NDArray[np.float32], std: NDArray[np.float32], key: np.uint64, top: float,
+                   table: NDArray[np.float64], out: NDArray, chunk: int = 1 << 20) -> None:
+    """numpy twin of the compiled ``_digitise`` (flat arrays), in chunks to bound memory."""
+    n = mean.shape[0]
+    for start in range(0, n, chunk):
+        stop = min(start + chunk, n)
+        v = mean[start:stop].astype(np.float64) + std[start:stop].astype(np.float64) * deviates_numpy(key, start, stop - start, table)
+        out[start:stop] = np.minimum(np.maximum(np.rint(v), 0.0), top)

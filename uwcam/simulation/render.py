@@ -1,4 +1,4 @@
-"""Image formation after Jaffe and McGlamery (DESIGN.md §10), per channel.
+"""Image formation after Jaffe and McGlamery, per channel.
 
 All quantities are radiometrically relative (the camera's auto-exposure fixes the scale):
 
@@ -16,6 +16,9 @@ All quantities are radiometrically relative (the camera's auto-exposure fixes th
 Blur by range: every forward-scattered contribution is split between the two nearest of
 a few geometrically spaced range bins; each bin is Fourier transformed once, multiplied by
 its OTF, and the bins are summed before one inverse transform per channel.
+
+The per-pixel kernels are compiled with numba when it is installed; each has a numpy twin
+(``*_numpy``) computing the same values, used where numba is missing.
 """
 
 from __future__ import annotations
@@ -25,10 +28,10 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from numba import njit, prange
 from numpy.typing import NDArray
 
 from uwcam.optics.geometry import Intrinsics
+from uwcam.simulation._jit import HAVE_NUMBA, njit, prange
 from uwcam.simulation.scene import Hit
 from uwcam.simulation.water import Water
 
@@ -231,6 +234,122 @@ def _bin_surface(source, ranges, log_r_min, log_span, bins_out):
                     bins_out[b0 + 1, i, j, k] += source[i, j, k] * f
 
 
+# numpy twins of the kernels above: the same arithmetic on whole arrays ------------------
+
+def _bin_position_numpy(log_t, log_r_min, log_span, n_bins):
+    x = (log_t - log_r_min) / log_span * (n_bins - 1)
+    x = np.minimum(np.maximum(x, 0.0), n_bins - 1.0)
+    b0 = x.astype(np.int64)
+    return b0, x - b0
+
+
+def _add_to_bins(bins_out, b0, f, values, rows, cols):
+    """bins_out[b0] += values·(1 − f), bins_out[b0 + 1] += values·f at (rows, cols); values (M, N)."""
+    n_bins = bins_out.shape[0]
+    for b in range(n_bins):
+        sel = b0 == b
+        if sel.any():
+            bins_out[b, rows[sel], cols[sel]] += values[sel] * (1.0 - f[sel])[:, None]
+        sel = (b0 + 1 == b)
+        if sel.any():
+            bins_out[b, rows[sel], cols[sel]] += values[sel] * f[sel][:, None]
+
+
+def slab_contributions_numpy(inv_f, centre, step, edges, lamp, lamp_r, beam_scale, intensity, c, g, beta,
+                             direct_out, forward_out):
+    """numpy twin of ``_slab_contributions``."""
+    gh, gw, n_slabs, n = direct_out.shape
+    h, w = int(centre[2]), int(centre[3])
+    y = np.minimum(np.arange(gh) * step, h - 1).astype(np.float64)
+    x = np.minimum(np.arange(gw) * step, w - 1).astype(np.float64)
+    ux, uy = np.meshgrid((x - centre[0]) * inv_f[0], (y - centre[1]) * inv_f[1])
+    norm = np.sqrt(ux * ux + uy * uy + 1.0)
+    ux, uy, uz = (ux / norm)[..., None], (uy / norm)[..., None], (1.0 / norm)[..., None]
+    t0, t1 = edges[None, None, :-1] / uz, edges[None, None, 1:] / uz
+    t = 0.5 * (t0 + t1)
+    px, py, pz = t * ux - lamp[0], t * uy - lamp[1], t * uz - lamp[2]
+    ds = np.sqrt(px * px + py * py + pz * pz)
+    geometric = (np.exp(-beam_scale * (1.0 - pz / ds)) * (lamp_r / (ds + lamp_r)) ** 2 * (t1 - t0))[..., None]
+    source = beta * intensity * geometric * np.exp(-c * ds[..., None])
+    e_ct = np.exp(-c * t[..., None])
+    direct_out[:] = source * e_ct
+    forward_out[:] = source * (np.exp(-g * t[..., None]) - e_ct)
+
+
+def backscatter_column_numpy(rays, surface_range, step, log_edges, slab_direct, slab_forward, open_end_z, log_r_min,
+                             log_span, direct_out, bins_out):
+    """numpy twin of ``_backscatter_column``."""
+    h, w, _ = rays.shape
+    gh, gw, n_slabs, n = slab_direct.shape
+    n_bins = bins_out.shape[0]
+    gy = np.arange(h) / step
+    gi = np.minimum(gy.astype(np.int64), gh - 2)
+    fy = np.minimum(gy - gi, 1.0)[:, None]
+    gx = np.arange(w) / step
+    gj = np.minimum(gx.astype(np.int64), gw - 2)
+    fx = np.minimum(gx - gj, 1.0)[None, :]
+    uz = rays[..., 2]
+    z_end = np.where(np.isfinite(surface_range), surface_range * uz, open_end_z)
+    log_z_end, log_uz = np.log(z_end), np.log(uz)
+    w00, w01, w10, w11 = ((1 - fy) * (1 - fx))[..., None], ((1 - fy) * fx)[..., None], (fy * (1 - fx))[..., None], (fy * fx)[..., None]
+    rows, cols = np.indices((h, w))
+    rows, cols = rows.ravel(), cols.ravel()
+    r0, r1, c0, c1 = gi[:, None], gi[:, None] + 1, gj[None, :], gj[None, :] + 1
+    for s in range(n_slabs):
+        active = log_edges[s] < log_z_end
+        if not active.any():
+            break
+        share = np.where(log_edges[s + 1] > log_z_end, (log_z_end - log_edges[s]) / (log_edges[s + 1] - log_edges[s]), 1.0)
+        share = np.where(active, share, 0.0)[..., None]
+        b0, f = _bin_position_numpy(0.5 * (log_edges[s] + log_edges[s + 1]) - log_uz, log_r_min, log_span, n_bins)
+        sd, sf = slab_direct[:, :, s], slab_forward[:, :, s]
+        dv = w00 * sd[r0, c0] + w01 * sd[r0, c1] + w10 * sd[r1, c0] + w11 * sd[r1, c1]
+        fv = w00 * sf[r0, c0] + w01 * sf[r0, c1] + w10 * sf[r1, c0] + w11 * sf[r1, c1]
+        direct_out += share * dv
+        _add_to_bins(bins_out, b0.ravel(), f.ravel(), (share * fv).reshape(-1, n), rows, cols)
+
+
+def backscatter_gated_numpy(rays, surface_range, gate_width, steps, open_gate_end, lamp, lamp_r, beam_scale, intensity,
+                            c, g, beta, log_r_min, log_span, direct_out, bins_out):
+    """numpy twin of ``_backscatter_gated``."""
+    h, w, _ = rays.shape
+    n = c.shape[0]
+    n_bins = bins_out.shape[0]
+    ux, uy, uz = rays[..., 0], rays[..., 1], rays[..., 2]
+    end = np.where(np.isfinite(surface_range), surface_range, open_gate_end)
+    start = np.maximum(end - gate_width, 0.0)
+    dt = (end - start) / steps
+    rows, cols = np.indices((h, w))
+    rows, cols = rows.ravel(), cols.ravel()
+    for s in range(steps):
+        t = start + (s + 0.5) * dt
+        px, py, pz = t * ux - lamp[0], t * uy - lamp[1], t * uz - lamp[2]
+        ds = np.sqrt(px * px + py * py + pz * pz)
+        geometric = np.exp(-beam_scale * (1.0 - pz / ds)) * (lamp_r / (ds + lamp_r)) ** 2 * dt
+        b0, f = _bin_position_numpy(np.log(t), log_r_min, log_span, n_bins)
+        source = beta * intensity * geometric[..., None] * np.exp(-c * ds[..., None])
+        e_ct = np.exp(-c * t[..., None])
+        direct_out += source * e_ct
+        fv = source * (np.exp(-g * t[..., None]) - e_ct)
+        _add_to_bins(bins_out, b0.ravel(), f.ravel(), fv.reshape(-1, n), rows, cols)
+
+
+def bin_surface_numpy(source, ranges, log_r_min, log_span, bins_out):
+    """numpy twin of ``_bin_surface``."""
+    rows, cols = np.nonzero(np.isfinite(ranges))
+    b0, f = _bin_position_numpy(np.log(ranges[rows, cols]), log_r_min, log_span, bins_out.shape[0])
+    _add_to_bins(bins_out, b0, f, source[rows, cols], rows, cols)
+
+
+# The kernels render() calls: compiled, or their numpy twins without numba.
+if HAVE_NUMBA:
+    KERNELS = {"slab_contributions": _slab_contributions, "backscatter_column": _backscatter_column,
+               "backscatter_gated": _backscatter_gated, "bin_surface": _bin_surface}
+else:  # pragma: no cover
+    KERNELS = {"slab_contributions": slab_contributions_numpy, "backscatter_column": backscatter_column_numpy,
+               "backscatter_gated": backscatter_gated_numpy, "bin_surface": bin_surface_numpy}
+
+
 def blur_by_range(bins: NDArray, bin_ranges: NDArray, forward_blur: float, intrinsics: Intrinsics) -> NDArray[np.float64]:
     """Sum over range bins of each bin blurred by the OTF exp(−B·r·f), f in cycles/rad. (H, W, N).
 
@@ -276,8 +395,12 @@ def render(
     slabs: int = 32,
     gate_width: float | None = None,
     blur_bins: int = 10,
+    kernels: dict | None = None,
 ) -> Components:
-    """Render the image components of a ray-cast scene. Shapes: rays (H, W, 3), reflectance (H, W, N)."""
+    """Render the image components of a ray-cast scene. Shapes: rays (H, W, 3), reflectance (H, W, N).
+
+    kernels: per-pixel kernels by name (default :data:`KERNELS`; tests pass the numpy twins)."""
+    k_ = KERNELS if kernels is None else kernels
     h, w, n = reflectance.shape
     c, g, beta = water.attenuation, water.scatter_attenuation, water.backscatter
     d_c = hit.range
@@ -311,12 +434,12 @@ def render(
         att_c = np.exp(-c * dc[..., None])
         direct = np.where(surface[..., None], radiance * att_c, 0.0)
         forward_source = np.where(surface[..., None], radiance * (np.exp(-g * dc[..., None]) - att_c), 0.0)
-        _bin_surface(forward_source, d_c, math.log(r_min), log_span, bins)
+        k_["bin_surface"](forward_source, d_c, math.log(r_min), log_span, bins)
         if np.any(beta > 0):
             args = (s, r, beam_scale, intensity, c, g, beta)
             if gate_width:
                 open_gate_end = float(np.median(finite)) if finite.size else 1.0
-                _backscatter_gated(np.ascontiguousarray(rays), np.ascontiguousarray(d_c), float(gate_width), GATE_STEPS,
+                k_["backscatter_gated"](np.ascontiguousarray(rays), np.ascontiguousarray(d_c), float(gate_width), GATE_STEPS,
                                    open_gate_end, *args, math.log(r_min), log_span, back, back_bins)
             else:
                 edges = slab_edges(PORT_DISTANCE, z_far, slabs)
@@ -326,8 +449,8 @@ def render(
                 slab_forward = np.zeros((gh, gw, slabs, n))
                 inv_f = np.array([1.0 / intrinsics.fx, 1.0 / intrinsics.fy])
                 centre = np.array([intrinsics.cx, intrinsics.cy, h, w], dtype=np.float64)
-                _slab_contributions(inv_f, centre, step, edges, *args, slab_direct, slab_forward)
-                _backscatter_column(np.ascontiguousarray(rays), np.ascontiguousarray(d_c), step, np.log(edges), slab_direct,
+                k_["slab_contributions"](inv_f, centre, step, edges, *args, slab_direct, slab_forward)
+                k_["backscatter_column"](np.ascontiguousarray(rays), np.ascontiguousarray(d_c), step, np.log(edges), slab_direct,
                                     slab_forward, z_far, math.log(r_min), log_span, back, back_bins)
     bin_ranges = r_min * np.exp(np.linspace(0.0, log_span, blur_bins))
     forward = blur_by_range(bins, bin_ranges, water.forward_blur, intrinsics)

@@ -1,0 +1,112 @@
+"""The ``simulation:`` section of a daemon configuration: the shared simulated rig's options,
+checked strictly (every number finite and in range, unknown keys refused)."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from uwcam.simulation.scene import MATERIALS, SCENES
+from uwcam.simulation.water import WATER_PRESETS
+
+SCENE_NAMES = ("survey", *SCENES)
+SURVEY_KEYS = ("speed", "altitude", "altitude_period")
+
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+
+
+class SimulationOptions(BaseModel):
+    """Options of :class:`uwcam.drivers.sim.SimulatedRig`; distances in metres."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    scene: str = "seabed"
+    """``survey`` (a vehicle surveying a varied seabed) or a static scene (see ``uwcam simulate --list``)."""
+    distance: Annotated[float, Field(gt=0, le=50)] = 2.0
+    """Static scenes: the seabed's (or plate's) distance along the optical axis."""
+    size: tuple[Annotated[int, Field(ge=16, le=7680)], Annotated[int, Field(ge=16, le=4320)]] = (640, 480)
+    """Image width and height in pixels."""
+    water: str = "jerlov-II"
+    lamp_offset: tuple[Annotated[float, Field(ge=-3, le=3)], Annotated[float, Field(ge=-3, le=3)],
+                       Annotated[float, Field(ge=-3, le=3)]] = (0.3, 0.0, 0.0)
+    """Lamp position in the camera frame (x right, y down in the image, z forward)."""
+    bits: Annotated[int, Field(ge=8, le=16)] = 16
+    seed: Annotated[int, Field(ge=0, le=2**32 - 1)] = 0
+    material: str | None = None
+    """Give every surface this material (e.g. grey, the calibration plate's hue)."""
+    ambient: tuple[Annotated[float, Field(ge=0, le=1)], ...] | None = None
+    """Daylight per channel (R, G, B), relative to the lamp."""
+    lamp_on: bool = True
+    lamp_intensity: Annotated[float, Field(ge=0, le=1)] = 1.0
+    speed: Annotated[float, Field(ge=0, le=5)] = 0.4
+    """Survey: speed over ground, m/s."""
+    altitude: tuple[Annotated[float, Field(ge=0.5, le=10)], Annotated[float, Field(ge=0.5, le=10)]] = (1.5, 4.0)
+    """Survey: lowest and highest altitude above the smooth seabed, m."""
+    altitude_period: Annotated[float, Field(ge=10, le=3600)] = 120.0
+    """Survey: seconds from the lowest altitude to the highest and back."""
+
+    @field_validator("scene")
+    @classmethod
+    def _known_scene(cls, v: str) -> str:
+        if v not in SCENE_NAMES:
+            raise ValueError(f"unknown scene '{v}'; known: {', '.join(SCENE_NAMES)}")
+        return v
+
+    @field_validator("water")
+    @classmethod
+    def _known_water(cls, v: str) -> str:
+        if v not in WATER_PRESETS:
+            raise ValueError(f"unknown water '{v}'; known: {', '.join(WATER_PRESETS)}")
+        return v
+
+    @field_validator("material")
+    @classmethod
+    def _known_material(cls, v: str | None) -> str | None:
+        if v is not None and v not in MATERIALS:
+            raise ValueError(f"unknown material '{v}'; known: {', '.join(MATERIALS)}")
+        return v
+
+    @field_validator("bits")
+    @classmethod
+    def _bit_depth(cls, v: int) -> int:
+        if v not in (8, 12, 16):
+            raise ValueError("bit depth must be 8, 12 or 16")
+        return v
+
+    @field_validator("ambient")
+    @classmethod
+    def _three_channels(cls, v: tuple[float, ...] | None) -> tuple[float, ...] | None:
+        if v is not None and len(v) != 3:
+            raise ValueError("give one daylight level per channel: [R, G, B]")
+        return v
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "SimulationOptions":
+        if self.altitude[0] > self.altitude[1]:
+            raise ValueError("altitude must be [lowest, highest] with lowest ≤ highest")
+        if self.scene != "survey":
+            given = [k for k in SURVEY_KEYS if k in self.model_fields_set]
+            if given:
+                raise ValueError(f"'{given[0]}' applies only to scene: survey (this scene is static)")
+        elif "distance" in self.model_fields_set:
+            raise ValueError("'distance' applies only to static scenes; the survey's range follows its 'altitude'")
+        return self
+
+
+def check_simulation_options(options: dict[str, Any]) -> dict[str, Any]:
+    """Validate a ``simulation:`` mapping; return it with the keys given (values normalised).
+
+    Raises ValueError with one line naming the key: ``simulation.speed: ...``."""
+    try:
+        model = SimulationOptions.model_validate(options)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        key = ".".join(str(p) for p in err["loc"])
+        message = err["msg"].removeprefix("Value error, ")
+        if err["type"] == "extra_forbidden":
+            message = "unknown key; remove it or check its spelling"
+        elif "input" in err and not isinstance(err["input"], (dict, list)) and key:
+            message = f"{message} (got {err['input']!r})"
+        raise ValueError(f"{key}: {message}" if key else message) from None
+    return {k: getattr(model, k) for k in options}
