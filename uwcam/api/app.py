@@ -10,14 +10,18 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 from contextlib import asynccontextmanager
+from typing import Any
 
 from fastapi import Depends, FastAPI, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
 from uwcam import __version__
 from uwcam.api import lamp, metrics, profiles, session, settings, snapshots, status, stream
 from uwcam.api.common import Broadcaster
+from uwcam.api.limits import BodyLimit
 from uwcam.api.security import Guard, required_token
 from uwcam.config import DaemonConfig
 from uwcam.daemon import Daemon
@@ -48,6 +52,13 @@ def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
     app.state.config = config
     app.state.guard = guard
 
+    app.add_middleware(BodyLimit, limits={profiles.router.prefix + "/": profiles.MAX_PROFILE_BYTES})
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(request: Request, exc: RequestValidationError):
+        # The errors quote the input; NaN or Infinity in it cannot be written as JSON.
+        return JSONResponse(status_code=422, content={"detail": _json_safe(exc.errors())})
+
     @app.exception_handler(UserInputError)
     async def _user_error(request: Request, exc: UserInputError):
         return JSONResponse(status_code=400, content={"error": str(exc)})
@@ -61,3 +72,16 @@ def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
     for router in ROUTERS:
         app.include_router(router)
     return app
+
+
+def _json_safe(value: Any) -> Any:
+    """``value`` with non-finite floats as strings and anything else JSON cannot hold as its repr."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else repr(value)
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if value is None or isinstance(value, (str, int, bool)):
+        return value
+    return repr(value)
