@@ -1,0 +1,322 @@
+"""Regression tests for every fault found by trying to break the daemon (issue 12): a real uvicorn
+server on an ephemeral port, real HTTP and WebSocket clients, simulated devices with faults."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import threading
+import time
+
+import httpx
+import numpy as np
+import pytest
+import websockets
+import yaml
+
+from tests.test_api import Server, small_config
+from tests.waiting import wait_for
+from uwcam.api.limits import DEFAULT_BODY_LIMIT
+from uwcam.api.profiles import MAX_PROFILE_BYTES
+from uwcam.config import DaemonConfig
+from uwcam.drivers.sim import SimulatedCamera
+from uwcam.fileio import UserInputError
+
+
+@pytest.fixture(autouse=True)
+def no_leaked_threads():
+    """Server threads (uvicorn's worker pool) outlive a test by design here; see test_api."""
+    yield
+
+
+@pytest.fixture(scope="module")
+def server():
+    with Server(small_config()) as s:
+        assert wait_for(lambda: s.daemon.pipeline.processed > 2, 60.0)
+        yield s
+
+
+def status(s) -> dict:
+    return s.http.get("/api/v1/status").json()
+
+
+# -- security ---------------------------------------------------------------------------------
+
+def test_empty_host_is_refused_and_only_explicit_loopback_is_loopback():
+    with pytest.raises(ValueError, match="at least 1 character"):
+        DaemonConfig.model_validate({"api": {"host": ""}})
+    from uwcam.api import create_app
+
+    for host in ("0.0.0.0", "::", "10.0.0.2", "vehicle.local"):
+        config = small_config()
+        config.api.host = host
+        with pytest.raises(UserInputError, match="without a token"):
+            create_app(config)
+
+
+def test_cross_origin_state_change_is_refused(server):
+    own = f"http://127.0.0.1:{server.port}"
+    server.http.patch("/api/v1/config", json={"smoothing": "median"})
+    server.http.patch("/api/v1/config", json={"smoothing": "mean"})
+    evil = server.http.post("/api/v1/config/restore", headers={"Origin": "http://evil.example"})
+    assert evil.status_code == 403 and "may not change" in evil.json()["detail"]
+    assert server.http.post("/api/v1/config/restore", headers={"Origin": "null"}).status_code == 403
+    assert server.http.get("/api/v1/config").json()["smoothing"] == "mean"  # nothing restored
+    ok = server.http.post("/api/v1/config/restore", headers={"Origin": own})
+    assert ok.status_code == 200 and ok.json()["smoothing"] == "median"
+    server.http.patch("/api/v1/config", json={"smoothing": "none"})
+
+
+def test_websocket_from_a_foreign_origin_is_refused(server):
+    async def connect(origin):
+        async with websockets.connect(f"ws://127.0.0.1:{server.port}/api/v1/stream", origin=origin) as ws:
+            return json.loads(await asyncio.wait_for(ws.recv(), 10.0))["type"]
+
+    with pytest.raises(websockets.exceptions.InvalidStatus) as refused:
+        asyncio.run(connect("http://evil.example"))
+    assert refused.value.response.status_code == 403
+    assert asyncio.run(connect(f"http://127.0.0.1:{server.port}")) == "hello"
+
+
+def test_unknown_host_names_are_refused(server):
+    rebound = server.http.get("/api/v1/status", headers={"Host": "evil.example"})
+    assert rebound.status_code == 421 and "api.allowed_hosts" in rebound.json()["detail"]
+    for host in (f"127.0.0.1:{server.port}", f"localhost:{server.port}", "blueos.local", "[::1]:8080"):
+        assert server.http.get("/api/v1/status", headers={"Host": host}).status_code == 200, host
+
+
+def test_allowed_hosts_admit_a_reverse_proxy_name():
+    config = small_config()
+    config.api.allowed_hosts = ["*.vehicle.example"]
+    with Server(config) as s:
+        assert s.http.get("/api/v1/config", headers={"Host": "cam.vehicle.example"}).status_code == 200
+        assert s.http.get("/api/v1/config", headers={"Host": "vehicle.example.evil"}).status_code == 421
+
+
+def test_non_ascii_tokens_are_wrong_tokens_not_errors(monkeypatch):
+    with Server(small_config(token="s3cret")) as s:
+        bad = s.http.put("/api/v1/lamp", json={"on": True}, headers={"Authorization": "Bearer sécret".encode()})
+        assert bad.status_code == 401
+        latin = s.http.put("/api/v1/lamp", json={"on": True}, headers={"Authorization": b"Bearer \xff\xfe"})
+        assert latin.status_code == 401
+        assert s.http.post("/api/v1/session", json={"token": "sécret"}).status_code == 401
+    monkeypatch.setenv("UWCAM_TOKEN", "sécret-ü")
+    with Server(small_config()) as s:
+        assert s.http.put("/api/v1/lamp", json={"on": True}, headers={"Authorization": b"Bearer x"}).status_code == 401
+        good = s.http.put("/api/v1/lamp", json={"on": True}, headers={"Authorization": "Bearer sécret-ü".encode()})
+        assert good.status_code == 200, good.text
+        assert s.http.post("/api/v1/session", json={"token": "sécret-ü"}).status_code == 200
+
+
+# -- every number finite and in range ---------------------------------------------------------
+
+@pytest.mark.parametrize("processing, key", [
+    ({"patch": {"marker": {"id": 1, "offset": [float("nan"), 0], "size": [1, 1]}, "path_length_m": 1}}, "offset"),
+    ({"patch": {"region": [0, 0, 4, 4], "path_length_m": float("inf")}}, "path_length_m"),
+    ({"path_length_bounds": [0, float("inf")]}, "path_length_bounds"),
+    ({"lamp_off_interval": 2 ** 63}, "lamp_off_interval"),
+    ({"lamp_off_interval": True}, "lamp_off_interval"),
+    ({"patch": {"region": [0, 0, 4, 4], "path_length_m": "1.0"}}, "path_length_m"),
+])
+def test_config_refuses_non_finite_and_out_of_range_numbers(tmp_path, processing, key):
+    from uwcam.config import load_config
+
+    path = tmp_path / "rig.yaml"
+    path.write_text(yaml.safe_dump({"version": 1, "processing": processing}))
+    with pytest.raises(UserInputError, match=key):
+        load_config(path)
+
+
+def test_yaml_nan_and_infinity_spellings_are_refused(tmp_path):
+    from uwcam.config import load_config
+
+    path = tmp_path / "rig.yaml"
+    path.write_text("version: 1\nprocessing:\n  path_length_bounds: [0, .inf]\n")
+    with pytest.raises(UserInputError, match="finite number"):
+        load_config(path)
+    path.write_text("version: 1\ncamera: {watchdog_s: .nan}\n")
+    with pytest.raises(UserInputError, match="finite number"):
+        load_config(path)
+
+
+def test_api_refuses_nan_infinity_bools_and_huge_numbers(server):
+    before = server.http.get("/api/v1/config").json()
+    headers = {"content-type": "application/json"}
+    for body in ('{"path_length_bounds": [0, NaN]}', '{"path_length_bounds": [0, Infinity]}',
+                 '{"lamp_off_interval": 9223372036854775808}', '{"lamp_off_interval": 1e400}',
+                 '{"patch": {"region": [0, 0, 4, 4], "path_length_m": NaN}}', '{"fuse": 1}'):
+        r = server.http.patch("/api/v1/config", content=body, headers=headers)
+        assert r.status_code == 422, (body, r.status_code, r.text)
+        json.loads(r.text)  # valid JSON: no bare NaN echoed back
+    huge = server.http.patch("/api/v1/config", content='{"lamp_off_interval": ' + "9" * 5000 + "}", headers=headers)
+    assert 400 <= huge.status_code < 500
+    deep = server.http.patch("/api/v1/config", content="[" * 50000 + "]" * 50000, headers=headers)
+    assert 400 <= deep.status_code < 500
+    lamp = server.daemon.lamp.last_status.percent
+    for body in ({"intensity": False}, {"intensity": "50"}, {"on": 1}, {"intensity": float("nan")}):
+        text = json.dumps(body)  # json.dumps writes NaN for nan
+        r = server.http.put("/api/v1/lamp", content=text, headers=headers)
+        assert r.status_code == 422, (body, r.text)
+    assert server.daemon.lamp.last_status.percent == lamp
+    assert server.http.get("/api/v1/config").json() == before
+
+
+def test_json_bodies_have_a_size_limit(server):
+    big = b'{"smoothing": "mean", "pad": "' + b"x" * (DEFAULT_BODY_LIMIT + 10) + b'"}'
+    r = server.http.patch("/api/v1/config", content=big, headers={"content-type": "application/json"})
+    assert r.status_code == 413 and str(DEFAULT_BODY_LIMIT) in r.json()["detail"]
+
+    def chunked():  # no Content-Length: counted as it arrives
+        yield b'{"smoothing": "mean", "pad": "'
+        for _ in range(100):
+            yield b"x" * 4096
+        yield b'"}'
+
+    r = server.http.patch("/api/v1/config", content=chunked(), headers={"content-type": "application/json"})
+    assert r.status_code == 413
+    assert server.http.get("/api/v1/config").json()["smoothing"] == "none"
+
+
+# -- profiles: validated completely, then applied at once --------------------------------------
+
+def active_profile(s) -> dict:
+    name = next(p["name"] for p in s.http.get("/api/v1/calibration/profiles").json() if p["active"])
+    return s.http.get(f"/api/v1/calibration/profiles/{name}").json()
+
+
+def test_profile_changes_are_validated_completely_then_applied(server):
+    original = active_profile(server)
+    name = next(p["name"] for p in server.http.get("/api/v1/calibration/profiles").json() if p["active"])
+    pipeline_profile = server.daemon.pipeline.profile
+    # Renamed channels: the pair setting G,B cannot be ranged with it.
+    mapping = dict(zip(["R", "G", "B"], ["X", "Y", "Z"]))
+
+    def rename(value):  # every channel name, wherever the profile keys or names by it
+        if isinstance(value, dict):
+            return {mapping.get(k, k): (mapping.get(v, v) if k in ("name", "reference_channel") else rename(v))
+                    for k, v in value.items()}
+        return [rename(v) for v in value] if isinstance(value, list) else value
+
+    renamed = rename(original)
+    up = server.http.put("/api/v1/calibration/profiles/renamed", content=yaml.safe_dump(renamed))
+    assert up.status_code == 200, up.text
+    assert server.http.patch("/api/v1/config", json={"pair": ["G", "B"]}).status_code == 200
+    try:
+        refused = server.http.post("/api/v1/calibration/profiles/renamed/activate")
+        assert refused.status_code == 422 and "pair" in refused.json()["detail"]
+        assert server.daemon.pipeline.profile is pipeline_profile  # the loop never switched
+        assert status(server)["calibration"]["name"] == name
+        # Over the active profile with PUT: the same check, and nothing changes when it fails.
+        over = server.http.put(f"/api/v1/calibration/profiles/{name}", content=yaml.safe_dump(renamed))
+        assert over.status_code == 422
+        assert server.daemon.pipeline.profile is pipeline_profile
+        assert server.http.get(f"/api/v1/calibration/profiles/{name}").json() == original
+    finally:
+        server.http.patch("/api/v1/config", json={"fuse": True})
+    n = server.daemon.pipeline.processed
+    assert wait_for(lambda: server.daemon.pipeline.processed > n + 2)  # ranging all along
+
+
+def test_profile_names_starting_with_a_dot_are_refused(server):
+    body = yaml.safe_dump(active_profile(server))
+    for name in (".hidden", "..", ".x.yaml.tmp"):
+        r = server.http.put(f"/api/v1/calibration/profiles/{name}", content=body)
+        assert r.status_code in (404, 422), (name, r.status_code)
+        assert name not in server.daemon.profiles
+
+
+def test_profile_uploads_are_bounded_and_bad_yaml_is_a_4xx(server):
+    declared = server.http.put("/api/v1/calibration/profiles/big", content=b"a: " + b"1" * MAX_PROFILE_BYTES)
+    assert declared.status_code == 413
+
+    def endless():
+        for _ in range(4 * MAX_PROFILE_BYTES // 65536):
+            yield b"#" * 65536
+
+    streamed = server.http.put("/api/v1/calibration/profiles/big", content=endless())
+    assert streamed.status_code == 413 and "big" not in server.daemon.profiles
+    deep = server.http.put("/api/v1/calibration/profiles/deep", content=b"[" * 100000 + b"]" * 100000)
+    assert deep.status_code == 422 and "nested" in deep.json()["detail"]
+    huge = server.http.put("/api/v1/calibration/profiles/huge", content=b"format: " + b"7" * 6000)
+    assert huge.status_code == 422
+
+
+def test_a_slow_upload_does_not_freeze_the_api(server):
+    """Parsing a large upload runs in a worker thread: status answers meanwhile."""
+    body = yaml.safe_dump({f"key{k}": [k, k + 0.5, "text"] for k in range(20000)}).encode()
+    assert len(body) < MAX_PROFILE_BYTES
+    done = threading.Event()
+    result = {}
+
+    def upload():
+        with httpx.Client(base_url=server.url, timeout=120.0) as c:
+            start = time.monotonic()
+            result["status"] = c.put("/api/v1/calibration/profiles/slow", content=body).status_code
+            result["seconds"] = time.monotonic() - start
+        done.set()
+
+    worst = 0.0
+    thread = threading.Thread(target=upload)
+    thread.start()
+    try:
+        while not done.is_set():
+            start = time.monotonic()
+            server.http.get("/api/v1/status")
+            worst = max(worst, time.monotonic() - start)
+    finally:
+        thread.join()
+    assert result["status"] == 422  # not a profile, but read in full
+    print(f"upload parsed in {result['seconds']:.2f} s; slowest status meanwhile {worst:.2f} s")
+    assert worst < max(0.5, result["seconds"] / 3)
+
+
+# -- ranging must not stop ---------------------------------------------------------------------
+
+def processed_rate(s, seconds: float) -> float:
+    n, t = s.daemon.pipeline.processed, time.monotonic()
+    time.sleep(seconds)
+    return (s.daemon.pipeline.processed - n) / (time.monotonic() - t)
+
+
+def test_a_silent_lamp_does_not_stop_ranging():
+    config = small_config()
+    config.processing.lamp_off_interval = 4
+    with Server(config) as s:
+        assert wait_for(lambda: s.daemon.pipeline.stats()["ambient_frames"] >= 1, 60.0)
+        baseline = processed_rate(s, 3.0)
+        device = s.daemon.lamp.device
+        device.received = lambda data: None  # the lamp hears nothing and says nothing
+        try:
+            assert wait_for(lambda: status(s)["lamp"]["health"]["state"] != "ok", 20.0)
+            silent = processed_rate(s, 3.0)
+            lamp = status(s)["lamp"]
+            assert lamp["commands"]["consecutive_failures"] >= 1 and "no complete reply" in lamp["health"]["reason"]
+            assert status(s)["frames"]["fps"] > 0
+            start = time.monotonic()
+            r = s.http.get("/api/v1/lamp")
+            assert r.status_code == 503 and "does not answer" in r.json()["detail"]
+            assert time.monotonic() - start < 5.0
+        finally:
+            del device.received
+        print(f"frames per second: {baseline:.1f} before, {silent:.1f} with the lamp silent")
+        # Before the fix each frame waited ~1 s for the lamp: about 1 fps.
+        assert silent >= 0.5 * baseline and silent > 1.5
+        ambient = s.daemon.pipeline.stats()["ambient_frames"]
+        assert wait_for(lambda: status(s)["lamp"]["health"]["state"] == "ok", 30.0)
+        assert wait_for(lambda: s.daemon.pipeline.stats()["ambient_frames"] > ambient, 30.0)  # the cycle resumes
+        assert wait_for(lambda: s.daemon.rig.lamp_on, 10.0)
+
+
+def test_fps_is_zero_when_nothing_is_processed(server):
+    assert wait_for(lambda: status(server)["frames"]["fps"] > 0, 20.0)
+    SimulatedCamera.stall("SIM-API")
+    try:
+        assert wait_for(lambda: status(server)["frames"]["fps"] == 0, 10.0)
+        a = status(server)["frames"]["since_last_processed_s"]
+        time.sleep(0.5)
+        b = status(server)["frames"]["since_last_processed_s"]
+        assert b >= a + 0.4 and b >= 2.0
+    finally:
+        SimulatedCamera.stall("SIM-API", False)
+    assert wait_for(lambda: status(server)["frames"]["fps"] > 0, 20.0)
+    assert status(server)["frames"]["since_last_processed_s"] < 2.0
