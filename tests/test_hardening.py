@@ -320,3 +320,43 @@ def test_fps_is_zero_when_nothing_is_processed(server):
         SimulatedCamera.stall("SIM-API", False)
     assert wait_for(lambda: status(server)["frames"]["fps"] > 0, 20.0)
     assert status(server)["frames"]["since_last_processed_s"] < 2.0
+
+
+# -- a slow WebSocket client gets the newest frame, never a queue ------------------------------
+
+def test_a_slow_websocket_client_only_gets_fresh_frames():
+    """A client reading one message every 0.5 s: every frame it gets is at most a couple of its
+    own read periods old (what its own small buffers hold), not minutes (kernel buffers full of
+    old frames, as before)."""
+    import socket
+
+    from uwcam.api import HEADER
+
+    config = small_config()
+    config.simulation["size"] = [320, 240]  # 150 kB per frame: the kernel buffers would hold dozens
+    read_every = 0.5
+
+    async def slow_client(port):
+        sock = socket.socket()
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 16384)  # the client keeps little
+        sock.connect(("127.0.0.1", port))
+        sock.setblocking(False)
+        ages = []
+        async with websockets.connect(f"ws://127.0.0.1:{port}/api/v1/stream?rate=30", sock=sock, max_queue=1,
+                                      max_size=None) as ws:
+            await ws.recv()  # hello
+            end = time.monotonic() + 12.0
+            while time.monotonic() < end:
+                await asyncio.sleep(read_every)
+                msg = await asyncio.wait_for(ws.recv(), 10.0)
+                if isinstance(msg, bytes):
+                    captured = HEADER.unpack_from(msg)[2]
+                    ages.append((time.time_ns() - captured) / 1e9)
+        return ages
+
+    with Server(config) as s:
+        assert wait_for(lambda: s.daemon.pipeline.processed > 5, 60.0)
+        ages = asyncio.run(slow_client(s.port))
+    print("ages of received frames (s):", " ".join(f"{a:.2f}" for a in ages))
+    assert len(ages) >= 8
+    assert max(ages[2:]) < 4 * read_every + 0.5, ages

@@ -20,6 +20,7 @@ from fastapi.responses import JSONResponse
 
 from uwcam import __version__
 from uwcam.api import lamp, metrics, profiles, session, settings, snapshots, status, stream
+from uwcam.api.backpressure import ConnectionSocket
 from uwcam.api.common import Broadcaster
 from uwcam.api.limits import BodyLimit
 from uwcam.api.security import Guard, required_token
@@ -53,6 +54,7 @@ def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
     app.state.guard = guard
 
     app.add_middleware(BodyLimit, limits={profiles.router.prefix + "/": profiles.MAX_PROFILE_BYTES})
+    app.add_middleware(ConnectionSocket)  # outermost: it must see the server's own send
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(request: Request, exc: RequestValidationError):
