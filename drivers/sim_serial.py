@@ -17,6 +17,9 @@ import threading
 import time
 import tty
 from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import Field
 
 from uwcam.drivers.sim import SimulatedRig
 
@@ -262,6 +265,12 @@ class SimulatedPing1D(PtyDevice):
 
 
 # Registry entries: the real serial drivers, each talking to its own simulated device.
+def _options():
+    from uwcam.drivers import options
+
+    return options
+
+
 def _serial_classes():
     from uwcam.drivers.lamp import SerialLamp
     from uwcam.drivers.rangefinder import AsciiRangefinder, Ping1DRangefinder
@@ -273,6 +282,9 @@ class SimulatedSerialLamp(_serial_classes()[0]):
     """Registry name ``sim``: the serial lamp driver talking to a simulated lamp on a pty."""
 
     kind = "sim"
+
+    class Options(_options().DriverOptions):
+        protocol: str = "generic-dimmable-led"
 
     def __init__(self, rig: SimulatedRig | None = None, protocol: str = "generic-dimmable-led") -> None:
         self.device = SimulatedLampDevice(rig).start()
@@ -302,6 +314,11 @@ class SimulatedAsciiRangefinder(_OwnsDevice, _serial_classes()[1]):
 
     kind = "sim-ascii"
 
+    class Options(_serial_classes()[1].Options):
+        port: None = None  # the simulated ranger's own pty
+        style: Literal["nmea", "mm"] = "nmea"
+        rate_hz: Annotated[float, Field(gt=0, le=1000, allow_inf_nan=False)] = 10.0
+
     def __init__(self, rig: SimulatedRig | None = None, style: str = "nmea", rate_hz: float = 10.0, **config) -> None:
         self.device = SimulatedAsciiRanger(rig, style=style, rate_hz=rate_hz)
         super().__init__(self.device.path, **config)
@@ -311,6 +328,11 @@ class SimulatedPing1DRangefinder(_OwnsDevice, _serial_classes()[2]):
     """Registry name ``sim-ping1d``: the Ping1D driver talking to a simulated Ping1D."""
 
     kind = "sim-ping1d"
+
+    class Options(_serial_classes()[2].Options):
+        port: None = None  # the simulated sonar's own pty
+        confidence: Annotated[int, Field(ge=0, le=100)] = 97
+        """Confidence (percent) the simulated sonar reports."""
 
     def __init__(self, rig: SimulatedRig | None = None, confidence: int = 97, **config) -> None:
         self.device = SimulatedPing1D(rig, confidence=confidence)

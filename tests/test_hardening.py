@@ -360,3 +360,87 @@ def test_a_slow_websocket_client_only_gets_fresh_frames():
     print("ages of received frames (s):", " ".join(f"{a:.2f}" for a in ages))
     assert len(ages) >= 8
     assert max(ages[2:]) < 4 * read_every + 0.5, ages
+
+
+# -- the command line and the configuration ----------------------------------------------------
+
+def run_cli(*args: str, env: dict | None = None, timeout: float = 120.0):
+    import os
+    import subprocess
+    import sys
+
+    environment = {k: v for k, v in os.environ.items() if k != "UWCAM_TOKEN"} | (env or {})
+    return subprocess.run([sys.executable, "-m", "uwcam", *args], capture_output=True, text=True, timeout=timeout,
+                          env=environment)
+
+
+def one_line_error(result, *fragments: str) -> None:
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode == 2, (result.returncode, result.stderr)
+    assert len(lines) == 1 and "Traceback" not in result.stderr, result.stderr
+    for fragment in fragments:
+        assert fragment in lines[0], (fragment, lines[0])
+
+
+def test_bad_port_and_busy_port_are_one_line_errors():
+    import socket
+
+    one_line_error(run_cli("run", "--port", "80808"), "--port", "65535", "80808")
+    with socket.create_server(("127.0.0.1", 0)) as busy:
+        port = busy.getsockname()[1]
+        one_line_error(run_cli("run", "--port", str(port)), f"cannot listen on 127.0.0.1:{port}")
+
+
+@pytest.mark.parametrize("text, fragments", [
+    ("camera: {driver: simm}\ncalibration: p.yaml\n", ["unknown camera driver 'simm'", "known camera drivers", "sim"]),
+    ("camera: {driver: sim, options: {fsp: 10}}\n", ["'fsp'", "unknown key", "fps"]),
+    ("camera: {driver: sim, options: {fps: .nan}}\n", ["'fps'", "finite"]),
+    ("camera: {driver: v4l2, options: {device: /dev/video0, fourcc: YUYV, exposure: 3}}\ncalibration: p.yaml\n",
+     ["camera driver 'v4l2'", "'exposure'"]),
+    ("camera: {driver: multi, options: {sensors: [{driver: sim, fsp: 1}, {driver: sim}]}}\ncalibration: p.yaml\n",
+     ["'fsp'"]),
+    ("camera: {driver: sim}\nsimulation: {water: jerlov-XX}\n", ["unknown water 'jerlov-XX'", "jerlov-IB"]),
+    ("camera: {driver: sim}\nsimulation: {watter: jerlov-IB}\n", ["unknown key 'watter'"]),
+    ("camera: {driver: sim}\nlamp: {driver: serial, options: {port: /dev/x, baud: true}}\n", ["'baud'"]),
+    ("camera: {driver: sim}\nrangefinder: {driver: ping1d, options: {port: /dev/x, speed_of_sound: 15000}}\n",
+     ["speed_of_sound"]),
+    ("camera: {driver: sim}\nprocessing: {lamp_off_interval: 4}\n", ["lamp_off_interval needs a lamp"]),
+    ("api: {port: 80808}\n", ["api.port"]),
+])
+def test_config_check_validates_drivers_and_their_options(tmp_path, text, fragments):
+    path = tmp_path / "rig.yaml"
+    path.write_text("version: 1\n" + text)
+    from uwcam.cli import main
+
+    import contextlib
+    import io
+
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        assert main(["config", "check", str(path)]) == 2
+    line = err.getvalue().strip()
+    assert len(line.splitlines()) == 1, line
+    for fragment in fragments:
+        assert fragment in line, (fragment, line)
+
+
+def test_run_reports_a_device_that_cannot_work_in_one_line(tmp_path):
+    path = tmp_path / "rig.yaml"
+    path.write_text(yaml.safe_dump({"version": 1, "camera": {"driver": "sim", "options": {"fps": 5}},
+                                    "lamp": {"driver": "serial", "options": {"port": str(tmp_path / "no-such-tty")}},
+                                    "api": {"port": 0}}))
+    one_line_error(run_cli("run", "--config", str(path)), "cannot open serial port", "no-such-tty")
+
+
+def test_deploy_files_need_the_token_from_the_environment_only():
+    from pathlib import Path
+
+    deploy = Path(__file__).resolve().parent.parent / "deploy"
+    for name in ("v4l2-rig.yaml", "gige-rig.yaml"):
+        assert "token" not in yaml.safe_load((deploy / name).read_text())["api"]
+        refused = run_cli("config", "check", str(deploy / name))
+        one_line_error(refused, "UWCAM_TOKEN", "docs/deployment.md")
+        assert run_cli("config", "check", str(deploy / name), env={"UWCAM_TOKEN": "t0ken"}).returncode == 0
+    unit = (deploy / "uwcam.service").read_text()
+    exec_start = next(line for line in unit.splitlines() if line.startswith("ExecStart="))
+    assert "/usr/local/bin" not in exec_start and "/.venv/bin/uwcam run" in exec_start

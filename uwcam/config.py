@@ -177,6 +177,10 @@ class DaemonConfig(StrictModel):
     def _calibration_needed(self) -> "DaemonConfig":
         if self.calibration is None and self.camera.driver != "sim":
             raise ValueError("calibration: give the path of a calibration profile (uwcam calibrate makes one)")
+        if self.processing.lamp_off_interval and self.lamp is None:
+            raise ValueError("processing.lamp_off_interval needs a lamp: configure one or set it to 0")
+        if self.processing.reflectance is not None and self.rangefinder is None:
+            raise ValueError("processing.reflectance needs a rangefinder: configure one or remove it")
         return self
 
 

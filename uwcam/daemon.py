@@ -51,6 +51,36 @@ def simulated_patch(rig: SimulatedRig) -> PatchConfig:
     return PatchConfig(region=(int(x + inset), int(y + inset), int(w - 2 * inset), int(h - 2 * inset)), path_length_m=path)
 
 
+def check_devices(config: DaemonConfig) -> dict[str, dict]:
+    """Validate what a configuration asks of the drivers, touching no device: each driver exists
+    in the registry and its options fit the driver's ``Options``; the simulated rig's options
+    name real settings and a known water. Returns the validated options by kind; UserInputError
+    (one line: which driver, which key, what is wrong) otherwise."""
+    import dataclasses
+
+    from uwcam.drivers.base import ConfigurationError
+    from uwcam.simulation.water import WATER_PRESETS
+
+    validated = {}
+    for kind, device in (("camera", config.camera), ("lamp", config.lamp), ("rangefinder", config.rangefinder)):
+        if device is None:
+            continue
+        try:
+            validated[kind] = registry.validate_options(kind, device.driver, device.options)
+        except ConfigurationError as exc:
+            raise UserInputError(str(exc)) from None
+    simulated = [d.driver for d in (config.camera, config.lamp, config.rangefinder) if d is not None and d.driver in SIMULATED]
+    if simulated or config.simulation:
+        known = [f.name for f in dataclasses.fields(SimulatedRig) if not f.name.startswith("_")]
+        for key in config.simulation:
+            if key not in known:
+                raise UserInputError(f"simulation: unknown key '{key}'; known: {', '.join(known)}")
+        water = config.simulation.get("water")
+        if water is not None and water not in WATER_PRESETS:
+            raise UserInputError(f"simulation: unknown water '{water}'; known: {', '.join(WATER_PRESETS)}")
+    return validated
+
+
 class Daemon:
     def __init__(self, config: DaemonConfig) -> None:
         self.config = config
@@ -78,7 +108,10 @@ class Daemon:
                 for key in ("size", "lamp_offset", "ambient"):
                     if key in sim:
                         sim[key] = tuple(sim[key])
-                self.rig = SimulatedRig(**sim)
+                try:
+                    self.rig = SimulatedRig(**sim)
+                except (TypeError, ValueError) as exc:
+                    raise UserInputError(f"simulation: {exc}") from None
             return {"rig": self.rig, **options}
         return dict(options)
 
@@ -88,14 +121,20 @@ class Daemon:
             if os.path.isdir(folder):
                 remove_stale_temporaries(folder)
         saved = load_state(self.state_dir) if self.state_dir else None
+        options = check_devices(cfg)
         try:
-            driver = registry.create("camera", cfg.camera.driver, **self._options(cfg.camera.driver, cfg.camera.options))
+            driver = registry.create("camera", cfg.camera.driver, **self._options(cfg.camera.driver, options["camera"]))
             if cfg.lamp is not None:
-                self.lamp = registry.create("lamp", cfg.lamp.driver, **self._options(cfg.lamp.driver, cfg.lamp.options))
-                self.lamp.open()
+                lamp = registry.create("lamp", cfg.lamp.driver, **self._options(cfg.lamp.driver, options["lamp"]))
+                try:
+                    lamp.open()
+                except BaseException:  # never opened: nothing to switch off, only to release
+                    lamp.close()
+                    raise
+                self.lamp = lamp
             if cfg.rangefinder is not None:
                 self.rangefinder = registry.create("rangefinder", cfg.rangefinder.driver,
-                                                   **self._options(cfg.rangefinder.driver, cfg.rangefinder.options))
+                                                   **self._options(cfg.rangefinder.driver, options["rangefinder"]))
             if cfg.calibration is not None:
                 profile = load_profile(cfg.calibration)
             elif self.rig is not None:
@@ -159,7 +198,10 @@ class Daemon:
             except ValueError as exc:  # includes pydantic's ValidationError
                 log.warning("saved processing settings no longer apply (%s); using the configuration's",
                             str(exc).splitlines()[0])
-        return FramePipeline(self.camera, profile, processing, self.rangefinder, self.lamp)
+        try:
+            return FramePipeline(self.camera, profile, processing, self.rangefinder, self.lamp)
+        except ValueError as exc:  # settings that do not fit the profile (a pair of unknown channels)
+            raise UserInputError(f"processing: {exc}") from None
 
     def save_state(self) -> None:
         """Persist live settings, the active profile and the lamp's intensity (if there is a state

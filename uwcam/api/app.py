@@ -38,7 +38,8 @@ def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         d = daemon or Daemon(config)
-        await asyncio.to_thread(d.start)
+        if d.pipeline is None:  # `uwcam run` starts its daemon before serving, to report errors plainly
+            await asyncio.to_thread(d.start)
         app.state.daemon = d
         app.state.broadcaster = Broadcaster(asyncio.get_running_loop())
         d.pipeline.subscribe(app.state.broadcaster.publish)

@@ -49,7 +49,8 @@ def required_token(config: DaemonConfig) -> str | None:
     token = config.api.token or os.environ.get("UWCAM_TOKEN")
     if not is_loopback(config.api.host) and not token:
         raise UserInputError(
-            f"refusing to listen on {config.api.host} without a token: set api.token in the configuration or UWCAM_TOKEN"
+            f"refusing to listen on {config.api.host} without a token: set the UWCAM_TOKEN environment variable "
+            "(the systemd unit reads it from /etc/uwcam/token.env; see docs/deployment.md) or api.token"
         )
     return token or None
 
