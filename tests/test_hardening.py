@@ -444,3 +444,89 @@ def test_deploy_files_need_the_token_from_the_environment_only():
     unit = (deploy / "uwcam.service").read_text()
     exec_start = next(line for line in unit.splitlines() if line.startswith("ExecStart="))
     assert "/usr/local/bin" not in exec_start and "/.venv/bin/uwcam run" in exec_start
+
+
+# -- state that survives a restart -------------------------------------------------------------
+
+class DaemonProcess:
+    """``uwcam run`` in a subprocess, as systemd runs it."""
+
+    def __init__(self, config_path) -> None:
+        import socket
+
+        with socket.socket() as probe:
+            probe.bind(("127.0.0.1", 0))
+            self.port = probe.getsockname()[1]
+        self.config_path = config_path
+
+    def __enter__(self) -> "DaemonProcess":
+        import os
+        import subprocess
+        import sys
+
+        env = {k: v for k, v in os.environ.items() if k != "UWCAM_TOKEN"}
+        self.process = subprocess.Popen([sys.executable, "-m", "uwcam", "run", "--config", str(self.config_path),
+                                         "--port", str(self.port)], env=env,
+                                        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        self.http = httpx.Client(base_url=f"http://127.0.0.1:{self.port}", timeout=10.0)
+
+        def up():
+            try:
+                return self.http.get("/api/v1/status").json()["frames"]["processed"] > 0
+            except httpx.HTTPError:
+                assert self.process.poll() is None, self.process.stderr.read().decode()
+                return False
+
+        assert wait_for(up, 120.0, 0.2), "daemon did not come up"
+        return self
+
+    def kill(self) -> None:
+        import signal
+
+        self.process.send_signal(signal.SIGKILL)  # no orderly shutdown: as a power cut
+        self.process.wait(timeout=30)
+
+    def __exit__(self, *exc) -> None:
+        self.http.close()
+        if self.process.poll() is None:
+            self.process.terminate()
+            self.process.wait(timeout=30)
+        self.process.stderr.close()
+
+
+def test_settings_profile_and_lamp_survive_a_kill(tmp_path):
+    profiles = tmp_path / "profiles"
+    config = tmp_path / "rig.yaml"
+    config.write_text(yaml.safe_dump({
+        "version": 1, "camera": {"driver": "sim", "options": {"fps": 10}}, "lamp": {"driver": "sim"},
+        "simulation": {"scene": "seabed", "distance": 2.0, "size": [96, 72], "water": "jerlov-IB"},
+        "profiles_dir": str(profiles)}))
+    with DaemonProcess(config) as d:
+        active = next(p for p in d.http.get("/api/v1/calibration/profiles").json() if p["active"])
+        body = d.http.get(f"/api/v1/calibration/profiles/{active['name']}").json()
+        assert d.http.put("/api/v1/calibration/profiles/tank-b", content=yaml.safe_dump(body)).status_code == 200
+        assert d.http.post("/api/v1/calibration/profiles/tank-b/activate").status_code == 200
+        assert d.http.patch("/api/v1/config", json={"smoothing": "median", "path_length_bounds": [0.5, 30]}).status_code == 200
+        assert d.http.put("/api/v1/lamp", json={"intensity": 70}).status_code == 200
+        d.kill()
+    # What a kill in the middle of an atomic write leaves behind.
+    (profiles / ".tank-b.yaml.x1y2z3.tmp").write_text("half a profi")
+    with DaemonProcess(config) as d:
+        settings = d.http.get("/api/v1/config").json()
+        assert settings["smoothing"] == "median" and settings["path_length_bounds"] == [0.5, 30.0]
+        assert d.http.get("/api/v1/status").json()["calibration"]["name"] == "tank-b"
+        assert d.http.get("/api/v1/lamp").json()["intensity"] == 70
+        assert not list(profiles.glob(".*.tmp"))
+        assert {p.name for p in profiles.iterdir()} == {"tank-b.yaml", "uwcam-state.json"}
+
+
+def test_a_corrupt_state_file_is_ignored_not_fatal(tmp_path):
+    from uwcam.state import STATE_FILE
+
+    config = small_config()
+    config.profiles_dir = str(tmp_path)
+    (tmp_path / STATE_FILE).write_text('{"version": 1, "processing": {"smoothing": "gaussian"}, "lamp_percent": 700}')
+    with Server(config) as s:
+        assert s.http.get("/api/v1/config").json()["smoothing"] == "none"
+        assert s.http.patch("/api/v1/config", json={"smoothing": "mean"}).status_code == 200
+    assert json.loads((tmp_path / STATE_FILE).read_text())["processing"]["smoothing"] == "mean"
