@@ -31,6 +31,7 @@ class PtyDevice:
 
     def __init__(self, rig: SimulatedRig | None = None, folder: str | None = None) -> None:
         self.rig = rig or SimulatedRig()
+        self._own_folder = folder is None  # made here, so removed here when the device stops
         self._folder = Path(folder or tempfile.mkdtemp(prefix="uwcam-pty-"))
         self.path = str(self._folder / self.name)
         self._lock = threading.Lock()
@@ -59,6 +60,11 @@ class PtyDevice:
             os.unlink(self.path)
         except FileNotFoundError:
             pass
+        if self._own_folder:
+            try:
+                self._folder.rmdir()
+            except OSError:  # something else was put there: leave it
+                pass
 
     def __enter__(self) -> "PtyDevice":
         return self.start()

@@ -451,8 +451,10 @@ def test_deploy_files_need_the_token_from_the_environment_only():
 class DaemonProcess:
     """``uwcam run`` in a subprocess, as systemd runs it."""
 
-    def __init__(self, config_path) -> None:
+    def __init__(self, config_path, tmp_dir) -> None:
         import socket
+
+        self.tmp_dir = str(tmp_dir)  # the simulated devices' pty folders: a SIGKILL leaves them
 
         with socket.socket() as probe:
             probe.bind(("127.0.0.1", 0))
@@ -464,7 +466,7 @@ class DaemonProcess:
         import subprocess
         import sys
 
-        env = {k: v for k, v in os.environ.items() if k != "UWCAM_TOKEN"}
+        env = {k: v for k, v in os.environ.items() if k != "UWCAM_TOKEN"} | {"TMPDIR": self.tmp_dir}
         self.process = subprocess.Popen([sys.executable, "-m", "uwcam", "run", "--config", str(self.config_path),
                                          "--port", str(self.port)], env=env,
                                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
@@ -501,7 +503,7 @@ def test_settings_profile_and_lamp_survive_a_kill(tmp_path):
         "version": 1, "camera": {"driver": "sim", "options": {"fps": 10}}, "lamp": {"driver": "sim"},
         "simulation": {"scene": "seabed", "distance": 2.0, "size": [96, 72], "water": "jerlov-IB"},
         "profiles_dir": str(profiles)}))
-    with DaemonProcess(config) as d:
+    with DaemonProcess(config, tmp_path) as d:
         active = next(p for p in d.http.get("/api/v1/calibration/profiles").json() if p["active"])
         body = d.http.get(f"/api/v1/calibration/profiles/{active['name']}").json()
         assert d.http.put("/api/v1/calibration/profiles/tank-b", content=yaml.safe_dump(body)).status_code == 200
@@ -511,7 +513,7 @@ def test_settings_profile_and_lamp_survive_a_kill(tmp_path):
         d.kill()
     # What a kill in the middle of an atomic write leaves behind.
     (profiles / ".tank-b.yaml.x1y2z3.tmp").write_text("half a profi")
-    with DaemonProcess(config) as d:
+    with DaemonProcess(config, tmp_path) as d:
         settings = d.http.get("/api/v1/config").json()
         assert settings["smoothing"] == "median" and settings["path_length_bounds"] == [0.5, 30.0]
         assert d.http.get("/api/v1/status").json()["calibration"]["name"] == "tank-b"
@@ -530,3 +532,18 @@ def test_a_corrupt_state_file_is_ignored_not_fatal(tmp_path):
         assert s.http.get("/api/v1/config").json()["smoothing"] == "none"
         assert s.http.patch("/api/v1/config", json={"smoothing": "mean"}).status_code == 200
     assert json.loads((tmp_path / STATE_FILE).read_text())["processing"]["smoothing"] == "mean"
+
+
+def test_simulated_serial_devices_leave_no_folders_behind(tmp_path, monkeypatch):
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))  # a temp dir of our own: others share /tmp
+
+    def folders():
+        return set(tmp_path.glob("uwcam-pty-*"))
+
+    before = folders()
+    with Server(small_config()) as s:
+        assert wait_for(lambda: s.daemon.pipeline.processed > 0, 60.0)
+        assert len(folders() - before) == 2  # the lamp's and the sonar's
+    assert folders() - before == set()
