@@ -51,6 +51,12 @@ class LampCommander:
         with self._cond:
             return self._acknowledged_ns
 
+    @property
+    def failing(self) -> bool:
+        """True while the last attempt at a command failed."""
+        with self._cond:
+            return self._failures > 0
+
     def status(self) -> dict:
         with self._cond:
             return {"pending": None if self._want is None else ("on" if self._want else "off"),

@@ -319,23 +319,26 @@ class FramePipeline:
                 log.exception("processing frame %s failed", frame.sequence)
 
     def _dark_frame_due(self, frame: Frame, interval: int) -> bool:
-        """Run the lamp-off cycle; True if ``frame`` is not to be ranged (taken as the ambient
-        frame, or lit by nothing but daylight). Lamp commands only ever *request* a change from
-        the lamp commander: a lamp that does not answer delays the cycle, never the loop, and lit
-        frames go on being ranged meanwhile."""
+        """Run the lamp-off cycle; True if ``frame`` is not to be ranged (taken as the ambient frame,
+        or still dark for a moment while the lamp comes back on).
+
+        Lamp commands only ever *request* a change from the lamp commander: a lamp that does not
+        answer delays the cycle, never the loop. Every other frame is ranged and published, lit
+        or not, so the stream and status show what the camera sees (a lamp stuck off gives frames
+        whose pixels are marked too dark, not silence)."""
         commander = self._lamp_commander
         if self._cycle == "lit":
-            if frame.lamp_on is False:
-                return True  # the lamp is off for another reason: nothing to range against
-            self._lit_since_dark += 1
+            if frame.lamp_on is not False:
+                self._lit_since_dark += 1
             if self._lit_since_dark >= interval:
                 self._ticket = commander.request(False)
                 self._cycle = "switching off"
             return False
         if self._cycle == "switching off":
-            if not commander.done(self._ticket):
-                return frame.lamp_on is False  # still lit: range it
-            self._lamp_off_since_ns = commander.acknowledged_ns
+            if commander.done(self._ticket):
+                self._lamp_off_since_ns = commander.acknowledged_ns
+            elif frame.lamp_on is not False:
+                return False  # still lit: range it
             self._cycle = "dark"
         if self._cycle == "dark":
             dark = frame.lamp_on is False if frame.lamp_on is not None else frame.host_monotonic_ns > self._lamp_off_since_ns
@@ -363,7 +366,10 @@ class FramePipeline:
         # switching on
         if commander.done(self._ticket):
             self._cycle, self._lit_since_dark = "lit", 0
-        return frame.lamp_on is False
+            return False
+        # A frame or two still dark while the lamp comes on would flash an empty range map; a lamp
+        # that does not come back is another matter: publish what there is.
+        return frame.lamp_on is False and not commander.failing
 
     def _process(self, frame: Frame) -> None:
         if frame.lamp_on is None and self.lamp is not None:
