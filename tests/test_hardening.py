@@ -547,3 +547,35 @@ def test_simulated_serial_devices_leave_no_folders_behind(tmp_path, monkeypatch)
         assert wait_for(lambda: s.daemon.pipeline.processed > 0, 60.0)
         assert len(folders() - before) == 2  # the lamp's and the sonar's
     assert folders() - before == set()
+
+
+def test_large_blocks_go_back_to_the_system():
+    """The daemon fixes glibc's mmap threshold (uwcam/malloc.py); bench/bench_snapshots.py measures
+    what it changes. Here: the setting takes, and a freed 1 MB buffer leaves resident memory."""
+    import ctypes
+
+    from uwcam.malloc import return_large_blocks_to_the_system
+
+    assert return_large_blocks_to_the_system() is True
+
+    def rss_kb() -> int:
+        with open("/proc/self/status") as handle:
+            return next(int(line.split()[1]) for line in handle if line.startswith("VmRSS:"))
+
+    before = rss_kb()
+    blocks = [ctypes.create_string_buffer(1 << 20) for _ in range(64)]  # 64 MB, touched (zeroed)
+    assert rss_kb() > before + 50_000
+    del blocks
+    assert rss_kb() < before + 10_000
+
+
+@pytest.mark.slow
+def test_snapshot_benchmark_runs():
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parent.parent / "bench" / "bench_snapshots.py"
+    out = subprocess.run([sys.executable, str(script), "--seconds", "3", "--clients", "2", "--size", "160x120"],
+                         check=True, capture_output=True, text=True, timeout=600).stdout
+    assert "RSS MB: baseline" in out and "after the load" in out
