@@ -84,7 +84,7 @@ class MarkerConfig(StrictModel):
 
 
 class PatchConfig(StrictModel):
-    """A calibration patch fixed in view for live tracking of attenuation differences (DESIGN.md §6)."""
+    """A calibration patch fixed in view for live tracking of attenuation differences (docs/physics.md §6)."""
 
     region: Box | None = None
     """x, y, width, height in pixels, for a patch fixed in the image."""
@@ -105,7 +105,7 @@ class PatchConfig(StrictModel):
 
 
 class ReflectanceConfig(StrictModel):
-    """Surface reflectance from the rangefinder (DESIGN.md §8): where its beam meets the scene in
+    """Surface reflectance from the rangefinder (docs/physics.md §8): where its beam meets the scene in
     the image, and how fresh a reading must be to use it."""
 
     footprint: Box

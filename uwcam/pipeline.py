@@ -3,7 +3,7 @@
 Acquisition runs in the camera's own supervisor thread; processing runs here, in one thread
 that always takes the newest frame (older queued frames are skipped and counted, never the
 newest), tracks the attenuation difference live from a calibration patch in view
-(DESIGN.md §6) and publishes immutable results. Readers (the API) never block the loop:
+(docs/physics.md §6) and publishes immutable results. Readers (the API) never block the loop:
 they read the latest published result or are called back with it.
 """
 
@@ -49,7 +49,7 @@ class Published:
 
 @dataclass
 class PatchTracker:
-    """Re-estimates c_k − c_ref every frame from a patch of known path length (DESIGN.md §6):
+    """Re-estimates c_k − c_ref every frame from a patch of known path length (docs/physics.md §6):
     ln(E_k/E_ref) = b_k − V_k·d_T^p, so V_k = (b_k − ln(E_k/E_ref)) / d_T^p; smoothed by an EMA,
     with frames rejected when the patch is saturated, too dark or the estimate jumps."""
 
@@ -143,7 +143,7 @@ class PatchTracker:
 
 @dataclass
 class ReflectanceCorrector:
-    """Surface log constants b_k from rangefinder readings at the beam's footprint (DESIGN.md §8).
+    """Surface log constants b_k from rangefinder readings at the beam's footprint (docs/physics.md §8).
 
     A reading is used only if it is fresh relative to the frame's capture time and the
     rangefinder is healthy; otherwise the correction pauses (the last estimate stays in use)
