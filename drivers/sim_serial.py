@@ -125,7 +125,10 @@ class PtyDevice:
             with self._lock:
                 master = self._master
             fds = [self._stop_r, self._wake_r] + ([master] if master is not None else [])
-            ready, _, _ = select.select(fds, [], [], self.tick_s())
+            try:
+                ready, _, _ = select.select(fds, [], [], self.tick_s())
+            except OSError:  # disconnect() closed the pty while we waited on it: look again
+                continue
             if self._stop_r in ready:
                 return
             if self._wake_r in ready:
