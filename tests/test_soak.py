@@ -171,7 +171,8 @@ def test_daemon_survives_random_faults_and_bad_input():
                     device.received = lambda data: None
                     try:
                         if hold > 2.0:
-                            assert wait_for(lambda: status()["lamp"]["health"]["state"] != "ok", 15.0), "silent lamp looks fine"
+                            assert wait_for(lambda: status()["lamp"]["health"]["state"] != "ok", 15.0), \
+                                f"silent lamp looks fine: {status()['lamp']}, cycle {d.pipeline._cycle}, {d.rig.lamp_on}"
                             n = d.pipeline.processed
                             assert wait_for(lambda: d.pipeline.processed >= n + 3, 15.0), "silent lamp stopped ranging"
                         else:

@@ -58,7 +58,6 @@ def check_devices(config: DaemonConfig) -> dict[str, dict]:
     (one line: which driver, which key, what is wrong) otherwise."""
     import dataclasses
 
-    from uwcam.drivers.base import ConfigurationError
     from uwcam.simulation.water import WATER_PRESETS
 
     validated = {}

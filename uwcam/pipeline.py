@@ -216,6 +216,7 @@ class FramePipeline:
         self._lit_since_dark = 0
         self._lamp_off_since_ns = 0
         self._cycle = "lit"
+        self._lit_while_dark = 0
         self._ticket = 0
         self._lamp_commander = LampCommander(lamp) if lamp is not None else None
         self._lock = threading.Lock()  # guards configuration swaps and the published result
@@ -339,10 +340,17 @@ class FramePipeline:
                 self._lamp_off_since_ns = commander.acknowledged_ns
             elif frame.lamp_on is not False:
                 return False  # still lit: range it
-            self._cycle = "dark"
+            self._cycle, self._lit_while_dark = "dark", 0
         if self._cycle == "dark":
             dark = frame.lamp_on is False if frame.lamp_on is not None else frame.host_monotonic_ns > self._lamp_off_since_ns
             if not dark:
+                self._lit_while_dark += 1
+                if self._lit_while_dark > max(interval, 5):
+                    # Acknowledged, yet still lit: the command was lost or the reply was another's
+                    # (a lamp reconnected mid-command). Ask again rather than wait for ever.
+                    log.warning("lamp acknowledged 'off' but frames are still lit; switching it off again")
+                    self._ticket = commander.request(False)
+                    self._cycle = "switching off"
                 return False  # captured before the lamp went off: an ordinary frame
             # Daylight varies smoothly across the image and slowly in time: a 5×5 box and an
             # average over dark frames keep the subtraction from adding a frame's worth of noise.
