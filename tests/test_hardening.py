@@ -9,6 +9,7 @@ import threading
 import time
 
 import httpx
+import numpy as np
 import pytest
 import websockets
 import yaml
@@ -601,3 +602,37 @@ def test_snapshot_benchmark_runs():
     out = subprocess.run([sys.executable, str(script), "--seconds", "3", "--clients", "2", "--size", "160x120"],
                          check=True, capture_output=True, text=True, timeout=600).stdout
     assert "RSS MB: baseline" in out and "after the load" in out
+
+
+def test_an_off_acknowledged_while_frames_stay_lit_is_asked_again():
+    """A lamp that says OK but stays lit (a lost command) does not stall the lamp-off cycle."""
+    from types import SimpleNamespace
+
+    from tests.synthetic import make_profile
+    from uwcam.config import ProcessingConfig
+    from uwcam.drivers.base import Frame
+    from uwcam.pipeline import FramePipeline
+
+    calls = []
+
+    class StuckLamp:  # acknowledges everything, changes nothing
+        last_status = None
+
+        def on(self):
+            calls.append("on")
+
+        def off(self):
+            calls.append("off")
+
+    pipeline = FramePipeline(SimpleNamespace(), make_profile([0.46, 0.11, 0.06], [0, 0, 0]),
+                             ProcessingConfig(lamp_off_interval=2), lamp=StuckLamp())
+    commander = pipeline._lamp_commander
+    commander.start()
+    try:
+        data = np.full((4, 4, 3), 1000, np.uint16)
+        for k in range(20):
+            pipeline._process(Frame(data=data, sequence=k, host_monotonic_ns=k, wall_time=0.0, lamp_on=True))
+            assert wait_for(lambda: commander.status()["pending"] is None, 5.0)
+    finally:
+        commander.stop()
+    assert calls.count("off") >= 2 and pipeline.processed == 20  # asked again; every frame ranged
