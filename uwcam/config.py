@@ -9,7 +9,8 @@ from __future__ import annotations
 import os
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Strict as NoCoercion
 
 from uwcam.fileio import UserInputError, explain_validation_error, load_yaml_mapping
 
@@ -18,11 +19,11 @@ CONFIG_VERSION = 1
 
 # Numbers from people and files: finite, never a bool in disguise (``{"intensity": false}``), never
 # a string that happens to parse. Every field of every model below uses these.
-Real = Annotated[float, Strict(), Field(allow_inf_nan=False)]
+Real = Annotated[float, NoCoercion(), Field(allow_inf_nan=False)]
 """A finite number (an integer is accepted); NaN, ±Infinity, booleans and strings are refused."""
-Whole = Annotated[int, Strict()]
+Whole = Annotated[int, NoCoercion()]
 """An integer; booleans, floats and strings are refused."""
-Flag = Annotated[bool, Strict()]
+Flag = Annotated[bool, NoCoercion()]
 """true or false only; 0/1 and strings are refused."""
 Pixel = Annotated[Whole, Field(ge=0, le=1 << 16)]
 """A pixel coordinate."""
@@ -32,13 +33,11 @@ Box = tuple[Pixel, Pixel, Extent, Extent]
 """x, y, width, height in pixels."""
 
 
-class StrictModel(BaseModel):
+class Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
-
-
-class CameraSettingsConfig(StrictModel):
+class CameraSettingsConfig(Strict):
     exposure_us: Annotated[Real, Field(gt=0, le=1e8)] | None = None
     """Microseconds."""
     gain_db: Annotated[Real, Field(ge=-100, le=100)] | None = None
@@ -48,7 +47,7 @@ class CameraSettingsConfig(StrictModel):
     frame_rate: Annotated[Real, Field(gt=0, le=10000)] | None = None
 
 
-class CameraConfig(StrictModel):
+class CameraConfig(Strict):
     driver: str = "sim"
     """Registry name: sim, replay, genicam, aravis, v4l2, multi, or a plug-in's."""
     options: dict[str, Any] = {}
@@ -58,12 +57,12 @@ class CameraConfig(StrictModel):
     watchdog_s: Annotated[Real, Field(gt=0, le=3600)] = 2.0
 
 
-class DeviceConfig(StrictModel):
+class DeviceConfig(Strict):
     driver: str
     options: dict[str, Any] = {}
 
 
-class MarkerConfig(StrictModel):
+class MarkerConfig(Strict):
     """An OpenCV ArUco marker beside the patch, found every frame, that places the patch region."""
 
     dictionary: str = "DICT_4X4_50"
@@ -83,7 +82,7 @@ class MarkerConfig(StrictModel):
         return self
 
 
-class PatchConfig(StrictModel):
+class PatchConfig(Strict):
     """A calibration patch fixed in view for live tracking of attenuation differences (docs/physics.md §6)."""
 
     region: Box | None = None
@@ -104,7 +103,7 @@ class PatchConfig(StrictModel):
         return self
 
 
-class ReflectanceConfig(StrictModel):
+class ReflectanceConfig(Strict):
     """Surface reflectance from the rangefinder (docs/physics.md §8): where its beam meets the scene in
     the image, and how fresh a reading must be to use it."""
 
@@ -118,7 +117,7 @@ class ReflectanceConfig(StrictModel):
     """Change in log constants (natural-log units) below which the estimator is not rebuilt."""
 
 
-class ProcessingConfig(StrictModel):
+class ProcessingConfig(Strict):
     pair: tuple[str, str] | None = None
     """Two channel names for single-pair ranging; None fuses all channels."""
     smoothing: Literal["none", "mean", "median"] = "none"
@@ -141,7 +140,7 @@ class ProcessingConfig(StrictModel):
         return self
 
 
-class ApiConfig(StrictModel):
+class ApiConfig(Strict):
     host: Annotated[str, Field(min_length=1)] = "127.0.0.1"
     """Address to listen on; only explicit loopback addresses (127.0.0.1, ::1, localhost) count as
     loopback, and any other needs a token."""
@@ -156,7 +155,7 @@ class ApiConfig(StrictModel):
     IP addresses, localhost and ``*.local``; others are refused to defeat DNS rebinding."""
 
 
-class DaemonConfig(StrictModel):
+class DaemonConfig(Strict):
     version: Literal[1] = CONFIG_VERSION
     camera: CameraConfig = CameraConfig()
     lamp: DeviceConfig | None = None
