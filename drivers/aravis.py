@@ -12,6 +12,11 @@ import time
 
 import numpy as np
 
+from typing import Annotated
+
+from pydantic import Field
+
+from uwcam.drivers.options import ChannelNames, DriverOptions, Flag, Whole
 from uwcam.drivers.base import (
     CameraDriver,
     CameraSettings,
@@ -44,6 +49,16 @@ def _aravis():
 
 
 class AravisCamera(CameraDriver):
+    class Options(DriverOptions):
+        device_id: str | None = None
+        """Aravis device id (e.g. "Fake-1" or a GigE camera's id); None: the first found."""
+        serial_number: str | None = None
+        """Open the camera with this serial number (and find it again after a reconnection)."""
+        fake: Flag = False
+        """Enable Aravis's Fake interface (testing without a camera)."""
+        buffers: Annotated[Whole, Field(ge=1, le=64)] = 4
+        channel_names: ChannelNames = ["R", "G", "B"]
+
     name = "aravis"
 
     def __init__(self, device_id: str | None = None, serial_number: str | None = None, fake: bool = False,

@@ -16,6 +16,11 @@ import time
 
 import numpy as np
 
+from typing import Annotated
+
+from pydantic import Field
+
+from uwcam.drivers.options import ChannelNames, DriverOptions, Whole
 from uwcam.drivers.base import (
     CameraDriver,
     CameraSettings,
@@ -101,6 +106,13 @@ def component_array(component) -> np.ndarray:
 
 
 class GenTLCamera(CameraDriver):
+    class Options(DriverOptions):
+        cti: str | None = None
+        """Path of the vendor's GenTL producer (.cti); None: those on GENICAM_GENTL64_PATH."""
+        serial_number: str | None = None
+        channel_names: ChannelNames = ["R", "G", "B"]
+        buffers: Annotated[Whole, Field(ge=1, le=64)] = 4
+
     """A GenICam camera (GigE Vision, USB3 Vision, CoaXPress…) via its vendor's GenTL producer."""
 
     name = "genicam"

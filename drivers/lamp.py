@@ -15,6 +15,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from uwcam.drivers.options import DriverOptions, Whole
 from uwcam.drivers.base import ConfigurationError, DeviceLost, DriverError, Health, HealthState
 from uwcam.drivers.serial_link import SerialLink
 from uwcam.fileio import UserInputError, explain_validation_error, load_yaml_mapping
@@ -85,6 +86,14 @@ class LampStatus:
 
 
 class SerialLamp:
+    class Options(DriverOptions):
+        port: str
+        """Serial port, preferably a stable udev name (see deploy/99-uwcam.rules)."""
+        protocol: str = "generic-dimmable-led"
+        """Built-in protocol name (drivers/lamp_protocols/) or path of a protocol YAML file."""
+        baud: Annotated[Whole, Field(gt=0, le=10_000_000)] | None = None
+        """Overrides the protocol's baud rate."""
+
     """A lamp speaking a line protocol on a serial port."""
 
     kind = "serial"

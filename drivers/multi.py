@@ -12,10 +12,36 @@ import time
 
 import numpy as np
 
+from typing import Annotated
+
+from pydantic import ConfigDict, Field, model_validator
+
+from uwcam.drivers.options import ChannelNames, DriverOptions, Real, Whole
 from uwcam.drivers.base import CameraDriver, CameraSettings, ConfigurationError, ConfigureReport, CorruptFrame, DeviceInfo, Frame
 
 
 class MultiSensorCamera(CameraDriver):
+    class Sensor(DriverOptions):
+        """One sensor: a camera driver by name, the channel it gives, and that driver's options."""
+
+        model_config = ConfigDict(extra="allow", allow_inf_nan=False)
+        driver: str
+        channel: Annotated[Whole, Field(ge=0, le=15)] = 0
+
+        @model_validator(mode="after")
+        def _driver_options(self) -> "MultiSensorCamera.Sensor":
+            from uwcam.drivers import registry
+
+            registry.validate_options("camera", self.driver, dict(self.model_extra or {}))
+            return self
+
+    class Options(DriverOptions):
+        sensors: Annotated[list["MultiSensorCamera.Sensor"], Field(min_length=2, max_length=16)]
+        """One entry per channel."""
+        channel_names: ChannelNames | None = None
+        max_skew_ms: Annotated[Real, Field(gt=0, le=10000)] = 20.0
+        """Frames further apart in time than this are not combined."""
+
     name = "multi"
 
     def __init__(self, sensors: list[dict], channel_names: tuple[str, ...] | None = None, max_skew_ms: float = 20.0) -> None:

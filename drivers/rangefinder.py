@@ -18,7 +18,11 @@ from __future__ import annotations
 import threading
 import time
 from dataclasses import dataclass
+from typing import Annotated
 
+from pydantic import Field
+
+from uwcam.drivers.options import DriverOptions, Real, Whole
 from uwcam.drivers.base import ConfigurationError, DeviceLost, Health, HealthState
 from uwcam.drivers.serial_link import SerialLink
 
@@ -183,10 +187,27 @@ def parse_ascii_range(line: str) -> float | None:
     return None
 
 
+class RangefinderOptions(DriverOptions):
+    """What every serial rangefinder takes (:class:`RangefinderConfig`)."""
+
+    speed_of_sound: Annotated[Real, Field(ge=1300, le=1700)] = SALT_WATER
+    """Metres per second in the water dived in (fresh ~1435, salt ~1500)."""
+    min_range_m: Annotated[Real, Field(ge=0, le=10000)] = 0.1
+    max_range_m: Annotated[Real, Field(gt=0, le=10000)] = 100.0
+    min_confidence: Annotated[Real, Field(ge=0, le=1)] = 0.0
+    stale_after_s: Annotated[Real, Field(gt=0, le=3600)] = 2.0
+
+
 class AsciiRangefinder(SerialRangefinder):
     """NMEA DPT/DBT or R#### (mm) lines."""
 
     kind = "ascii"
+
+    class Options(RangefinderOptions):
+        port: str
+        baud: Annotated[Whole, Field(gt=0, le=10_000_000)] = 9600
+        device_speed_of_sound: Annotated[Real, Field(ge=1300, le=1700)] = SALT_WATER
+        """The speed of sound the device itself assumes; its ranges are rescaled to the water's."""
 
     def __init__(self, port: str, baud: int = 9600, device_speed_of_sound: float = SALT_WATER, **config) -> None:
         super().__init__(port, baud, RangefinderConfig(**config))
@@ -209,6 +230,12 @@ class Ping1DRangefinder(SerialRangefinder):
     """Blue Robotics Ping1D: requests a distance message per poll."""
 
     kind = "ping1d"
+
+    class Options(RangefinderOptions):
+        port: str
+        baud: Annotated[Whole, Field(gt=0, le=10_000_000)] = 115200
+        rate_hz: Annotated[Real, Field(gt=0, le=50)] = 10.0
+        """Distance requests per second."""
 
     def __init__(self, port: str, baud: int = 115200, rate_hz: float = 10.0, **config) -> None:
         super().__init__(port, baud, RangefinderConfig(**config))

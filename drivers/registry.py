@@ -33,6 +33,14 @@ def driver_class(kind: str, name: str) -> type:
         raise ConfigurationError(f"{kind} driver '{name}' cannot load: {exc}; install what it needs") from None
 
 
+def validate_options(kind: str, name: str, options: dict) -> dict:
+    """The options validated against the driver's ``Options`` (see :mod:`uwcam.drivers.options`);
+    ConfigurationError naming the driver, the key and what is wrong."""
+    from uwcam.drivers.options import check_options
+
+    return check_options(kind, name, driver_class(kind, name), options)
+
+
 def create(kind: str, name: str, **options) -> object:
     """An instance of the named driver, constructed with ``options`` from the configuration."""
     cls = driver_class(kind, name)

@@ -10,6 +10,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from typing import Annotated
+
+from pydantic import Field
+
+from uwcam.drivers.options import ChannelNames, DriverOptions, Flag, Real
 from uwcam.drivers.base import (
     CameraDriver,
     CameraSettings,
@@ -29,6 +34,14 @@ VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov")
 
 
 class ReplayCamera(CameraDriver):
+    class Options(DriverOptions):
+        source: str
+        """A recording: a folder of frames or a file of them."""
+        fps: Annotated[Real, Field(gt=0, le=10000)] | None = None
+        """Pace of the replay; None: as fast as it is read."""
+        loop: Flag = True
+        channel_names: ChannelNames = ["R", "G", "B"]
+
     name = "replay"
 
     def __init__(self, source: str, fps: float | None = None, loop: bool = True,

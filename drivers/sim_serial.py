@@ -17,6 +17,9 @@ import threading
 import time
 import tty
 from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import Field
 
 from uwcam.drivers.sim import SimulatedRig
 
@@ -28,6 +31,7 @@ class PtyDevice:
 
     def __init__(self, rig: SimulatedRig | None = None, folder: str | None = None) -> None:
         self.rig = rig or SimulatedRig()
+        self._own_folder = folder is None  # made here, so removed here when the device stops
         self._folder = Path(folder or tempfile.mkdtemp(prefix="uwcam-pty-"))
         self.path = str(self._folder / self.name)
         self._lock = threading.Lock()
@@ -56,6 +60,11 @@ class PtyDevice:
             os.unlink(self.path)
         except FileNotFoundError:
             pass
+        if self._own_folder:
+            try:
+                self._folder.rmdir()
+            except OSError:  # something else was put there: leave it
+                pass
 
     def __enter__(self) -> "PtyDevice":
         return self.start()
@@ -116,7 +125,10 @@ class PtyDevice:
             with self._lock:
                 master = self._master
             fds = [self._stop_r, self._wake_r] + ([master] if master is not None else [])
-            ready, _, _ = select.select(fds, [], [], self.tick_s())
+            try:
+                ready, _, _ = select.select(fds, [], [], self.tick_s())
+            except OSError:  # disconnect() closed the pty while we waited on it: look again
+                continue
             if self._stop_r in ready:
                 return
             if self._wake_r in ready:
@@ -261,6 +273,12 @@ class SimulatedPing1D(PtyDevice):
 
 
 # Registry entries: the real serial drivers, each talking to its own simulated device.
+def _options():
+    from uwcam.drivers import options
+
+    return options
+
+
 def _serial_classes():
     from uwcam.drivers.lamp import SerialLamp
     from uwcam.drivers.rangefinder import AsciiRangefinder, Ping1DRangefinder
@@ -272,6 +290,9 @@ class SimulatedSerialLamp(_serial_classes()[0]):
     """Registry name ``sim``: the serial lamp driver talking to a simulated lamp on a pty."""
 
     kind = "sim"
+
+    class Options(_options().DriverOptions):
+        protocol: str = "generic-dimmable-led"
 
     def __init__(self, rig: SimulatedRig | None = None, protocol: str = "generic-dimmable-led") -> None:
         self.device = SimulatedLampDevice(rig).start()
@@ -301,6 +322,11 @@ class SimulatedAsciiRangefinder(_OwnsDevice, _serial_classes()[1]):
 
     kind = "sim-ascii"
 
+    class Options(_serial_classes()[1].Options):
+        port: None = None  # the simulated ranger's own pty
+        style: Literal["nmea", "mm"] = "nmea"
+        rate_hz: Annotated[float, Field(gt=0, le=1000, allow_inf_nan=False)] = 10.0
+
     def __init__(self, rig: SimulatedRig | None = None, style: str = "nmea", rate_hz: float = 10.0, **config) -> None:
         self.device = SimulatedAsciiRanger(rig, style=style, rate_hz=rate_hz)
         super().__init__(self.device.path, **config)
@@ -310,6 +336,11 @@ class SimulatedPing1DRangefinder(_OwnsDevice, _serial_classes()[2]):
     """Registry name ``sim-ping1d``: the Ping1D driver talking to a simulated Ping1D."""
 
     kind = "sim-ping1d"
+
+    class Options(_serial_classes()[2].Options):
+        port: None = None  # the simulated sonar's own pty
+        confidence: Annotated[int, Field(ge=0, le=100)] = 97
+        """Confidence (percent) the simulated sonar reports."""
 
     def __init__(self, rig: SimulatedRig | None = None, confidence: int = 97, **config) -> None:
         self.device = SimulatedPing1D(rig, confidence=confidence)

@@ -17,6 +17,11 @@ from pathlib import Path
 
 import cv2
 
+from typing import Annotated
+
+from pydantic import Field
+
+from uwcam.drivers.options import ChannelNames, DriverOptions
 from uwcam.drivers.base import (
     CameraDriver,
     CameraSettings,
@@ -43,6 +48,15 @@ def usb_serial(device: str) -> str:
 
 
 class V4L2Camera(CameraDriver):
+    class Options(DriverOptions):
+        device: str = "/dev/video0"
+        serial_number: str | None = None
+        api: str = "v4l2"
+        """OpenCV capture back-end."""
+        fourcc: Annotated[str, Field(min_length=4, max_length=4)] | None = None
+        """Pixel format to ask for, e.g. YUYV."""
+        channel_names: ChannelNames = ["R", "G", "B"]
+
     name = "v4l2"
 
     def __init__(self, device: str = "/dev/video0", serial_number: str | None = None, api: str = "v4l2",

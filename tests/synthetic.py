@@ -1,4 +1,4 @@
-"""Noise-free forward model E_k = K_k ρ_k g exp(−c_k d_T) (DESIGN.md §2) for tests.
+"""Noise-free forward model E_k = K_k ρ_k g exp(−c_k d_T) (docs/physics.md §2) for tests.
 
 Deliberately independent of uwcam's own code apart from the pinhole ray helper,
 so that inverting these frames checks uwcam against the physics, not itself.

@@ -1,4 +1,4 @@
-"""Calibration recovers the simulated water and camera (DESIGN.md §4)."""
+"""Calibration recovers the simulated water and camera (docs/physics.md §4)."""
 
 import numpy as np
 import pytest

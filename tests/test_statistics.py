@@ -1,5 +1,5 @@
 """Monte-Carlo: the fused estimator is unbiased, its predicted variance is right, and it
-is never worse than the best single pair (DESIGN.md §5)."""
+is never worse than the best single pair (docs/physics.md §5)."""
 
 import itertools
 

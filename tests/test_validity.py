@@ -1,4 +1,4 @@
-"""Every pixel carries the reason it has, or has no, range (DESIGN.md §7)."""
+"""Every pixel carries the reason it has, or has no, range (docs/physics.md §7)."""
 
 import numpy as np
 

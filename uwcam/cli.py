@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from uwcam import __version__
+from uwcam.drivers.base import ConfigurationError
 from uwcam.fileio import UserInputError
 from uwcam.optics.geometry import Intrinsics
 
@@ -330,37 +331,62 @@ def cmd_run(args: argparse.Namespace) -> int:
     # Worker threads of numba's OpenMP layer sleep when idle instead of spinning: the camera,
     # the frame loop and the server share few cores. Must be set before numba starts OpenMP.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    from uwcam.malloc import return_large_blocks_to_the_system
+
+    return_large_blocks_to_the_system()  # before any thread allocates: see uwcam/malloc.py
+
+    import socket
 
     import uvicorn
+    from pydantic import ValidationError
 
     from uwcam.api import create_app
-    from uwcam.config import default_config, load_config
+    from uwcam.config import DaemonConfig, default_config, load_config
+    from uwcam.daemon import Daemon, check_devices
+    from uwcam.fileio import explain_validation_error
 
     config = load_config(args.config) if args.config else default_config()
-    if args.host:
-        config.api.host = args.host
-    if args.port is not None:
-        config.api.port = args.port
+    overrides = {k: v for k, v in (("host", args.host), ("port", args.port)) if v is not None}
+    if overrides:
+        try:  # validated like the file: --port 80808 is a one-line error
+            config = DaemonConfig.model_validate({**config.model_dump(), "api": {**config.api.model_dump(), **overrides}})
+        except ValidationError as exc:
+            raise UserInputError(explain_validation_error(exc, "command line").replace("key 'api.", "option '--")) from None
+    check_devices(config)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    app = create_app(config)
-    where = "embedded default (simulated rig)" if not args.config else args.config
-    host = f"[{config.api.host}]" if ":" in config.api.host else config.api.host  # IPv6 literal
-    root = f"http://{host}:{config.api.port}"
-    print(f"uwcam {__version__}: {where}; operator page {root}/, API {root}/docs", flush=True)
-    # uvicorn handles SIGINT/SIGTERM: the lifespan then stops the loop, switches the lamp off
-    # and releases the devices.
-    # No per-message deflate: zlib on every multi-megabyte range map cost a third of the CPU
-    # (measured with py-spy) and float maps barely compress.
-    uvicorn.run(app, host=config.api.host, port=config.api.port, log_level="warning", ws_per_message_deflate=False)
+    host, port = config.api.host, config.api.port
+    try:  # bound before anything starts, so a port in use is one line, not a startup traceback
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        sock = socket.create_server((host, port), family=family, reuse_port=False)
+    except OSError as exc:
+        raise UserInputError(f"cannot listen on {host}:{port}: {exc.strerror or exc}; choose another --port or --host") from None
+    daemon = Daemon(config)
+    try:
+        app = create_app(config, daemon)
+        daemon.start()  # devices and calibration: a configuration that cannot work fails here, in one line
+        where = "embedded default (simulated rig)" if not args.config else args.config
+        shown = f"[{host}]" if ":" in host else host  # IPv6 literal
+        root = f"http://{shown}:{sock.getsockname()[1]}"
+        print(f"uwcam {__version__}: {where}; operator page {root}/, API {root}/docs", flush=True)
+        # uvicorn handles SIGINT/SIGTERM: the lifespan then stops the loop, switches the lamp off
+        # and releases the devices.
+        # No per-message deflate: zlib on every multi-megabyte range map cost a third of the CPU
+        # (measured with py-spy) and float maps barely compress.
+        server = uvicorn.Server(uvicorn.Config(app, log_level="warning", ws_per_message_deflate=False))
+        server.run(sockets=[sock])
+    finally:
+        daemon.stop()
+        sock.close()
     return 0
 
 
 def cmd_config_check(args: argparse.Namespace) -> int:
+    from uwcam.api import required_token
     from uwcam.config import load_config
+    from uwcam.daemon import check_devices
 
     config = load_config(args.file)
-    from uwcam.api import required_token
-
+    check_devices(config)
     required_token(config)
     print(f"{args.file}: valid (camera {config.camera.driver}, API {config.api.host}:{config.api.port})")
     return 0
@@ -456,7 +482,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.func(args))
-    except UserInputError as exc:
+    except (UserInputError, ConfigurationError) as exc:
         print(f"uwcam {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

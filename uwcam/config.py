@@ -10,23 +10,41 @@ import os
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import Strict as NoCoercion
 
 from uwcam.fileio import UserInputError, explain_validation_error, load_yaml_mapping
 
 CONFIG_VERSION = 1
 
 
+# Numbers from people and files: finite, never a bool in disguise (``{"intensity": false}``), never
+# a string that happens to parse. Every field of every model below uses these.
+Real = Annotated[float, NoCoercion(), Field(allow_inf_nan=False)]
+"""A finite number (an integer is accepted); NaN, ±Infinity, booleans and strings are refused."""
+Whole = Annotated[int, NoCoercion()]
+"""An integer; booleans, floats and strings are refused."""
+Flag = Annotated[bool, NoCoercion()]
+"""true or false only; 0/1 and strings are refused."""
+Pixel = Annotated[Whole, Field(ge=0, le=1 << 16)]
+"""A pixel coordinate."""
+Extent = Annotated[Whole, Field(gt=0, le=1 << 16)]
+"""A width or height in pixels."""
+Box = tuple[Pixel, Pixel, Extent, Extent]
+"""x, y, width, height in pixels."""
+
+
 class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 class CameraSettingsConfig(Strict):
-    exposure_us: Annotated[float, Field(gt=0)] | None = None
-    gain_db: float | None = None
+    exposure_us: Annotated[Real, Field(gt=0, le=1e8)] | None = None
+    """Microseconds."""
+    gain_db: Annotated[Real, Field(ge=-100, le=100)] | None = None
     pixel_format: str | None = None
-    region: tuple[int, int, int, int] | None = None
-    black_level: float | None = None
-    frame_rate: Annotated[float, Field(gt=0)] | None = None
+    region: Box | None = None
+    black_level: Annotated[Real, Field(ge=0, le=1e6)] | None = None
+    frame_rate: Annotated[Real, Field(gt=0, le=10000)] | None = None
 
 
 class CameraConfig(Strict):
@@ -35,8 +53,8 @@ class CameraConfig(Strict):
     options: dict[str, Any] = {}
     """Passed to the driver (e.g. cti, serial_number, device)."""
     settings: CameraSettingsConfig = CameraSettingsConfig()
-    queue_size: Annotated[int, Field(ge=1, le=64)] = 4
-    watchdog_s: Annotated[float, Field(gt=0)] = 2.0
+    queue_size: Annotated[Whole, Field(ge=1, le=64)] = 4
+    watchdog_s: Annotated[Real, Field(gt=0, le=3600)] = 2.0
 
 
 class DeviceConfig(Strict):
@@ -49,10 +67,10 @@ class MarkerConfig(Strict):
 
     dictionary: str = "DICT_4X4_50"
     """OpenCV predefined dictionary name."""
-    id: Annotated[int, Field(ge=0)]
-    offset: tuple[float, float]
+    id: Annotated[Whole, Field(ge=0, le=100000)]
+    offset: tuple[Annotated[Real, Field(ge=-1000, le=1000)], Annotated[Real, Field(ge=-1000, le=1000)]]
     """From the marker's top-left corner to the patch region's, in marker side lengths (x, y)."""
-    size: tuple[Annotated[float, Field(gt=0)], Annotated[float, Field(gt=0)]]
+    size: tuple[Annotated[Real, Field(gt=0, le=1000)], Annotated[Real, Field(gt=0, le=1000)]]
     """Patch region width and height in marker side lengths."""
 
     @model_validator(mode="after")
@@ -65,17 +83,17 @@ class MarkerConfig(Strict):
 
 
 class PatchConfig(Strict):
-    """A calibration patch fixed in view for live tracking of attenuation differences (DESIGN.md §6)."""
+    """A calibration patch fixed in view for live tracking of attenuation differences (docs/physics.md §6)."""
 
-    region: tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0)], Annotated[int, Field(gt=0)], Annotated[int, Field(gt=0)]] | None = None
+    region: Box | None = None
     """x, y, width, height in pixels, for a patch fixed in the image."""
     marker: MarkerConfig | None = None
     """Or: find the patch every frame next to a fiducial marker (the vehicle flexes, the bracket moves)."""
-    path_length_m: Annotated[float, Field(gt=0)]
+    path_length_m: Annotated[Real, Field(gt=0, le=1000)]
     """Lamp → patch → camera path length d_T^p, metres."""
-    smoothing: Annotated[float, Field(gt=0, le=1)] = 0.1
+    smoothing: Annotated[Real, Field(gt=0, le=1)] = 0.1
     """EMA weight of each new estimate."""
-    max_step: Annotated[float, Field(gt=0)] = 0.05
+    max_step: Annotated[Real, Field(gt=0, le=100)] = 0.05
     """Estimates further than this (1/m) from the tracked value are rejected as outliers."""
 
     @model_validator(mode="after")
@@ -86,16 +104,16 @@ class PatchConfig(Strict):
 
 
 class ReflectanceConfig(Strict):
-    """Surface reflectance from the rangefinder (DESIGN.md §8): where its beam meets the scene in
+    """Surface reflectance from the rangefinder (docs/physics.md §8): where its beam meets the scene in
     the image, and how fresh a reading must be to use it."""
 
-    footprint: tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0)], Annotated[int, Field(gt=0)], Annotated[int, Field(gt=0)]]
+    footprint: Box
     """x, y, width, height in pixels of the rangefinder's footprint."""
-    max_age_s: Annotated[float, Field(gt=0)] = 0.5
+    max_age_s: Annotated[Real, Field(gt=0, le=3600)] = 0.5
     """Readings further than this from the frame's capture time are not used."""
-    smoothing: Annotated[float, Field(gt=0, le=1)] = 0.2
+    smoothing: Annotated[Real, Field(gt=0, le=1)] = 0.2
     """EMA weight of each new estimate of the surface's log constants."""
-    tolerance: Annotated[float, Field(gt=0)] = 0.002
+    tolerance: Annotated[Real, Field(gt=0, le=10)] = 0.002
     """Change in log constants (natural-log units) below which the estimator is not rebuilt."""
 
 
@@ -106,9 +124,10 @@ class ProcessingConfig(Strict):
     """3×3 smoothing."""
     smoothing_stage: Literal["after", "before"] = "after"
     """Smooth the range map (after; keeps edges of invalid areas) or the image (before the transform)."""
-    path_length_bounds: tuple[Annotated[float, Field(ge=0)], Annotated[float, Field(gt=0)]] = (0.0, 100.0)
+    path_length_bounds: tuple[Annotated[Real, Field(ge=0, le=10000)], Annotated[Real, Field(gt=0, le=10000)]] = (0.0, 100.0)
+    """Accepted lamp → surface → camera path lengths [min, max], metres."""
     patch: PatchConfig | None = None
-    lamp_off_interval: Annotated[int, Field(ge=0)] = 0
+    lamp_off_interval: Annotated[Whole, Field(ge=0, le=100000)] = 0
     """Every this many frames, take one with the lamp off and subtract it (daylight, dark level)
     from the lamp-lit frames that follow; 0: never."""
     reflectance: ReflectanceConfig | None = None
@@ -125,11 +144,11 @@ class ApiConfig(Strict):
     host: Annotated[str, Field(min_length=1)] = "127.0.0.1"
     """Address to listen on; only explicit loopback addresses (127.0.0.1, ::1, localhost) count as
     loopback, and any other needs a token."""
-    port: Annotated[int, Field(ge=0, le=65535)] = 8080
+    port: Annotated[Whole, Field(ge=0, le=65535)] = 8080
     token: str | None = None
     """Bearer token for endpoints that change state; required when listening beyond loopback.
     Also read from the UWCAM_TOKEN environment variable."""
-    stream_rate_hz: Annotated[float, Field(gt=0, le=120)] = 30.0
+    stream_rate_hz: Annotated[Real, Field(gt=0, le=120)] = 30.0
     """Most frames per second sent to one WebSocket client."""
     allowed_hosts: list[Annotated[str, Field(min_length=1)]] = []
     """Host names (``*.example.org`` patterns allowed) by which the daemon may be reached besides
@@ -149,6 +168,9 @@ class DaemonConfig(Strict):
     """Path of the calibration profile; None only with the simulated camera (calibrated at start)."""
     profiles_dir: str | None = None
     """Folder of calibration profiles (*.yaml): loaded at start, and where uploads are saved."""
+    state_dir: str | None = None
+    """Folder for state that survives a restart (live processing settings, active profile, lamp
+    intensity); default: the profiles folder. With neither, nothing is kept across restarts."""
     simulation: dict[str, Any] = {}
     """Options of the shared simulated rig (scene, distance, size, water, lamp_offset, speed,
     altitude...) when devices are simulated; see uwcam.simulation.options."""
@@ -166,6 +188,10 @@ class DaemonConfig(Strict):
     def _calibration_needed(self) -> "DaemonConfig":
         if self.calibration is None and self.camera.driver != "sim":
             raise ValueError("calibration: give the path of a calibration profile (uwcam calibrate makes one)")
+        if self.processing.lamp_off_interval and self.lamp is None:
+            raise ValueError("processing.lamp_off_interval needs a lamp: configure one or set it to 0")
+        if self.processing.reflectance is not None and self.rangefinder is None:
+            raise ValueError("processing.reflectance needs a rangefinder: configure one or remove it")
         return self
 
 

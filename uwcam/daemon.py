@@ -10,14 +10,15 @@ from __future__ import annotations
 import glob
 import logging
 import os
+import threading
 import time
 
 import numpy as np
 
 from uwcam.calibration import project_plate_box
-from uwcam.config import DaemonConfig, PatchConfig, ReflectanceConfig
+from uwcam.config import DaemonConfig, PatchConfig, ProcessingConfig, ReflectanceConfig
 from uwcam.drivers import registry
-from uwcam.drivers.base import CameraSettings
+from uwcam.drivers.base import CameraSettings, ConfigurationError, DriverError
 from uwcam.drivers.sim import SimulatedRig
 from uwcam.drivers.supervisor import SupervisedCamera
 from uwcam.fileio import UserInputError
@@ -27,6 +28,7 @@ from uwcam.simulation import Lamp, water_preset
 from uwcam.simulation.camera import CameraModel
 from uwcam.simulation.tank import calibrate_in_simulation
 from uwcam.simulation.scene import PATCH_CENTRE_M, PATCH_DISTANCE_M, PATCH_SIZE_M
+from uwcam.state import SavedState, load_state, remove_stale_temporaries, save_state
 
 log = logging.getLogger(__name__)
 SIMULATED = {"sim", "sim-ascii", "sim-ping1d"}
@@ -56,7 +58,36 @@ def simulated_patch(rig: SimulatedRig) -> PatchConfig:
     inset = max(1, min(w, h) // 5)  # keep clear of the patch's blurred edges
     centre = np.array([*PATCH_CENTRE_M, PATCH_DISTANCE_M])
     path = float(np.linalg.norm(centre) + np.linalg.norm(centre - np.array(rig.lamp_offset)))
-    return PatchConfig(region=(x + inset, y + inset, w - 2 * inset, h - 2 * inset), path_length_m=path)
+    return PatchConfig(region=(int(x + inset), int(y + inset), int(w - 2 * inset), int(h - 2 * inset)), path_length_m=path)
+
+
+def check_devices(config: DaemonConfig) -> dict[str, dict]:
+    """Validate what a configuration asks of the drivers, touching no device: each driver exists
+    in the registry and its options fit the driver's ``Options``; the simulated rig's options
+    name real settings and a known water. Returns the validated options by kind; UserInputError
+    (one line: which driver, which key, what is wrong) otherwise."""
+    import dataclasses
+
+    from uwcam.simulation.water import WATER_PRESETS
+
+    validated = {}
+    for kind, device in (("camera", config.camera), ("lamp", config.lamp), ("rangefinder", config.rangefinder)):
+        if device is None:
+            continue
+        try:
+            validated[kind] = registry.validate_options(kind, device.driver, device.options)
+        except ConfigurationError as exc:
+            raise UserInputError(str(exc)) from None
+    simulated = [d.driver for d in (config.camera, config.lamp, config.rangefinder) if d is not None and d.driver in SIMULATED]
+    if simulated or config.simulation:
+        known = [f.name for f in dataclasses.fields(SimulatedRig) if not f.name.startswith("_")]
+        for key in config.simulation:
+            if key not in known:
+                raise UserInputError(f"simulation: unknown key '{key}'; known: {', '.join(known)}")
+        water = config.simulation.get("water")
+        if water is not None and water not in WATER_PRESETS:
+            raise UserInputError(f"simulation: unknown water '{water}'; known: {', '.join(WATER_PRESETS)}")
+    return validated
 
 
 class Daemon:
@@ -71,6 +102,13 @@ class Daemon:
         self.profile_name = ""
         self.profiles: dict[str, CalibrationProfile] = {}
         """Calibration profiles known to the daemon by name; the active one is ``profile_name``."""
+        self._profiles_lock = threading.RLock()  # one profile change at a time, validated then applied
+        self._state_lock = threading.Lock()  # one state file write at a time
+
+    @property
+    def state_dir(self) -> str | None:
+        """Where state that survives a restart is kept (None: nowhere)."""
+        return self.config.state_dir or self.config.profiles_dir
 
     def _options(self, name: str, options: dict) -> dict:
         if name in SIMULATED:
@@ -79,20 +117,33 @@ class Daemon:
                 for key in ("size", "lamp_offset", "ambient"):
                     if key in sim:
                         sim[key] = tuple(sim[key])
-                self.rig = SimulatedRig(**sim)
+                try:
+                    self.rig = SimulatedRig(**sim)
+                except (TypeError, ValueError) as exc:
+                    raise UserInputError(f"simulation: {exc}") from None
             return {"rig": self.rig, **options}
         return dict(options)
 
     def start(self) -> None:
         cfg = self.config
+        for folder in {cfg.profiles_dir, self.state_dir} - {None}:
+            if os.path.isdir(folder):
+                remove_stale_temporaries(folder)
+        saved = load_state(self.state_dir) if self.state_dir else None
+        options = check_devices(cfg)
         try:
-            driver = registry.create("camera", cfg.camera.driver, **self._options(cfg.camera.driver, cfg.camera.options))
+            driver = registry.create("camera", cfg.camera.driver, **self._options(cfg.camera.driver, options["camera"]))
             if cfg.lamp is not None:
-                self.lamp = registry.create("lamp", cfg.lamp.driver, **self._options(cfg.lamp.driver, cfg.lamp.options))
-                self.lamp.open()
+                lamp = registry.create("lamp", cfg.lamp.driver, **self._options(cfg.lamp.driver, options["lamp"]))
+                try:
+                    lamp.open()
+                except BaseException:  # never opened: nothing to switch off, only to release
+                    lamp.close()
+                    raise
+                self.lamp = lamp
             if cfg.rangefinder is not None:
                 self.rangefinder = registry.create("rangefinder", cfg.rangefinder.driver,
-                                                   **self._options(cfg.rangefinder.driver, cfg.rangefinder.options))
+                                                   **self._options(cfg.rangefinder.driver, options["rangefinder"]))
             if cfg.calibration is not None:
                 profile = load_profile(cfg.calibration)
             elif self.rig is not None:
@@ -103,6 +154,13 @@ class Daemon:
             self.profile_name = profile.name
             self._load_profiles_dir()
             self.profiles[profile.name] = profile
+            if saved is not None and saved.profile in self.profiles and saved.profile != profile.name:
+                restored = self.profiles[saved.profile]
+                if len(restored.channels) == len(profile.channels):
+                    log.info("restoring the active calibration profile %s", saved.profile)
+                    profile, self.profile_name = restored, saved.profile
+                else:
+                    log.warning("saved active profile %s does not fit this camera; using %s", saved.profile, profile.name)
             processing = cfg.processing
             if processing.patch is None and self.rig is not None and self.rig.scene in PATCH_SCENES:
                 processing = processing.model_copy(update={"patch": simulated_patch(self.rig)})
@@ -115,16 +173,58 @@ class Daemon:
             settings = CameraSettings(**cfg.camera.settings.model_dump())
             self.camera = SupervisedCamera(driver, settings, queue_size=cfg.camera.queue_size, watchdog_s=cfg.camera.watchdog_s)
             if self.lamp is not None:
-                self.lamp.on()
-                self.lamp.status()  # so status shows the lamp's own word from the start
+                self._start_lamp(saved)
             self.camera.start()
             if self.rangefinder is not None:
                 self.rangefinder.start()
-            self.pipeline = FramePipeline(self.camera, profile, processing, self.rangefinder, self.lamp)
+            self.pipeline = self._restored_pipeline(profile, processing, saved)
             self.pipeline.start()
         except BaseException:
             self.stop()
             raise
+
+    def _start_lamp(self, saved: SavedState | None) -> None:
+        """Lamp on at the saved intensity; a lamp that does not answer is reported, not fatal:
+        ranging works from whatever light there is, and the loop retries the lamp."""
+        try:
+            if saved is not None and saved.lamp_percent is not None:
+                self.lamp.set_intensity(saved.lamp_percent)
+            self.lamp.on()
+            self.lamp.status()  # so status shows the lamp's own word from the start
+        except DriverError as exc:
+            if isinstance(exc, ConfigurationError):
+                raise
+            log.error("lamp does not answer at start: %s; its health in /api/v1/status says when it does", exc)
+
+    def _restored_pipeline(self, profile: CalibrationProfile, processing: ProcessingConfig,
+                           saved: SavedState | None) -> FramePipeline:
+        if saved is not None and saved.processing is not None:
+            try:
+                restored = ProcessingConfig.model_validate(saved.processing)
+                pipeline = FramePipeline(self.camera, profile, restored, self.rangefinder, self.lamp)
+                log.info("restored the processing settings saved before the last stop")
+                return pipeline
+            except ValueError as exc:  # includes pydantic's ValidationError
+                log.warning("saved processing settings no longer apply (%s); using the configuration's",
+                            str(exc).splitlines()[0])
+        try:
+            return FramePipeline(self.camera, profile, processing, self.rangefinder, self.lamp)
+        except ValueError as exc:  # settings that do not fit the profile (a pair of unknown channels)
+            raise UserInputError(f"processing: {exc}") from None
+
+    def save_state(self) -> None:
+        """Persist live settings, the active profile and the lamp's intensity (if there is a state
+        folder). A failure to write is logged: the change itself has been made."""
+        if self.state_dir is None or self.pipeline is None:
+            return
+        last = getattr(self.lamp, "last_status", None) if self.lamp is not None else None
+        state = SavedState(processing=self.pipeline.processing.model_dump(mode="json"), profile=self.profile_name,
+                           lamp_percent=None if last is None else int(last.percent))
+        try:
+            with self._state_lock:
+                save_state(self.state_dir, state)
+        except OSError as exc:
+            log.error("could not save state in %s: %s", self.state_dir, exc)
 
     def stop(self) -> None:
         """Stop the loop, switch the lamp off, release every device. Safe to call twice."""
@@ -154,24 +254,48 @@ class Daemon:
             except UserInputError as exc:  # one bad file must not stop the vehicle's camera
                 log.warning("skipping calibration profile: %s", exc)
 
+    def _fits(self, name: str, profile: CalibrationProfile) -> None:
+        """UserInputError unless ``profile`` can range this camera's frames with the live settings."""
+        active = self.profiles[self.profile_name]
+        if len(profile.channels) != len(active.channels):
+            raise UserInputError(f"profile {name} has {len(profile.channels)} channels but the camera delivers "
+                                 f"{len(active.channels)}; upload a profile made with this camera")
+        if self.pipeline is not None:
+            try:
+                self.pipeline.check(profile=profile)
+            except ValueError as exc:
+                raise UserInputError(f"profile {name} does not fit the processing settings: {exc}") from None
+
     def save_profile(self, name: str, profile: CalibrationProfile) -> None:
-        """Keep a profile by name; with a profiles folder, also write it there atomically."""
-        if self.config.profiles_dir is not None:
-            save_profile(profile, os.path.join(self.config.profiles_dir, f"{name}.yaml"))
-        self.profiles[name] = profile
+        """Keep a profile by name; with a profiles folder, also write it there atomically. Replacing
+        the active profile is checked like activating it and takes effect at once; nothing changes
+        if it is refused."""
+        with self._profiles_lock:
+            active = name == self.profile_name
+            if active:
+                self._fits(name, profile)
+            if self.config.profiles_dir is not None:
+                save_profile(profile, os.path.join(self.config.profiles_dir, f"{name}.yaml"))
+            if active:
+                self.pipeline.set_profile(profile)
+            self.profiles[name] = profile
 
     def _created(self) -> str | None:
         profile = self.profiles.get(self.profile_name)
         return None if profile is None else profile.provenance.created
 
     def activate(self, name: str) -> None:
-        profile = self.profiles[name]
-        active = self.profiles[self.profile_name]
-        if len(profile.channels) != len(active.channels):
-            raise UserInputError(f"profile {name} has {len(profile.channels)} channels but the camera delivers "
-                                 f"{len(active.channels)}; upload a profile made with this camera")
-        self.pipeline.set_profile(profile)
-        self.profile_name = name
+        """Range with profile ``name`` from the next frame on; validated in full first, so a
+        refusal (UserInputError) changes nothing."""
+        with self._profiles_lock:
+            profile = self.profiles[name]
+            self._fits(name, profile)
+            try:
+                self.pipeline.set_profile(profile)
+            except ValueError as exc:
+                raise UserInputError(f"profile {name} does not fit the processing settings: {exc}") from None
+            self.profile_name = name
+        self.save_state()
 
     def status(self) -> dict:
         camera = self.camera.status() if self.camera else None
@@ -183,18 +307,19 @@ class Daemon:
                   "confidence": None if reading is None else reading.confidence,
                   "age_s": None if reading is None else round(reading.age_s, 3)}
         lamp = None
+        stats = self.pipeline.stats() if self.pipeline else {}
+        stats_lamp = stats.get("lamp_commands")
         if self.lamp is not None:
             last = self.lamp.last_status
             lamp = {"health": self.lamp.health.as_dict(), "on": None if last is None else last.on,
-                    "percent": None if last is None else last.percent}
-        stats = self.pipeline.stats() if self.pipeline else {}
+                    "percent": None if last is None else last.percent, "commands": stats_lamp}
         cam_stats = camera["stats"] if camera else {}
         return {
             "uptime_s": round(time.time() - self.started, 1),
             "camera": camera,
             "frames": {"captured": cam_stats.get("captured", 0), "processed": stats.get("processed", 0),
                        "dropped": cam_stats.get("dropped", 0) + stats.get("skipped_for_newer", 0),
-                       "fps": stats.get("fps", 0.0)},
+                       "fps": stats.get("fps", 0.0), "since_last_processed_s": stats.get("since_last_processed_s")},
             "latency_ms": stats.get("latency_ms"),
             "calibration": {"name": self.profile_name, "created": self._created(), "tracking": stats.get("patch"),
                             "reflectance": stats.get("reflectance")},

@@ -3,7 +3,7 @@
 Acquisition runs in the camera's own supervisor thread; processing runs here, in one thread
 that always takes the newest frame (older queued frames are skipped and counted, never the
 newest), tracks the attenuation difference live from a calibration patch in view
-(DESIGN.md §6) and publishes immutable results. Readers (the API) never block the loop:
+(docs/physics.md §6) and publishes immutable results. Readers (the API) never block the loop:
 they read the latest published result or are called back with it.
 """
 
@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 from uwcam.config import PatchConfig, ProcessingConfig, ReflectanceConfig
 from uwcam.drivers.base import Frame
 from uwcam.drivers.supervisor import SupervisedCamera
+from uwcam.lamp_control import LampCommander
 from uwcam.optics.geometry import Intrinsics, path_length_from_camera_range, pixel_rays
 from uwcam.optics.reflectance import surface_log_constant
 from uwcam.profile import CalibrationProfile
@@ -48,7 +49,7 @@ class Published:
 
 @dataclass
 class PatchTracker:
-    """Re-estimates c_k − c_ref every frame from a patch of known path length (DESIGN.md §6):
+    """Re-estimates c_k − c_ref every frame from a patch of known path length (docs/physics.md §6):
     ln(E_k/E_ref) = b_k − V_k·d_T^p, so V_k = (b_k − ln(E_k/E_ref)) / d_T^p; smoothed by an EMA,
     with frames rejected when the patch is saturated, too dark or the estimate jumps."""
 
@@ -142,7 +143,7 @@ class PatchTracker:
 
 @dataclass
 class ReflectanceCorrector:
-    """Surface log constants b_k from rangefinder readings at the beam's footprint (DESIGN.md §8).
+    """Surface log constants b_k from rangefinder readings at the beam's footprint (docs/physics.md §8).
 
     A reading is used only if it is fresh relative to the frame's capture time and the
     rangefinder is healthy; otherwise the correction pauses (the last estimate stays in use)
@@ -213,10 +214,13 @@ class FramePipeline:
         self._ambient: NDArray[np.float32] | None = None
         self._ambient_frames = 0
         self._lit_since_dark = 0
-        self._lamp_off_since_ns: int | None = None
-        self._lamp_on_pending = False
+        self._lamp_off_since_ns = 0
+        self._cycle = "lit"
+        self._lit_while_dark = 0
+        self._ticket = 0
+        self._lamp_commander = LampCommander(lamp) if lamp is not None else None
         self._lock = threading.Lock()  # guards configuration swaps and the published result
-        self._apply(processing)
+        self._apply(processing, profile)
         self.previous_processing: ProcessingConfig | None = None
         self._latest: Published | None = None
         self._subscribers: list[Callable[[Published], None]] = []
@@ -225,25 +229,36 @@ class FramePipeline:
         self.processed = 0
         self.skipped = 0
         self._latencies: collections.deque[float] = collections.deque(maxlen=600)
-        self._times: collections.deque[float] = collections.deque(maxlen=60)
+        self._times: collections.deque[float] = collections.deque(maxlen=4096)  # publish times, s
+        self._started_s: float | None = None
 
-    def _estimator(self, processing: ProcessingConfig) -> RangeEstimator:
-        return RangeEstimator(self.profile, pair=processing.pair, path_length_bounds=processing.path_length_bounds)
-
-    def _apply(self, processing: ProcessingConfig) -> None:
+    def _build(self, processing: ProcessingConfig, profile: CalibrationProfile) -> tuple:
+        """Everything that ranges with ``processing`` and ``profile``; raises ValueError (changing
+        nothing) if they do not fit together or with the devices."""
         if processing.reflectance is not None and self.rangefinder is None:
             raise ValueError("reflectance correction needs a rangefinder in the configuration")
         if processing.lamp_off_interval and self.lamp is None:
             raise ValueError("lamp_off_interval needs a lamp in the configuration")
-        estimator = self._estimator(processing)
-        tracker = PatchTracker(processing.patch, self.profile) if processing.patch else None
-        corrector = (ReflectanceCorrector(processing.reflectance, self.profile, self.rangefinder)
-                     if processing.reflectance else None)
-        with self._lock:
+        if processing.pair is not None and any(p not in profile.channel_names for p in processing.pair):
+            raise ValueError(f"pair {list(processing.pair)} is not two of the profile's channels {profile.channel_names}")
+        estimator = RangeEstimator(profile, pair=processing.pair, path_length_bounds=processing.path_length_bounds)
+        tracker = PatchTracker(processing.patch, profile) if processing.patch else None
+        corrector = ReflectanceCorrector(processing.reflectance, profile, self.rangefinder) if processing.reflectance else None
+        return estimator, tracker, corrector
+
+    def _apply(self, processing: ProcessingConfig, profile: CalibrationProfile | None = None) -> None:
+        profile = profile or self.profile
+        estimator, tracker, corrector = self._build(processing, profile)
+        with self._lock:  # one swap: a frame sees the old set or the new set, never a mix
+            self.profile = profile
             self.processing = processing
             self.estimator = estimator
             self.tracker = tracker
             self.corrector = corrector
+
+    def check(self, processing: ProcessingConfig | None = None, profile: CalibrationProfile | None = None) -> None:
+        """ValueError if these settings or this profile would not work; changes nothing."""
+        self._build(processing or self.processing, profile or self.profile)
 
     def reconfigure(self, processing: ProcessingConfig) -> None:
         """Apply new processing settings from the next frame on (validated by the caller); the
@@ -260,9 +275,9 @@ class FramePipeline:
         return self.processing
 
     def set_profile(self, profile: CalibrationProfile) -> None:
-        """Range with another calibration from the next frame on."""
-        self.profile = profile
-        self._apply(self.processing)
+        """Range with another calibration from the next frame on; ValueError, changing nothing,
+        if it does not fit the processing settings."""
+        self._apply(self.processing, profile)
 
     def subscribe(self, callback: Callable[[Published], None]) -> None:
         """``callback(published)`` from the processing thread; it must not block."""
@@ -278,6 +293,9 @@ class FramePipeline:
             return self._latest
 
     def start(self) -> None:
+        self._started_s = time.monotonic()
+        if self._lamp_commander is not None:
+            self._lamp_commander.start()
         self._thread = threading.Thread(target=self._run, name="frame-pipeline", daemon=True)
         self._thread.start()
 
@@ -285,6 +303,8 @@ class FramePipeline:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=10.0)
+        if self._lamp_commander is not None:
+            self._lamp_commander.stop()
 
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -299,22 +319,38 @@ class FramePipeline:
             except Exception:  # one bad frame must not stop the loop
                 log.exception("processing frame %s failed", frame.sequence)
 
-    def _switch_lamp_on(self) -> None:
-        try:
-            self.lamp.on()
-            self._lamp_on_pending = False
-        except Exception as exc:  # a serial glitch must not leave the lamp off: retried next frame
-            self._lamp_on_pending = True
-            log.warning("could not switch the lamp back on after a dark frame: %s", exc)
-
     def _dark_frame_due(self, frame: Frame, interval: int) -> bool:
-        """Run the lamp-off cycle; True if ``frame`` was taken as the ambient frame (not ranged)."""
-        if self._lamp_on_pending:
-            self._switch_lamp_on()
-            return frame.lamp_on is False
-        if self._lamp_off_since_ns is not None:
+        """Run the lamp-off cycle; True if ``frame`` is not to be ranged (taken as the ambient frame,
+        or still dark for a moment while the lamp comes back on).
+
+        Lamp commands only ever *request* a change from the lamp commander: a lamp that does not
+        answer delays the cycle, never the loop. Every other frame is ranged and published, lit
+        or not, so the stream and status show what the camera sees (a lamp stuck off gives frames
+        whose pixels are marked too dark, not silence)."""
+        commander = self._lamp_commander
+        if self._cycle == "lit":
+            if frame.lamp_on is not False:
+                self._lit_since_dark += 1
+            if self._lit_since_dark >= interval:
+                self._ticket = commander.request(False)
+                self._cycle = "switching off"
+            return False
+        if self._cycle == "switching off":
+            if commander.done(self._ticket):
+                self._lamp_off_since_ns = commander.acknowledged_ns
+            elif frame.lamp_on is not False:
+                return False  # still lit: range it
+            self._cycle, self._lit_while_dark = "dark", 0
+        if self._cycle == "dark":
             dark = frame.lamp_on is False if frame.lamp_on is not None else frame.host_monotonic_ns > self._lamp_off_since_ns
             if not dark:
+                self._lit_while_dark += 1
+                if self._lit_while_dark > max(interval, 5):
+                    # Acknowledged, yet still lit: the command was lost or the reply was another's
+                    # (a lamp reconnected mid-command). Ask again rather than wait for ever.
+                    log.warning("lamp acknowledged 'off' but frames are still lit; switching it off again")
+                    self._ticket = commander.request(False)
+                    self._cycle = "switching off"
                 return False  # captured before the lamp went off: an ordinary frame
             # Daylight varies smoothly across the image and slowly in time: a 5×5 box and an
             # average over dark frames keep the subtraction from adding a frame's worth of noise.
@@ -332,17 +368,16 @@ class FramePipeline:
             else:
                 self._ambient = 0.5 * (self._ambient + level)
             self._ambient_frames += 1
-            self._lamp_off_since_ns = None
-            self._lit_since_dark = 0
-            self._switch_lamp_on()
+            self._ticket = commander.request(True)
+            self._cycle = "switching on"
             return True
-        if frame.lamp_on is False:
-            return True  # the lamp is off for another reason: nothing to range against
-        self._lit_since_dark += 1
-        if self._lit_since_dark >= interval:
-            self.lamp.off()
-            self._lamp_off_since_ns = time.monotonic_ns()
-        return False
+        # switching on
+        if commander.done(self._ticket):
+            self._cycle, self._lit_since_dark = "lit", 0
+            return False
+        # A frame or two still dark while the lamp comes on would flash an empty range map; a lamp
+        # that does not come back is another matter: publish what there is.
+        return frame.lamp_on is False and not commander.failing
 
     def _process(self, frame: Frame) -> None:
         if frame.lamp_on is None and self.lamp is not None:
@@ -351,12 +386,17 @@ class FramePipeline:
             frame.lamp_on = None if last is None else bool(last.on)
         with self._lock:
             estimator, tracker, processing, corrector = self.estimator, self.tracker, self.processing, self.corrector
+            profile = self.profile
+        if not processing.lamp_off_interval and self._cycle != "lit":
+            # The cycle was switched off halfway (lamp possibly off): end it with the lamp on.
+            self._lamp_commander.request(True)
+            self._cycle, self._lit_since_dark = "lit", 0
         if processing.lamp_off_interval and self._dark_frame_due(frame, processing.lamp_off_interval):
             return
         ambient = self._ambient if processing.lamp_off_interval else None
         if tracker is not None and tracker.update(frame.data, ambient):
             estimator.set_attenuation_differences(tracker.tracked)
-        attenuation = tracker.tracked if tracker is not None else self.profile.array("attenuation_difference")
+        attenuation = tracker.tracked if tracker is not None else profile.array("attenuation_difference")
         if corrector is not None:
             b = corrector.update(frame, attenuation, ambient)
             if b is not None and np.max(np.abs(b - estimator.log_constant)) > processing.reflectance.tolerance:
@@ -373,18 +413,27 @@ class FramePipeline:
             self._latest = published
         self.processed += 1
         self._latencies.append(published.latency_s)
-        self._times.append(now / 1e9)
+        self._times.append(now / 1e9)  # monotonic seconds
         for callback in list(self._subscribers):
             callback(published)
+
+    FPS_WINDOW_S = 2.0
+    """fps is the number of frames published in this many seconds before now, per second."""
 
     def stats(self) -> dict:
         lat = np.array(self._latencies)
         times = list(self._times)
-        fps = (len(times) - 1) / (times[-1] - times[0]) if len(times) > 1 and times[-1] > times[0] else 0.0
+        now = time.monotonic()
+        # Counted up to *now*: no frames lately is 0 fps, not the rate of the last frames that came.
+        window = min(self.FPS_WINDOW_S, now - self._started_s) if self._started_s is not None else 0.0
+        recent = sum(1 for t in times if now - t <= window)
+        fps = recent / window if window > 0 else 0.0
         return {
             "processed": self.processed,
             "skipped_for_newer": self.skipped,
             "fps": round(fps, 2),
+            "since_last_processed_s": None if not times else round(now - times[-1], 3),
+            "lamp_commands": None if self._lamp_commander is None else self._lamp_commander.status(),
             "latency_ms": None if lat.size == 0 else {"p50": round(float(np.percentile(lat, 50)) * 1e3, 2),
                                                       "p99": round(float(np.percentile(lat, 99)) * 1e3, 2)},
             "patch": None if self.tracker is None else self.tracker.status(),

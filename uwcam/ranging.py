@@ -1,6 +1,6 @@
 """Frame → range map, variance map and reason map, from a calibration profile.
 
-:class:`RangeEstimator` turns a profile into the per-channel quantities of DESIGN.md §5
+:class:`RangeEstimator` turns a profile into the per-channel quantities of docs/physics.md §5
 once (attenuation differences, log constants corrected for the surface's hue, lookup
 tables for integer sensors) and then processes frames in one compiled pass.
 """
@@ -68,7 +68,7 @@ class RangeEstimator:
             rho_s = np.asarray(surface_reflectance, dtype=np.float64)
             if rho_s.shape != (n,) or np.any(rho_s <= 0):
                 raise UserInputError(f"surface reflectance needs {n} positive values ({','.join(names)}), got {list(rho_s)}")
-            # U_ij(surface) = U_ij(target)·(ρ_j/ρ_i)(surface)/(ρ_j/ρ_i)(target)  (DESIGN.md §3)
+            # U_ij(surface) = U_ij(target)·(ρ_j/ρ_i)(surface)/(ρ_j/ρ_i)(target)  (docs/physics.md §3)
             b = b + np.log(rho_s / rho_s[0]) - np.log(profile.array("target_reflectance") / profile.array("target_reflectance")[0])
         self.log_constant = b
         self.active = np.ones(n, dtype=bool)
@@ -188,7 +188,7 @@ class RangeEstimator:
 
 
 def smooth_range_map(result: RangeResult, kind: str = "mean") -> RangeResult:
-    """3×3 smoothing of a range map over valid neighbours only (DESIGN.md §7).
+    """3×3 smoothing of a range map over valid neighbours only (docs/physics.md §7).
 
     kind "mean": average of the valid pixels in each 3×3 window, variance divided by their
     count (neighbouring noise is independent); "median": their median, variance kept.

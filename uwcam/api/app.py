@@ -10,20 +10,24 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 from contextlib import asynccontextmanager
+from typing import Any
 
 from fastapi import Depends, FastAPI, Request
-from fastapi.responses import JSONResponse
-
-from uwcam import __version__
+from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.openapi.utils import get_openapi
+from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 
+from uwcam import __version__
 from uwcam.api import lamp, metrics, profiles, session, settings, snapshots, status, stream, view, web
+from uwcam.api.backpressure import ConnectionSocket
 from uwcam.api.common import Broadcaster
-from uwcam.api.view import ViewEncoder
+from uwcam.api.limits import BodyLimit
 from uwcam.api.security import SAFE_METHODS, SESSION_COOKIE, SESSION_PATH, Guard, required_token
+from uwcam.api.view import ViewEncoder
 from uwcam.config import DaemonConfig
 from uwcam.daemon import Daemon
 from uwcam.fileio import UserInputError
@@ -56,7 +60,8 @@ def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         d = daemon or Daemon(config)
-        await asyncio.to_thread(d.start)
+        if d.pipeline is None:  # `uwcam run` starts its daemon before serving, to report errors plainly
+            await asyncio.to_thread(d.start)
         app.state.daemon = d
         app.state.broadcaster = Broadcaster(asyncio.get_running_loop())
         app.state.view_encoder = ViewEncoder()
@@ -74,6 +79,14 @@ def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
                   description="Underwater ranging camera: range maps from colour attenuation, live.")
     app.state.config = config
     app.state.guard = guard
+
+    app.add_middleware(BodyLimit, limits={profiles.router.prefix + "/": profiles.MAX_PROFILE_BYTES})
+    app.add_middleware(ConnectionSocket)  # outermost: it must see the server's own send
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(request: Request, exc: RequestValidationError):
+        # The errors quote the input; NaN or Infinity in it cannot be written as JSON.
+        return JSONResponse(status_code=422, content={"detail": _json_safe(exc.errors())})
 
     @app.exception_handler(UserInputError)
     async def _user_error(request: Request, exc: UserInputError):
@@ -97,3 +110,16 @@ def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
     app.mount("/static/docs", StaticFiles(packages=[("fastapi_offline", "static")]), name="docs-assets")
     app.mount("/static", StaticFiles(packages=[("uwcam", "web")]), name="static")
     return app
+
+
+def _json_safe(value: Any) -> Any:
+    """``value`` with non-finite floats as strings and anything else JSON cannot hold as its repr."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else repr(value)
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if value is None or isinstance(value, (str, int, bool)):
+        return value
+    return repr(value)

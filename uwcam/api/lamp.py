@@ -8,15 +8,17 @@ from fastapi import APIRouter, Depends, HTTPException
 from pydantic import BaseModel, ConfigDict, Field
 
 from uwcam.api.common import get_daemon
+from uwcam.config import Flag, Real
 from uwcam.daemon import Daemon
+from uwcam.drivers.base import DriverError
 
 router = APIRouter(prefix="/api/v1/lamp", tags=["lamp"])
 
 
 class LampCommand(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    on: bool | None = None
-    intensity: Annotated[float, Field(ge=0, le=100)] | None = None
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    on: Flag | None = None
+    intensity: Annotated[Real, Field(ge=0, le=100)] | None = None
     """Percent."""
 
 
@@ -24,7 +26,10 @@ class LampCommand(BaseModel):
 def get_lamp(d: Daemon = Depends(get_daemon)) -> dict:
     if d.lamp is None:
         raise HTTPException(status_code=404, detail="no lamp configured")
-    s = d.lamp.status()
+    try:
+        s = d.lamp.status()
+    except DriverError as exc:  # silent, unplugged or refusing: say so; /api/v1/status has its health
+        raise HTTPException(status_code=503, detail=f"the lamp does not answer: {exc}") from None
     return {"on": s.on, "intensity": s.percent, "temperature_c": s.temperature_c, "fault": s.fault,
             "health": d.lamp.health.as_dict()}
 
@@ -42,4 +47,5 @@ def put_lamp(command: LampCommand, d: Daemon = Depends(get_daemon)) -> dict:
             d.lamp.off()
     except Exception as exc:
         raise HTTPException(status_code=502, detail=f"lamp did not accept the command: {exc}") from None
+    d.save_state()
     return get_lamp(d)  # reads the lamp's status back, so status() shows it too

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import re
 
 from fastapi import APIRouter, Depends, HTTPException, Request
@@ -9,17 +10,20 @@ from fastapi import APIRouter, Depends, HTTPException, Request
 from uwcam.api.common import get_daemon
 from uwcam.daemon import Daemon
 from uwcam.fileio import UserInputError
+from uwcam.profile import CalibrationProfile
 
 router = APIRouter(prefix="/api/v1/calibration/profiles", tags=["calibration"])
 MAX_PROFILE_BYTES = 1 << 20
-NAME = re.compile(r"[A-Za-z0-9._-]{1,64}")
+"""Bytes; enforced while the upload streams in (:mod:`uwcam.api.limits`)."""
+NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
+"""Not starting with '.': such a file is hidden, and temporary files of atomic writes look so."""
 
 
 @router.get("")
 def list_profiles(d: Daemon = Depends(get_daemon)) -> list[dict]:
     """Known calibration profiles; one is active."""
     return [{"name": name, "active": name == d.profile_name, "created": p.provenance.created,
-             "channels": p.channel_names, "method": p.provenance.method} for name, p in d.profiles.items()]
+             "channels": p.channel_names, "method": p.provenance.method} for name, p in list(d.profiles.items())]
 
 
 @router.get("/{name}")
@@ -29,33 +33,51 @@ def get_profile(name: str, d: Daemon = Depends(get_daemon)) -> dict:
     return d.profiles[name].model_dump(mode="json")
 
 
+def parse_profile(body: bytes, name: str) -> CalibrationProfile:
+    """YAML or JSON bytes → a validated profile; HTTPException 422 saying what is wrong."""
+    import yaml
+
+    from uwcam.profile import profile_from_mapping
+
+    try:
+        data = yaml.safe_load(body.decode("utf-8"))
+    except (UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise HTTPException(status_code=422, detail=f"profile is not valid YAML or JSON: {exc}") from None
+    except RecursionError:
+        raise HTTPException(status_code=422, detail="profile is nested too deeply to be a calibration profile") from None
+    except ValueError as exc:  # e.g. an integer of thousands of digits
+        raise HTTPException(status_code=422, detail=f"profile holds a value that cannot be read: {exc}") from None
+    if not isinstance(data, dict):
+        raise HTTPException(status_code=422, detail="profile must be a mapping of keys to values")
+    try:
+        return profile_from_mapping(data, f"profile {name}")
+    except UserInputError as exc:
+        raise HTTPException(status_code=422, detail=str(exc)) from None
+    except RecursionError:
+        raise HTTPException(status_code=422, detail="profile is nested too deeply to be a calibration profile") from None
+
+
 @router.put("/{name}", openapi_extra={
     "requestBody": {"required": True, "content": {
         "application/x-yaml": {"schema": {"type": "string"}},
         "application/json": {"schema": {"type": "object", "description": "a uwcam calibration profile"}}}}})
 async def upload_profile(name: str, request: Request, d: Daemon = Depends(get_daemon)) -> dict:
     """Upload a profile (YAML or JSON body, at most 1 MiB). It is validated in full; a bad one
-    is refused with the reason and changes nothing. Uploading does not activate it."""
-    import yaml
-
-    from uwcam.profile import profile_from_mapping
-
+    is refused with the reason and changes nothing. Uploading does not activate it; uploading
+    over the active profile is checked as activating it would be, and applies at once."""
     if not NAME.fullmatch(name):
-        raise HTTPException(status_code=422, detail="profile names use letters, digits, '.', '_' and '-' (1–64)")
-    body = await request.body()
-    if len(body) > MAX_PROFILE_BYTES:
-        raise HTTPException(status_code=413, detail=f"profile larger than {MAX_PROFILE_BYTES} bytes")
+        raise HTTPException(status_code=422, detail="profile names use letters, digits, '.', '_' and '-' (1–64), "
+                                                    "starting with a letter or digit")
+    chunks, size = [], 0
+    async for chunk in request.stream():  # the body limit middleware stops an oversized one here
+        size += len(chunk)
+        chunks.append(chunk)
+    # Parsing and saving take time: in a worker thread, so the event loop (status, streams) runs on.
+    profile = await asyncio.to_thread(parse_profile, b"".join(chunks), name)
     try:
-        data = yaml.safe_load(body.decode("utf-8"))
-    except (UnicodeDecodeError, yaml.YAMLError) as exc:
-        raise HTTPException(status_code=422, detail=f"profile is not valid YAML or JSON: {exc}") from None
-    if not isinstance(data, dict):
-        raise HTTPException(status_code=422, detail="profile must be a mapping of keys to values")
-    try:
-        profile = profile_from_mapping(data, f"profile {name}")
+        await asyncio.to_thread(d.save_profile, name, profile)
     except UserInputError as exc:
         raise HTTPException(status_code=422, detail=str(exc)) from None
-    d.save_profile(name, profile)
     return {"name": name, "active": name == d.profile_name, "channels": profile.channel_names}
 
 

@@ -53,13 +53,23 @@ def required_token(config: DaemonConfig) -> str | None:
     token = config.api.token or os.environ.get("UWCAM_TOKEN")
     if not is_loopback(config.api.host) and not token:
         raise UserInputError(
-            f"refusing to listen on {config.api.host} without a token: set api.token in the configuration or UWCAM_TOKEN"
+            f"refusing to listen on {config.api.host} without a token: set the UWCAM_TOKEN environment variable "
+            "(the systemd unit reads it from /etc/uwcam/token.env; see docs/deployment.md) or api.token"
         )
     return token or None
 
 
-def _same(given: str, expected: str) -> bool:
-    return hmac.compare_digest(given.encode("utf-8", "surrogateescape"), expected.encode("utf-8", "surrogateescape"))
+def _utf8(text: str) -> bytes:
+    return text.encode("utf-8", "surrogateescape")
+
+
+def _same(given: bytes, expected: bytes) -> bool:
+    return hmac.compare_digest(given, expected)
+
+
+def _header_bytes(value: str) -> bytes:
+    """The header's bytes as sent: HTTP headers are bytes, which Starlette decodes as Latin-1."""
+    return value.encode("latin-1", "replace")
 
 
 class Sessions:
@@ -177,11 +187,12 @@ class Guard:
         if self.token is None:
             return True
         scheme, _, given = conn.headers.get("authorization", "").partition(" ")
-        if scheme.lower() == "bearer" and _same(given.strip(), self.token):  # the scheme is case-insensitive
+        # The scheme is case-insensitive; a token with non-ASCII characters travels as its UTF-8 bytes.
+        if scheme.lower() == "bearer" and _same(_header_bytes(given.strip()), _utf8(self.token)):
             return True
         session = conn.cookies.get(self.cookie)
         csrf = self.sessions.csrf_for(session) if session else None
-        return csrf is not None and _same(conn.headers.get(CSRF_HEADER, ""), csrf)
+        return csrf is not None and _same(_header_bytes(conn.headers.get(CSRF_HEADER, "")), _utf8(csrf))
 
     def check_origin(self, conn: HTTPConnection) -> None:
         """Refuse a request from a page of another origin (a browser always sends Origin on those)."""
@@ -218,4 +229,4 @@ class Guard:
                                                         "or sign in on the page")
 
     def check_token(self, given: str) -> bool:
-        return self.token is None or _same(given, self.token)
+        return self.token is None or _same(_utf8(given), _utf8(self.token))

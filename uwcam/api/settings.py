@@ -8,7 +8,7 @@ from fastapi import APIRouter, Depends, HTTPException
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from uwcam.api.common import get_daemon
-from uwcam.config import PatchConfig, ProcessingConfig
+from uwcam.config import Flag, PatchConfig, ProcessingConfig, Real, Whole
 from uwcam.daemon import Daemon
 
 router = APIRouter(prefix="/api/v1/config", tags=["config"])
@@ -17,15 +17,17 @@ router = APIRouter(prefix="/api/v1/config", tags=["config"])
 class ProcessingPatch(BaseModel):
     """Live-tunable processing settings; omitted keys keep their value."""
 
-    model_config = ConfigDict(extra="forbid")
-    pair: tuple[str, str] | None = None
-    fuse: bool | None = None
+    # Bounds and finiteness are those of ProcessingConfig, which validates the merged result.
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    pair: tuple[Annotated[str, Field(max_length=64)], Annotated[str, Field(max_length=64)]] | None = None
+    fuse: Flag | None = None
     """true: fuse all channels (clears pair)."""
     smoothing: Literal["none", "mean", "median"] | None = None
     smoothing_stage: Literal["after", "before"] | None = None
-    path_length_bounds: tuple[float, float] | None = None
+    path_length_bounds: tuple[Real, Real] | None = None
+    """[min, max] lamp → surface → camera path length, metres."""
     patch: PatchConfig | None = None
-    lamp_off_interval: Annotated[int, Field(ge=0)] | None = None
+    lamp_off_interval: Annotated[Whole, Field(ge=0, le=100000)] | None = None
 
 
 @router.get("")
@@ -45,7 +47,8 @@ def patch_config(change: ProcessingPatch, d: Daemon = Depends(get_daemon)) -> di
     try:
         new = ProcessingConfig.model_validate(current)
     except ValidationError as exc:
-        raise HTTPException(status_code=422, detail=exc.errors(include_url=False, include_context=False)) from None
+        raise HTTPException(status_code=422, detail=exc.errors(include_url=False, include_context=False,
+                                                                include_input=False)) from None
     names = d.pipeline.profile.channel_names
     if new.pair is not None and (len(set(new.pair)) != 2 or any(p not in names for p in new.pair)):
         raise HTTPException(status_code=422, detail=f"pair needs two different channels of {names}")
@@ -53,6 +56,7 @@ def patch_config(change: ProcessingPatch, d: Daemon = Depends(get_daemon)) -> di
         d.pipeline.reconfigure(new)
     except ValueError as exc:  # e.g. a lamp-off interval without a lamp
         raise HTTPException(status_code=422, detail=str(exc)) from None
+    d.save_state()
     return new.model_dump(mode="json")
 
 
@@ -60,6 +64,8 @@ def patch_config(change: ProcessingPatch, d: Daemon = Depends(get_daemon)) -> di
 def restore_config(d: Daemon = Depends(get_daemon)) -> dict:
     """Go back to the processing settings that were in force before the last change."""
     try:
-        return d.pipeline.restore().model_dump(mode="json")
+        restored = d.pipeline.restore()
     except ValueError as exc:
         raise HTTPException(status_code=409, detail=str(exc)) from None
+    d.save_state()
+    return restored.model_dump(mode="json")

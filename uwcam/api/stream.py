@@ -17,6 +17,7 @@ from typing import Literal
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
 from uwcam import __version__
+from uwcam.api.backpressure import SCOPE_KEY, unsent_bytes
 from uwcam.api.common import Broadcaster
 from uwcam.api.snapshots import range_millimetres
 from uwcam.daemon import Daemon
@@ -43,11 +44,17 @@ def encode_range(published: Published, encoding: str) -> bytes:
 
 @router.websocket("/stream")
 async def stream(ws: WebSocket, rate: float = 30.0, encoding: Literal["float16", "mm"] = "float16") -> None:
-    """Hello (JSON), then the newest range map per frame (binary) and telemetry (JSON, ~10 Hz)."""
+    """Hello (JSON), then the newest range map per frame (binary) and telemetry (JSON, ~10 Hz).
+
+    A client only ever gets the newest frame: while the previous message is still on its way
+    (being sent, or not yet taken by the client from the network), newer frames are skipped,
+    never queued (:mod:`uwcam.api.backpressure`).
+    """
     await ws.accept()
     rate = min(max(rate, 0.1), ws.app.state.config.api.stream_rate_hz)
     b: Broadcaster = ws.app.state.broadcaster
     d: Daemon = ws.app.state.daemon
+    connection = ws.scope.get(SCOPE_KEY)
     await ws.send_text(json.dumps({
         "type": "hello", "version": __version__,
         "binary": {"header": "<4sIqqHHB3xf", "fields": ["magic", "frame", "capture_time_ns", "send_time_ns", "width",
@@ -56,25 +63,44 @@ async def stream(ws: WebSocket, rate: float = 30.0, encoding: Literal["float16",
                    "encoding": encoding},
         "telemetry_hz": 10, "rate_hz": rate,
     }))
-    last_sent, next_telemetry, period = 0, 0.0, 1.0 / rate
+
+    async def send_frame(published: Published) -> None:
+        data = await asyncio.to_thread(encode_range, published, encoding)  # a 1080p map: off the loop
+        await ws.send_bytes(data)
+
+    def telemetry() -> str:
+        s = d.status()
+        return json.dumps({"type": "telemetry", "frames": s["frames"], "latency_ms": s["latency_ms"],
+                           "camera": s["camera"]["health"] if s["camera"] else None,
+                           "rangefinder": s["rangefinder"]}, default=str)
+
+    last_sent, next_telemetry, next_frame, period = 0, 0.0, 0.0, 1.0 / rate
+    in_flight: asyncio.Task | None = None
     try:
         while True:
             try:
-                await asyncio.wait_for(b.changed.wait(), timeout=0.1)
+                await asyncio.wait_for(b.changed.wait(), timeout=0.02 if in_flight or connection else 0.1)
             except TimeoutError:
                 pass
             b.changed.clear()
+            if in_flight is not None:
+                if not in_flight.done():
+                    continue  # still sending: whatever is newer waits for the next turn
+                in_flight.result()  # a closed connection ends the stream here
+                in_flight = None
+            if unsent_bytes(connection):
+                continue  # the client has not taken the last message yet
             now = time.monotonic()
             if now >= next_telemetry:
                 next_telemetry = now + 0.1
-                s = d.status()
-                await ws.send_text(json.dumps({"type": "telemetry", "frames": s["frames"], "latency_ms": s["latency_ms"],
-                                               "camera": s["camera"]["health"] if s["camera"] else None,
-                                               "rangefinder": s["rangefinder"]}, default=str))
+                in_flight = asyncio.create_task(ws.send_text(telemetry()))
+                continue
             published = b.latest
-            if published is not None and published.number != last_sent:
-                await ws.send_bytes(encode_range(published, encoding))
-                last_sent = published.number
-                await asyncio.sleep(max(0.0, period - (time.monotonic() - now)))
-    except (WebSocketDisconnect, RuntimeError):
+            if published is not None and published.number != last_sent and now >= next_frame:
+                last_sent, next_frame = published.number, now + period
+                in_flight = asyncio.create_task(send_frame(published))
+    except (WebSocketDisconnect, RuntimeError, OSError):
         return
+    finally:
+        if in_flight is not None and not in_flight.done():
+            in_flight.cancel()

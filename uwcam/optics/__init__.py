@@ -1,6 +1,6 @@
 """Pure optics of colour-attenuation ranging: arrays in, arrays out, no I/O.
 
-Notation follows DESIGN.md: ``signal`` is E_k (dark-corrected, linear), ``attenuation``
+Notation follows docs/physics.md: ``signal`` is E_k (dark-corrected, linear), ``attenuation``
 is c_k in 1/m, ``path_length`` is d_T = d_s + d_c in metres, ``camera_range`` is d_c.
 """
 

@@ -1,4 +1,4 @@
-"""Multichannel fusion by weighted least squares (DESIGN.md §5).
+"""Multichannel fusion by weighted least squares (docs/physics.md §5).
 
 Per pixel, y_k = ln E_k − b_k = a − c_k·d_T with an unknown common offset a.
 With weights w_k = E_k²/σ_k² the estimate and its variance are

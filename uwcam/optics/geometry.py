@@ -1,4 +1,4 @@
-"""Camera geometry: pixel rays and path length ↔ camera range (DESIGN.md §3).
+"""Camera geometry: pixel rays and path length ↔ camera range (docs/physics.md §3).
 
 Camera frame: origin at the camera's centre of projection, x right, y down, z forward
 along the optical axis, metres. The lamp sits at S = (Sx, Sy, Sz).

@@ -1,4 +1,4 @@
-"""A known range fixes an unknown surface reflectance ratio (DESIGN.md §8)."""
+"""A known range fixes an unknown surface reflectance ratio (docs/physics.md §8)."""
 
 from __future__ import annotations
 

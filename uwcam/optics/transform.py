@@ -1,4 +1,4 @@
-"""The two-channel intensity–range transform (DESIGN.md §3)."""
+"""The two-channel intensity–range transform (docs/physics.md §3)."""
 
 from __future__ import annotations
 
@@ -37,7 +37,7 @@ def pair_path_variance(
     variance_j: ArrayLike,
     attenuation_difference: float,
 ) -> NDArray[np.floating]:
-    """Variance of d_T (m²) for one pair: (σ_i²/E_i² + σ_j²/E_j²) / V_ij² (DESIGN.md §5)."""
+    """Variance of d_T (m²) for one pair: (σ_i²/E_i² + σ_j²/E_j²) / V_ij² (docs/physics.md §5)."""
     e_i = np.asarray(signal_i, dtype=np.float64)
     e_j = np.asarray(signal_j, dtype=np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):

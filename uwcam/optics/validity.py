@@ -1,4 +1,4 @@
-"""Per-channel usability and per-pixel validity reasons (DESIGN.md §7)."""
+"""Per-channel usability and per-pixel validity reasons (docs/physics.md §7)."""
 
 from __future__ import annotations
 

@@ -1,0 +1,105 @@
+"""Lamp commands off the frame loop's critical path.
+
+A serial lamp answers in milliseconds, or, when it does not answer, only after its reply
+timeout and a retry (about a second). The frame loop must never wait for that: it *asks* for
+the lamp on or off and carries on; this commander's own thread sends the command, retries a
+failed one with exponential backoff, and tells the loop when the lamp has acknowledged.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+log = logging.getLogger(__name__)
+
+
+class LampCommander:
+    """Drives ``lamp.on()``/``lamp.off()`` in a thread of its own; the newest request wins."""
+
+    def __init__(self, lamp: object, backoff_s: tuple[float, float] = (0.25, 10.0)) -> None:
+        self.lamp = lamp
+        self.backoff_s = backoff_s
+        self._cond = threading.Condition()
+        self._want: bool | None = None  # guarded by _cond
+        self._requested = 0
+        self._completed = 0
+        self._acknowledged_ns = 0
+        self._failures = 0
+        self._last_error: str | None = None
+        self._retry_at: float | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def request(self, on: bool) -> int:
+        """Ask for the lamp on or off; returns a ticket for :meth:`done`. Never blocks."""
+        with self._cond:
+            self._requested += 1
+            self._want = on
+            self._cond.notify_all()
+            return self._requested
+
+    def done(self, ticket: int) -> bool:
+        """True once the request ``ticket`` (or a later one) has been acknowledged by the lamp."""
+        with self._cond:
+            return self._completed >= ticket
+
+    @property
+    def acknowledged_ns(self) -> int:
+        """time.monotonic_ns() when the lamp last acknowledged a command."""
+        with self._cond:
+            return self._acknowledged_ns
+
+    @property
+    def failing(self) -> bool:
+        """True while the last attempt at a command failed."""
+        with self._cond:
+            return self._failures > 0
+
+    def status(self) -> dict:
+        with self._cond:
+            return {"pending": None if self._want is None else ("on" if self._want else "off"),
+                    "consecutive_failures": self._failures, "last_error": self._last_error,
+                    "retry_in_s": None if self._retry_at is None else round(max(0.0, self._retry_at - time.monotonic()), 2)}
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="lamp-commander", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        with self._cond:
+            self._cond.notify_all()
+        if self._thread is not None:
+            self._thread.join(timeout=10.0)
+
+    def _run(self) -> None:
+        delay = self.backoff_s[0]
+        while not self._stop.is_set():
+            with self._cond:
+                self._cond.wait_for(lambda: self._want is not None or self._stop.is_set())
+                if self._stop.is_set():
+                    return
+                want, ticket = self._want, self._requested
+            try:
+                self.lamp.on() if want else self.lamp.off()
+            except Exception as exc:  # not answering, unplugged, refusing: retry later, loop unaffected
+                with self._cond:
+                    self._failures += 1
+                    self._last_error = f"{type(exc).__name__}: {exc}"
+                    self._retry_at = time.monotonic() + delay
+                if self._failures == 1:
+                    log.warning("lamp did not take 'switch %s': %s; retrying with backoff", "on" if want else "off", exc)
+                self._stop.wait(delay)
+                delay = min(delay * 2, self.backoff_s[1])
+                continue
+            delay = self.backoff_s[0]
+            with self._cond:
+                self._completed = max(self._completed, ticket)
+                self._acknowledged_ns = time.monotonic_ns()
+                if self._requested == ticket:
+                    self._want = None
+                if self._failures:
+                    log.info("lamp answers again after %d failed attempt(s)", self._failures)
+                self._failures, self._last_error, self._retry_at = 0, None, None
