@@ -400,7 +400,7 @@ def test_bad_port_and_busy_port_are_one_line_errors():
     ("camera: {driver: multi, options: {sensors: [{driver: sim, fsp: 1}, {driver: sim}]}}\ncalibration: p.yaml\n",
      ["'fsp'"]),
     ("camera: {driver: sim}\nsimulation: {water: jerlov-XX}\n", ["unknown water 'jerlov-XX'", "jerlov-IB"]),
-    ("camera: {driver: sim}\nsimulation: {watter: jerlov-IB}\n", ["unknown key 'watter'"]),
+    ("camera: {driver: sim}\nsimulation: {watter: jerlov-IB}\n", ["watter: unknown key"]),
     ("camera: {driver: sim}\nlamp: {driver: serial, options: {port: /dev/x, baud: true}}\n", ["'baud'"]),
     ("camera: {driver: sim}\nrangefinder: {driver: ping1d, options: {port: /dev/x, speed_of_sound: 15000}}\n",
      ["speed_of_sound"]),

@@ -63,13 +63,8 @@ def simulated_patch(rig: SimulatedRig) -> PatchConfig:
 
 def check_devices(config: DaemonConfig) -> dict[str, dict]:
     """Validate what a configuration asks of the drivers, touching no device: each driver exists
-    in the registry and its options fit the driver's ``Options``; the simulated rig's options
-    name real settings and a known water. Returns the validated options by kind; UserInputError
+    in the registry and its options fit the driver's ``Options``. Returns the validated options by kind; UserInputError
     (one line: which driver, which key, what is wrong) otherwise."""
-    import dataclasses
-
-    from uwcam.simulation.water import WATER_PRESETS
-
     validated = {}
     for kind, device in (("camera", config.camera), ("lamp", config.lamp), ("rangefinder", config.rangefinder)):
         if device is None:
@@ -78,15 +73,8 @@ def check_devices(config: DaemonConfig) -> dict[str, dict]:
             validated[kind] = registry.validate_options(kind, device.driver, device.options)
         except ConfigurationError as exc:
             raise UserInputError(str(exc)) from None
-    simulated = [d.driver for d in (config.camera, config.lamp, config.rangefinder) if d is not None and d.driver in SIMULATED]
-    if simulated or config.simulation:
-        known = [f.name for f in dataclasses.fields(SimulatedRig) if not f.name.startswith("_")]
-        for key in config.simulation:
-            if key not in known:
-                raise UserInputError(f"simulation: unknown key '{key}'; known: {', '.join(known)}")
-        water = config.simulation.get("water")
-        if water is not None and water not in WATER_PRESETS:
-            raise UserInputError(f"simulation: unknown water '{water}'; known: {', '.join(WATER_PRESETS)}")
+    # The simulation section's keys, numbers and water preset are checked where the configuration
+    # is validated (uwcam.simulation.options).
     return validated
 
 

@@ -30,7 +30,10 @@ def array_response(data: np.ndarray, format: str, headers: dict) -> Response:
     if format == "npy":
         np.save(buf, data, allow_pickle=False)
         return Response(buf.getvalue(), media_type="application/octet-stream", headers=headers)
-    tifffile.imwrite(buf, data)
+    # Three samples per pixel are stored as RGB only for the colour image; other arrays (normals)
+    # as plain samples.
+    rgb = data.ndim == 3 and data.shape[2] == 3 and data.dtype.kind == "u"
+    tifffile.imwrite(buf, data, photometric="rgb" if rgb else "minisblack")
     return Response(buf.getvalue(), media_type="image/tiff", headers=headers)
 
 
