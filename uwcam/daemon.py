@@ -11,6 +11,7 @@ import glob
 import logging
 import os
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -18,15 +19,15 @@ from uwcam.calibration import project_plate_box
 from uwcam.config import DaemonConfig, PatchConfig, ReflectanceConfig
 from uwcam.drivers import registry
 from uwcam.drivers.base import CameraSettings
-from uwcam.drivers.sim import SimulatedRig
 from uwcam.drivers.supervisor import SupervisedCamera
 from uwcam.fileio import UserInputError
 from uwcam.pipeline import FramePipeline
 from uwcam.profile import CalibrationProfile, load_profile, save_profile
-from uwcam.simulation import Lamp, water_preset
-from uwcam.simulation.camera import CameraModel
-from uwcam.simulation.tank import calibrate_in_simulation
-from uwcam.simulation.scene import PATCH_CENTRE_M, PATCH_DISTANCE_M, PATCH_SIZE_M
+
+# The simulation (renderer, water models) is imported only where a simulated device is
+# configured, so that a real rig does not carry it in memory.
+if TYPE_CHECKING:
+    from uwcam.drivers.sim import SimulatedRig
 
 log = logging.getLogger(__name__)
 SIMULATED = {"sim", "sim-ascii", "sim-ping1d"}
@@ -34,6 +35,10 @@ SIMULATED = {"sim", "sim-ascii", "sim-ping1d"}
 
 def simulated_calibration(rig: SimulatedRig) -> CalibrationProfile:
     """Calibrate in the rig's simulated water: grey plate with black patch at 1 m and 2 m."""
+    from uwcam.simulation import Lamp, water_preset
+    from uwcam.simulation.camera import CameraModel
+    from uwcam.simulation.tank import calibrate_in_simulation
+
     water = water_preset(rig.water, [675.0, 575.0, 475.0])
     return calibrate_in_simulation(water, Lamp(position=tuple(rig.lamp_offset)), tuple(rig.size),
                                    CameraModel(bits=rig.bits), seed_base=11)
@@ -41,6 +46,8 @@ def simulated_calibration(rig: SimulatedRig) -> CalibrationProfile:
 
 def simulated_patch(rig: SimulatedRig) -> PatchConfig:
     """Where the seabed-patch scene's calibration patch appears, and its path length."""
+    from uwcam.simulation.scene import PATCH_CENTRE_M, PATCH_DISTANCE_M, PATCH_SIZE_M
+
     intr = rig.world.intrinsics
     x, y, w, h = project_plate_box(PATCH_CENTRE_M, (PATCH_SIZE_M, PATCH_SIZE_M), PATCH_DISTANCE_M, intr)
     inset = max(1, min(w, h) // 5)  # keep clear of the patch's blurred edges
@@ -65,6 +72,8 @@ class Daemon:
     def _options(self, name: str, options: dict) -> dict:
         if name in SIMULATED:
             if self.rig is None:
+                from uwcam.drivers.sim import SimulatedRig
+
                 sim = dict(self.config.simulation)
                 for key in ("size", "lamp_offset", "ambient"):
                     if key in sim:
@@ -104,13 +113,14 @@ class Daemon:
                     footprint=(w // 2 - 4, h // 2 - 4, 9, 9))})
             settings = CameraSettings(**cfg.camera.settings.model_dump())
             self.camera = SupervisedCamera(driver, settings, queue_size=cfg.camera.queue_size, watchdog_s=cfg.camera.watchdog_s)
+            # Built before the camera starts: the pipeline readies its kernels now, not on the first frames.
+            self.pipeline = FramePipeline(self.camera, profile, processing, self.rangefinder, self.lamp)
             if self.lamp is not None:
                 self.lamp.on()
                 self.lamp.status()  # so status shows the lamp's own word from the start
             self.camera.start()
             if self.rangefinder is not None:
                 self.rangefinder.start()
-            self.pipeline = FramePipeline(self.camera, profile, processing, self.rangefinder, self.lamp)
             self.pipeline.start()
         except BaseException:
             self.stop()

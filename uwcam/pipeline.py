@@ -228,7 +228,11 @@ class FramePipeline:
         self._times: collections.deque[float] = collections.deque(maxlen=60)
 
     def _estimator(self, processing: ProcessingConfig) -> RangeEstimator:
-        return RangeEstimator(self.profile, pair=processing.pair, path_length_bounds=processing.path_length_bounds)
+        estimator = RangeEstimator(self.profile, pair=processing.pair, path_length_bounds=processing.path_length_bounds)
+        # Compile or load the kernels and build lookup tables here, in the caller's thread (start-up
+        # or an API request), not on the loop's first frame, which would stall it for seconds.
+        estimator.warm_up(background=bool(processing.lamp_off_interval))
+        return estimator
 
     def _apply(self, processing: ProcessingConfig) -> None:
         if processing.reflectance is not None and self.rangefinder is None:
