@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 from uwcam.config import PatchConfig, ProcessingConfig, ReflectanceConfig
 from uwcam.drivers.base import Frame
 from uwcam.drivers.supervisor import SupervisedCamera
+from uwcam.memory import release_free_memory
 from uwcam.optics.geometry import Intrinsics, path_length_from_camera_range, pixel_rays
 from uwcam.optics.reflectance import surface_log_constant
 from uwcam.profile import CalibrationProfile
@@ -291,7 +292,11 @@ class FramePipeline:
             self._thread.join(timeout=10.0)
 
     def _run(self) -> None:
+        next_release = time.monotonic()
         while not self._stop.is_set():
+            if time.monotonic() >= next_release:
+                release_free_memory()  # ~0.1 ms: keeps resident memory at what frames in flight need
+                next_release = time.monotonic() + 1.0
             frame = self.camera.get(timeout_s=0.25)
             if frame is None:
                 continue
