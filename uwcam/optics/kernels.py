@@ -10,8 +10,8 @@ of :mod:`uwcam.optics.fusion` is written over channel pairs (Lagrange's identity
     D = Σ_{k<l} w_k w_l (c_k − c_l)²,   M = Σ_{k<l} w_k w_l (c_k − c_l)(y_k − y_l)
     d_T = −M / D,   Var(d_T) = Σ w_k / D
 
-Every term of D is ≥ 0 and, for a consistent pixel, every term of M has the sign of −D, so
-neither sum cancels digits: unlike the moment form Σw·Σwc² − (Σwc)², float32 is accurate to
+Every term of D is ≥ 0 and, for a pixel that fits the model, every term of M has the sign of
+−d_T (y_k − y_l ≈ −(c_k − c_l)·d_T), so neither sum cancels digits: unlike the moment form Σw·Σwc² − (Σwc)², float32 is accurate to
 a few 1e-7 relative here, which lets the arithmetic run 16 pixels per AVX-512 instruction. D is
 exactly 0 when no two usable channels differ in attenuation (a product with c_k − c_l = 0 is
 exactly 0), so that test needs no bookkeeping of its own.
@@ -43,7 +43,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 # Geometry modes for path length → camera range; the kernels use one formula for all three
-# (see lamp_dot), the mode only says how S·u is found.
+# (see lamp_geometry), the mode only says how S·u is found.
 EQUIDISTANT = 0
 LAMP_ON_AXIS_RAY = 1  # exact lamp geometry, every pixel treated as on the optical axis
 LAMP_PIXEL_RAYS = 2  # exact lamp geometry with each pixel's own ray from intrinsics
