@@ -116,7 +116,9 @@ def without_numba(tmp_path):
 
 
 def test_blocker_really_hides_numba(without_numba):
-    probe = "import uwcam.optics.kernels as k, sys\ntry:\n import numba\nexcept ImportError:\n print(k.BACKEND, 'numba' in sys.modules)"
+    """The daemon and its API (a real rig's `uwcam run`) import without numba, on the numpy path."""
+    probe = ("import uwcam.api, uwcam.daemon, uwcam.optics.kernels as k, sys\n"
+             "try:\n import numba\nexcept ImportError:\n print(k.BACKEND, 'numba' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", probe], env=without_numba, capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["numpy", "False"]
 
