@@ -122,6 +122,7 @@ def measure(args: list[str], port: int, seconds: float) -> dict:
                         next_sample += 1.0
                     if "startup" not in frames_at and now >= STARTUP_S:
                         frames_at["startup"] = (await asyncio.to_thread(status))["frames"]
+                        frames_at["t_startup"] = time.monotonic()
                         cpu_at_startup_end = proc_figures(proc.pid)[0]
                     try:
                         msg = await asyncio.wait_for(ws.recv(), timeout=0.5)
@@ -133,6 +134,7 @@ def measure(args: list[str], port: int, seconds: float) -> dict:
                             first_range = time.monotonic() - t0
                         received.append((time.monotonic() - t0, (sent - captured) / 1e6))
                 frames_at["end"] = (await asyncio.to_thread(status))["frames"]
+                frames_at["t_end"] = time.monotonic()
                 return received, first_range, proc_figures(proc.pid)[0] - cpu_at_startup_end
 
         received, t_first_range, cpu = asyncio.run(client())
@@ -140,6 +142,7 @@ def measure(args: list[str], port: int, seconds: float) -> dict:
         proc.terminate()
         proc.wait(timeout=30)
     start, end = frames_at["startup"], frames_at["end"]
+    span = frames_at["t_end"] - frames_at["t_startup"]  # between the two status snapshots
     early = [lat for t, lat in received if t < STARTUP_S]
     late = [lat for t, lat in received if t >= STARTUP_S]
     processed = end["processed"] - start["processed"]
@@ -147,11 +150,11 @@ def measure(args: list[str], port: int, seconds: float) -> dict:
         "first_status_s": t_status, "first_range_s": t_first_range,
         "startup": {"captured": start["captured"], "dropped": start["dropped"],
                     "p99_ms": float(np.percentile(early, 99)) if early else float("nan")},
-        "fps": processed / seconds, "captured": end["captured"] - start["captured"], "processed": processed,
+        "fps": processed / span, "captured": end["captured"] - start["captured"], "processed": processed,
         "dropped": end["dropped"] - start["dropped"], "sent": len(late),
         "p50_ms": float(np.percentile(late, 50)) if late else float("nan"),
         "p99_ms": float(np.percentile(late, 99)) if late else float("nan"),
-        "cpu_percent": 100.0 * cpu / seconds, "rss_peak_mb": max(r for r, _ in rss), "rss_end_mb": rss[-1][0],
+        "cpu_percent": 100.0 * cpu / span, "cpu_ms_per_frame": 1e3 * cpu / max(processed, 1), "rss_peak_mb": max(r for r, _ in rss), "rss_end_mb": rss[-1][0],
         "anon_peak_mb": max(a for _, a in rss), "anon_end_mb": rss[-1][1],
     }
 
@@ -169,7 +172,8 @@ def report(name: str, r: dict, seconds: float, fps: float | None) -> None:
     print(f"  next {seconds:g} s: processed {r['fps']:.1f} fps ({r['processed']} of {r['captured']} captured), "
           f"dropped {r['dropped']}, sent to the client {r['sent']}; latency capture → send p50 {r['p50_ms']:.1f} ms, "
           f"p99 {r['p99_ms']:.1f} ms{goal}")
-    print(f"  daemon CPU {r['cpu_percent']:.0f} % of one core; resident memory peak {r['rss_peak_mb']:.0f} MB, "
+    print(f"  daemon CPU {r['cpu_percent']:.0f} % of one core, {r['cpu_ms_per_frame']:.1f} ms per processed frame (less disturbed by "
+          f"other load than the rates); resident memory peak {r['rss_peak_mb']:.0f} MB, "
           f"at the end {r['rss_end_mb']:.0f} MB (goal < 250 MB on a real rig); anonymous (not shared-library "
           f"code) peak {r['anon_peak_mb']:.0f} MB, at the end {r['anon_end_mb']:.0f} MB")
 
