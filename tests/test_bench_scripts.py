@@ -29,3 +29,11 @@ def test_fusion_benchmark_runs(tmp_path):
     out = subprocess.run([sys.executable, str(ROOT / "bench" / "bench_fusion.py"), "--size", "320x240", "--repeat", "3"],
                          check=True, capture_output=True, text=True, timeout=600).stdout
     assert "× memcopy" in out and "straightforward numpy" in out
+
+
+@pytest.mark.slow
+def test_daemon_benchmark_runs():
+    out = subprocess.run([sys.executable, str(ROOT / "bench" / "bench_daemon.py"), "--rigs", "replay", "--size", "160x120",
+                          "--fps", "20", "--frames", "2", "--seconds", "2", "--startup-seconds", "4"],
+                         check=True, capture_output=True, text=True, timeout=600).stdout
+    assert "first range" in out and "resident memory peak" in out and "processed" in out

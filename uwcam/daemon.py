@@ -12,6 +12,7 @@ import logging
 import os
 import threading
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -19,16 +20,16 @@ from uwcam.calibration import project_plate_box
 from uwcam.config import DaemonConfig, PatchConfig, ProcessingConfig, ReflectanceConfig
 from uwcam.drivers import registry
 from uwcam.drivers.base import CameraSettings, ConfigurationError, DriverError
-from uwcam.drivers.sim import SimulatedRig
 from uwcam.drivers.supervisor import SupervisedCamera
 from uwcam.fileio import UserInputError
 from uwcam.pipeline import FramePipeline
 from uwcam.profile import CalibrationProfile, load_profile, save_profile
-from uwcam.simulation import Lamp, water_preset
-from uwcam.simulation.camera import CameraModel
-from uwcam.simulation.tank import calibrate_in_simulation
-from uwcam.simulation.scene import PATCH_CENTRE_M, PATCH_DISTANCE_M, PATCH_SIZE_M
 from uwcam.state import SavedState, load_state, remove_stale_temporaries, save_state
+
+# The simulation (renderer, water models) is imported only where a simulated device is
+# configured, so that a real rig does not carry it in memory.
+if TYPE_CHECKING:
+    from uwcam.drivers.sim import SimulatedRig
 
 log = logging.getLogger(__name__)
 SIMULATED = {"sim", "sim-ascii", "sim-ping1d"}
@@ -42,6 +43,10 @@ physics does not depend on the pixel count, and start-up stays short."""
 def simulated_calibration(rig: SimulatedRig) -> CalibrationProfile:
     """Calibrate in the rig's simulated water: grey plate with black patch at 1 m and 2 m, with
     the rig's lamp; the profile's intrinsics are the rig camera's."""
+    from uwcam.simulation import Lamp, water_preset
+    from uwcam.simulation.camera import CameraModel
+    from uwcam.simulation.tank import calibrate_in_simulation
+
     water = water_preset(rig.water, [675.0, 575.0, 475.0])
     w, h = rig.size
     factor = max(1, -(-w // CALIBRATION_WIDTH))
@@ -53,6 +58,8 @@ def simulated_calibration(rig: SimulatedRig) -> CalibrationProfile:
 
 def simulated_patch(rig: SimulatedRig) -> PatchConfig:
     """Where the calibration patch on the bracket appears (scenes seabed-patch and survey), and its path length."""
+    from uwcam.simulation.scene import PATCH_CENTRE_M, PATCH_DISTANCE_M, PATCH_SIZE_M
+
     intr = rig.world.intrinsics
     x, y, w, h = project_plate_box(PATCH_CENTRE_M, (PATCH_SIZE_M, PATCH_SIZE_M), PATCH_DISTANCE_M, intr)
     inset = max(1, min(w, h) // 5)  # keep clear of the patch's blurred edges
@@ -101,6 +108,8 @@ class Daemon:
     def _options(self, name: str, options: dict) -> dict:
         if name in SIMULATED:
             if self.rig is None:
+                from uwcam.drivers.sim import SimulatedRig
+
                 sim = dict(self.config.simulation)
                 for key in ("size", "lamp_offset", "ambient"):
                     if key in sim:
@@ -160,12 +169,13 @@ class Daemon:
                     footprint=(w // 2 - 4, h // 2 - 4, 9, 9))})
             settings = CameraSettings(**cfg.camera.settings.model_dump())
             self.camera = SupervisedCamera(driver, settings, queue_size=cfg.camera.queue_size, watchdog_s=cfg.camera.watchdog_s)
+            # Built before the camera starts: the pipeline readies its kernels now, not on the first frames.
+            self.pipeline = self._restored_pipeline(profile, processing, saved)
             if self.lamp is not None:
                 self._start_lamp(saved)
             self.camera.start()
             if self.rangefinder is not None:
                 self.rangefinder.start()
-            self.pipeline = self._restored_pipeline(profile, processing, saved)
             self.pipeline.start()
         except BaseException:
             self.stop()

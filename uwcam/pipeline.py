@@ -24,6 +24,7 @@ from uwcam.config import PatchConfig, ProcessingConfig, ReflectanceConfig
 from uwcam.drivers.base import Frame
 from uwcam.drivers.supervisor import SupervisedCamera
 from uwcam.lamp_control import LampCommander
+from uwcam.memory import release_free_memory
 from uwcam.optics.geometry import Intrinsics, path_length_from_camera_range, pixel_rays
 from uwcam.optics.reflectance import surface_log_constant
 from uwcam.profile import CalibrationProfile
@@ -249,6 +250,9 @@ class FramePipeline:
     def _apply(self, processing: ProcessingConfig, profile: CalibrationProfile | None = None) -> None:
         profile = profile or self.profile
         estimator, tracker, corrector = self._build(processing, profile)
+        # Compile or load the kernels and build lookup tables here, in the caller's thread (start-up
+        # or an API request), not on the loop's first frame, which would stall it for seconds.
+        estimator.warm_up(background=bool(processing.lamp_off_interval))
         with self._lock:  # one swap: a frame sees the old set or the new set, never a mix
             self.profile = profile
             self.processing = processing
@@ -307,7 +311,11 @@ class FramePipeline:
             self._lamp_commander.stop()
 
     def _run(self) -> None:
+        next_release = time.monotonic()
         while not self._stop.is_set():
+            if time.monotonic() >= next_release:
+                release_free_memory()  # ~0.1 ms: keeps resident memory at what frames in flight need
+                next_release = time.monotonic() + 1.0
             frame = self.camera.get(timeout_s=0.25)
             if frame is None:
                 continue

@@ -2,7 +2,8 @@
 
 :class:`RangeEstimator` turns a profile into the per-channel quantities of docs/physics.md §5
 once (attenuation differences, log constants corrected for the surface's hue, lookup
-tables for integer sensors) and then processes frames in one compiled pass.
+tables for integer sensors) and then processes frames in one pass (compiled with numba when it
+is installed, see :mod:`uwcam.optics.kernels`).
 """
 
 from __future__ import annotations
@@ -80,11 +81,12 @@ class RangeEstimator:
             self.active[[names.index(p) for p in pair]] = True
             if v[self.active][0] == v[self.active][1]:
                 raise UserInputError(f"channels {pair[0]} and {pair[1]} have equal attenuation, so the pair carries no range")
+        if n > kernels.MAX_CHANNELS:
+            raise UserInputError(f"the profile has {n} channels; at most {kernels.MAX_CHANNELS} are supported")
         self.bounds = np.array(path_length_bounds, dtype=np.float64)
-        self._tables: dict[int, tuple[NDArray, NDArray, float]] = {}
+        self._tables: dict[int, tuple[NDArray, float]] = {}
         # Kernel constants: centred attenuations as a tuple (the channel loop unrolls; only
-        # differences matter and centring keeps sums well conditioned), one bit per distinct
-        # attenuation value, and the geometry.
+        # differences matter) and the geometry.
         self.set_attenuation_differences(v)
         self._geo = self._geometry()
 
@@ -96,8 +98,6 @@ class RangeEstimator:
             raise ValueError(f"need {self.n_channels} finite attenuation differences, got {v}")
         self.attenuation = v - v.mean()
         self._c = tuple(float(x) for x in self.attenuation)
-        distinct = sorted(set(self._c))
-        self._bits = tuple(1 << distinct.index(x) for x in self._c)
 
     # Geometry parameters for the kernel: [mode, Sx, Sy, Sz, |S|, 1/fx, 1/fy, cx, cy].
     def _geometry(self) -> NDArray[np.float64]:
@@ -137,10 +137,10 @@ class RangeEstimator:
             y = np.where(ok, np.log(np.where(ok, e, 1.0)) - self.log_constant, 0.0)
         return y, weight, state.astype(np.uint8)
 
-    def _lookup_tables(self, dtype: np.dtype) -> tuple[NDArray, NDArray]:
-        """Per-channel tables over every code of an integer dtype: (N, L, 2) float32 [ln E − offset,
-        E²/σ²] and (N, L) uint8 states. They do not depend on the log constants b, which the
-        kernel subtracts, so b can follow the surface every frame for free."""
+    def _lookup_tables(self, dtype: np.dtype) -> tuple[NDArray[np.uint64], float]:
+        """Per-channel table over every code of an integer dtype: (N, L) pairs [ln E − offset, E²/σ²]
+        (see :func:`uwcam.optics.kernels.pack_pairs`) and the offset. They do not depend on the log
+        constants b, which the kernel subtracts, so b can follow the surface every frame for free."""
         bits = np.dtype(dtype).itemsize * 8
         if bits not in self._tables:
             codes = np.arange(2**bits, dtype=np.float64)[:, None].repeat(self.n_channels, axis=1)
@@ -148,9 +148,8 @@ class RangeEstimator:
             ln_e = np.where(w > 0, y + self.log_constant, 0.0)
             # A common offset of ln E changes nothing; removing it keeps float32 digits for differences.
             offset = float(np.median(ln_e[w > 0])) if np.any(w > 0) else 0.0
-            ln_e = np.where(w > 0, ln_e - offset, 0.0)
-            table = np.stack([ln_e.T, w.T], axis=-1).astype(np.float32)
-            self._tables[bits] = (np.ascontiguousarray(table), np.ascontiguousarray(state.T), offset)
+            pairs = kernels.pack_pairs(ln_e - offset, w, state, ChannelState.SATURATED, ChannelState.BACKSCATTER_ONLY)
+            self._tables[bits] = (np.ascontiguousarray(pairs.T), offset)
         return self._tables[bits]
 
     def set_log_constants(self, log_constant: NDArray | list[float]) -> None:
@@ -159,6 +158,18 @@ class RangeEstimator:
         if b.shape != (self.n_channels,) or not np.all(np.isfinite(b)):
             raise ValueError(f"need {self.n_channels} finite log constants, got {b}")
         self.log_constant = b
+
+    def warm_up(self, dtypes: tuple[type, ...] = (np.uint8, np.uint16), background: bool = True) -> None:
+        """Compile the kernels (or load them from numba's on-disk cache) and build the lookup tables
+        for frames of these pixel types, and for frames with a background when ``background``, so
+        that the first real frame is as fast as the rest. Call it before the frame loop starts."""
+        for dtype in dtypes:
+            frame = np.zeros((2, 8, self.n_channels), dtype)
+            self(frame)
+            self(frame[:, :, ::-1])  # a strided view (e.g. BGR reordered) is compiled apart
+        if background:
+            zeros = np.zeros((2, 8, self.n_channels), np.float32)
+            self(zeros, background=zeros)
 
     def __call__(self, frame: NDArray, out: RangeResult | None = None, background: NDArray | None = None) -> RangeResult:
         """Range, variance and reasons for one frame (H, W, N); ``out`` reuses output arrays.
@@ -174,14 +185,15 @@ class RangeEstimator:
         h, w = frame.shape[:2]
         if out is None:
             out = RangeResult(np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w), np.uint8))
-        common = (self._bits, self._geo, self.bounds, out.range, out.variance, out.reasons)
+        common = (self._geo, self.bounds, out.range, out.variance, out.reasons)
         if background is None and frame.dtype in (np.uint8, np.uint16):
-            table, states, offset = self._lookup_tables(frame.dtype)
+            table, offset = self._lookup_tables(frame.dtype)
             b = tuple(float(v) for v in self.log_constant - offset)
-            kernels.fuse_lookup(frame, table, states, self._c, b, *common)
+            kernels.fuse_lookup(frame, table, self._c, b, *common)
         elif np.issubdtype(frame.dtype, np.integer) or np.issubdtype(frame.dtype, np.floating):
             y, weight, state = self.channel_terms(frame, background)  # y already has b subtracted
-            kernels.fuse_arrays(y, weight, state, self._c, (0.0,) * self.n_channels, *common)
+            pairs = kernels.pack_pairs(y, weight, state, ChannelState.SATURATED, ChannelState.BACKSCATTER_ONLY)
+            kernels.fuse_arrays(pairs, self._c, (0.0,) * self.n_channels, *common)
         else:
             raise UserInputError(f"unsupported pixel type {frame.dtype}; give uint8, uint16 or float images")
         return out

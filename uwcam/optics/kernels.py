@@ -1,174 +1,186 @@
-"""Compiled one-pass fusion for the frame loop.
+"""One-pass fusion for the frame loop: compiled with numba when it is installed, numpy otherwise.
 
 Same mathematics as :func:`uwcam.optics.fusion.fused_path_length` followed by
 :func:`uwcam.optics.geometry.camera_range_from_path_length` and
-:func:`uwcam.optics.validity.pixel_reasons`, fused into a single pass over the frame
-so that no (H, W, N) float temporaries are made.
+:func:`uwcam.optics.validity.pixel_reasons`, in one pass over the frame.
 
-Integer sensors have few codes, so everything that depends on one channel's value
-alone (ln E − b, the weight E²/σ², the channel state) is tabulated per channel once
-per calibration: the pixel loop is then table look-ups and a handful of multiply-adds,
-with no logarithm. Float frames go through a twin loop reading y, w and state from arrays
-computed with numpy; both share everything after the channel loop.
+Per pixel, with y_k = ln E_k − b_k and weights w_k = E_k²/σ_k², the weighted least-squares fit
+of :mod:`uwcam.optics.fusion` is written over channel pairs (Lagrange's identity):
 
-Why it is shaped like this:
-* Attenuations arrive as a tuple, so the channel count is a compile-time constant and
-  the channel loop unrolls (twice as fast as a loop over a runtime count).
-* An unusable channel has weight 0 and simply adds nothing, so the hot loop has no
-  branches; channel states are read only for pixels left without a range, to name
-  the reason.
-* Kernels release the GIL (nogil): the camera, the frame loop and the API server run in
-  threads of one process and must not stall each other.
-* Two module-level kernels rather than one taking fetch functions as arguments: numba's
-  on-disk cache cannot reload kernels specialised on other compiled functions.
-* "Two usable channels of different attenuation" is a bit test: each distinct
-  attenuation value has its own bit, and a pixel needs two different bits set.
-* The sums are plain moments in float64 about a centred c and an offset y. Weights of
-  real sensors span at most ~10⁷, well inside float64's 16 digits; the float64
-  reference in fusion.py uses a more careful two-pass form for arbitrary inputs.
+    D = Σ_{k<l} w_k w_l (c_k − c_l)²,   M = Σ_{k<l} w_k w_l (c_k − c_l)(y_k − y_l)
+    d_T = −M / D,   Var(d_T) = Σ w_k / D
+
+Every term of D is ≥ 0 and, for a pixel that fits the model, every term of M has the sign of
+−d_T (y_k − y_l ≈ −(c_k − c_l)·d_T), so neither sum cancels digits: unlike the moment form Σw·Σwc² − (Σwc)², float32 is accurate to
+a few 1e-7 relative here, which lets the arithmetic run 16 pixels per AVX-512 instruction. D is
+exactly 0 when no two usable channels differ in attenuation (a product with c_k − c_l = 0 is
+exactly 0), so that test needs no bookkeeping of its own.
+
+How a frame flows:
+* Integer frames: everything that depends on one channel's code alone (ln E − offset, the
+  weight, the channel state) is tabulated per channel and code once per calibration. Float
+  frames (ambient subtraction) get the same pairs from numpy, one per pixel and channel.
+* A pair is two float32 [y, w] packed in 8 bytes. An unusable channel has w = 0 and carries in
+  y, instead of ln E, its state as a count to add up (``FLAG_*``): one sum per pixel then counts
+  usable, saturated and backscatter-only channels, and the reason for a missing range follows
+  without branches.
+* The compiled kernels (:mod:`uwcam.optics.kernels_numba`) look pairs up for one image row into
+  a small buffer (scalar loads: LLVM will not emit AVX-512 gathers for AMD CPUs), then fuse the
+  row in a branch-free loop that LLVM vectorises. They release the GIL (the camera, the loop and
+  the API share one process) and are cached on disk (``cache=True``) so that a restart loads
+  them instead of compiling; :meth:`uwcam.ranging.RangeEstimator.warm_up` does that before the
+  frame loop starts.
+* Without numba (e.g. 32-bit ARM, where no wheels exist) the numpy functions below compute the
+  same float32 operations in the same order, a block of rows at a time so that temporaries stay
+  a few MB; :data:`BACKEND` says which is in use.
 """
 
 from __future__ import annotations
 
-import math
+import logging
 
 import numpy as np
-from numba import njit, prange
+from numpy.typing import NDArray
 
-# Geometry modes for path length → camera range.
+# Geometry modes for path length → camera range; the kernels use one formula for all three
+# (see lamp_geometry), the mode only says how S·u is found.
 EQUIDISTANT = 0
 LAMP_ON_AXIS_RAY = 1  # exact lamp geometry, every pixel treated as on the optical axis
 LAMP_PIXEL_RAYS = 2  # exact lamp geometry with each pixel's own ray from intrinsics
 
-# Channel states and reasons as plain ints (numba-friendly mirrors of validity enums).
-_SATURATED, _BACKSCATTER = 2, 3
+# Reasons as plain ints (mirrors of uwcam.optics.validity.Reason).
 _VALID, _R_BELOW, _R_SATURATED, _R_BACKSCATTER, _R_TOO_FEW, _R_BOUNDS = 0, 1, 2, 3, 4, 5
 
+# Counts carried by a channel in a pair: a usable channel counts 1 (added by the kernel, since
+# its y holds ln E), an unusable one its flag. Sums stay exact in float32 for up to 255 channels.
+FLAG_USABLE, FLAG_BACKSCATTER, FLAG_SATURATED = 1.0, 256.0, 65536.0
+MAX_CHANNELS = 255
 
-@njit(cache=True, inline="always")
-def _no_range(n_usable, n_sat, n_back):
-    """The most telling reason a pixel has no range (see validity.pixel_reasons)."""
-    reason = _R_BELOW
-    if n_usable == 1:
-        reason = _R_TOO_FEW
-    if n_usable + n_back >= 2:
-        reason = _R_BACKSCATTER
-    if n_sat > 0:
-        reason = _R_SATURATED
-    return reason
+# Rows per block in the numpy path: bounds its temporaries (~20 float32 rows of the block).
+_NUMPY_BLOCK_ROWS = 32
 
 
-@njit(cache=True, inline="always")
-def _finish(i, j, sw, swc, swy, swcc, swcy, n_usable, groups, geo, bounds, out_range, out_var, out_reason):
-    """Path length, camera range, variance and reason of pixel (i, j) from its weighted sums.
-    Returns False when the pixel has too few usable channels and the caller must name why."""
-    if n_usable < 2:
-        return False
-    if groups & (groups - 1) == 0:  # usable channels share one attenuation
-        out_range[i, j] = np.nan
-        out_var[i, j] = np.nan
-        out_reason[i, j] = _R_TOO_FEW
-        return True
-    inv_sw = 1.0 / sw
-    spread = swcc - swc * swc * inv_sw
-    inv_spread = 1.0 / spread
-    d = -(swcy - swc * swy * inv_sw) * inv_spread
-    if not (d >= bounds[0] and d <= bounds[1] and d > geo[4] and spread > 0):
-        out_range[i, j] = np.nan
-        out_var[i, j] = np.nan
-        out_reason[i, j] = _R_BOUNDS
-        return True
-    mode = int(geo[0])
-    if mode == EQUIDISTANT:
-        dc = 0.5 * d
-        deriv = 0.5
-    else:
-        s2 = geo[4] * geo[4]
-        if mode == LAMP_PIXEL_RAYS:
-            ux = (j - geo[7]) * geo[5]
-            uy = (i - geo[8]) * geo[6]
-            p = (geo[1] * ux + geo[2] * uy + geo[3]) / math.sqrt(ux * ux + uy * uy + 1.0)
-        else:
-            p = geo[3]
-        inv_den = 1.0 / (d - p)
-        dc = 0.5 * (d * d - s2) * inv_den
-        deriv = 0.5 * (d * d - 2.0 * d * p + s2) * inv_den * inv_den
-    out_range[i, j] = dc
-    out_var[i, j] = deriv * deriv * inv_spread
-    out_reason[i, j] = _VALID
-    return True
+def pack_pairs(y: NDArray, weight: NDArray, state: NDArray, saturated: int, backscatter: int) -> NDArray[np.uint64]:
+    """Pairs [y, w] as float32, packed in uint64, from per-channel terms of any shape (..., N).
 
-
-@njit(cache=True, inline="always")
-def _invalid(i, j, reason, out_range, out_var, out_reason):
-    out_range[i, j] = np.nan
-    out_var[i, j] = np.nan
-    out_reason[i, j] = reason
-
-
-@njit(parallel=True, cache=True, nogil=True)
-def fuse_lookup(raw, table, states, c, b, bits, geo, bounds, out_range, out_var, out_reason):
-    """Range, variance and reason of every pixel of an integer frame.
-
-    raw: (H, W, N) codes; table: (N, L, 2) float32 [ln E − offset, E²/σ²] per code, weight 0
-    where unusable; states: (N, L) uint8 ChannelState per code; c: tuple of N centred
-    attenuations (1/m); b: tuple of N log constants minus the table's offset (y = table − b, so
-    log constants change without rebuilding tables); bits: tuple of N ints, one bit per distinct attenuation; geo: [mode, Sx, Sy, Sz, |S|,
-    1/fx, 1/fy, cx, cy]; bounds: [min, max] path length (m). Outputs (H, W) float32, float32, uint8.
+    y: ln E − b (any finite value where the channel is unusable); weight: E²/σ², > 0 exactly
+    where the channel is usable; state: channel state codes, of which ``saturated`` and
+    ``backscatter`` are counted for reasons. Returns shape (..., N).
     """
-    h, w = out_range.shape
-    n = len(c)
-    for i in prange(h):
-        for j in range(w):
-            sw = swc = swy = swcc = swcy = 0.0
-            n_usable = groups = 0
-            for k in range(n):
-                code = raw[i, j, k]
-                wk = np.float64(table[k, code, 1])
-                yk = np.float64(table[k, code, 0]) - b[k]
-                wc = wk * c[k]
-                sw += wk
-                swc += wc
-                swy += wk * yk
-                swcc += wc * c[k]
-                swcy += wc * yk
-                if wk > 0:
-                    n_usable += 1
-                    groups |= bits[k]
-            if not _finish(i, j, sw, swc, swy, swcc, swcy, n_usable, groups, geo, bounds, out_range, out_var, out_reason):
-                n_sat = n_back = 0
-                for k in range(n):
-                    st = states[k, raw[i, j, k]]
-                    n_sat += st == _SATURATED
-                    n_back += st == _BACKSCATTER
-                _invalid(i, j, _no_range(n_usable, n_sat, n_back), out_range, out_var, out_reason)
+    usable = weight > 0
+    flag = np.where(state == saturated, FLAG_SATURATED, np.where(state == backscatter, FLAG_BACKSCATTER, 0.0))
+    pairs = np.empty((*np.shape(weight), 2), dtype=np.float32)
+    pairs[..., 0] = np.where(usable, y, flag)
+    pairs[..., 1] = np.where(usable, weight, 0.0)
+    return pairs.view(np.uint64)[..., 0]
 
 
-@njit(parallel=True, cache=True, nogil=True)
-def fuse_arrays(y, weight, state, c, b, bits, geo, bounds, out_range, out_var, out_reason):
-    """As :func:`fuse_lookup`, with y = ln E (minus b in the kernel), weight = E²/σ² (0 where unusable) and the
-    ChannelState given per pixel and channel, each (H, W, N): for float frames."""
-    h, w = out_range.shape
+def lamp_geometry(geo: NDArray) -> tuple[float, float, float, float, float, float, float, float]:
+    """(Sx, Sy, Sz, 1/fx, 1/fy, cx, cy, |S|) from the estimator's geometry vector, with the ray
+    terms zeroed unless each pixel has its own ray, so that S·u = Sz on the axis and 0 without a lamp."""
+    mode = int(geo[0])
+    sx, sy, sz, s_norm = float(geo[1]), float(geo[2]), float(geo[3]), float(geo[4])
+    if mode == LAMP_PIXEL_RAYS:
+        return sx, sy, sz, float(geo[5]), float(geo[6]), float(geo[7]), float(geo[8]), s_norm
+    return 0.0, 0.0, sz if mode == LAMP_ON_AXIS_RAY else 0.0, 0.0, 0.0, 0.0, 0.0, s_norm
+
+
+# --------------------------------------------------------------------------------------------
+# numpy path: the same float32 operations in the same order as kernels_numba._fuse_row.
+
+def _fuse_block(y: NDArray, w: NDArray, c: tuple, b: tuple, p: NDArray, bounds: NDArray, s_norm: float,
+                out_range: NDArray, out_var: NDArray, out_reason: NDArray) -> None:
+    """Fuse a block: y, w (N, R, W) float32 pairs; p (R, W) float32 S·u; outputs (R, W)."""
+    f32 = np.float32
     n = len(c)
-    for i in prange(h):
-        for j in range(w):
-            sw = swc = swy = swcc = swcy = 0.0
-            n_usable = groups = 0
-            for k in range(n):
-                wk = np.float64(weight[i, j, k])
-                yk = np.float64(y[i, j, k]) - b[k]
-                wc = wk * c[k]
-                sw += wk
-                swc += wc
-                swy += wk * yk
-                swcc += wc * c[k]
-                swcy += wc * yk
-                if wk > 0:
-                    n_usable += 1
-                    groups |= bits[k]
-            if not _finish(i, j, sw, swc, swy, swcc, swcy, n_usable, groups, geo, bounds, out_range, out_var, out_reason):
-                n_sat = n_back = 0
-                for k in range(n):
-                    n_sat += state[i, j, k] == _SATURATED
-                    n_back += state[i, j, k] == _BACKSCATTER
-                _invalid(i, j, _no_range(n_usable, n_sat, n_back), out_range, out_var, out_reason)
+    sw = np.zeros(p.shape, f32)
+    flags = np.zeros(p.shape, f32)
+    det = np.zeros(p.shape, f32)
+    num = np.zeros(p.shape, f32)
+    for k in range(n):
+        sw += w[k]
+        flags += np.where(w[k] > 0, f32(FLAG_USABLE), y[k])
+        for m in range(k + 1, n):
+            dc = f32(c[k] - c[m])
+            ww = w[k] * w[m]
+            det += ww * (dc * dc)
+            num += (ww * dc) * (y[k] - y[m] - f32(b[k] - b[m]))
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        inv = f32(1.0) / det
+        d = -num * inv
+        den = f32(1.0) / (d - p)
+        s2 = f32(s_norm * s_norm)
+        rng = f32(0.5) * (d * d - s2) * den
+        deriv = f32(0.5) * (d * d - f32(2.0) * d * p + s2) * den * den
+        var = deriv * deriv * sw * inv
+        ok = (det > 0) & (d >= f32(bounds[0])) & (d <= f32(bounds[1])) & (d > f32(s_norm))
+    counts = flags.astype(np.int32)
+    n_usable, n_back, n_sat = counts & 255, (counts >> 8) & 255, counts >> 16
+    reason = np.full(p.shape, _R_BELOW, np.uint8)
+    reason[n_usable == 1] = _R_TOO_FEW
+    reason[n_usable + n_back >= 2] = _R_BACKSCATTER
+    reason[n_sat > 0] = _R_SATURATED
+    reason[n_usable >= 2] = _R_TOO_FEW
+    reason[det > 0] = _R_BOUNDS
+    reason[ok] = _VALID
+    out_range[...] = np.where(ok, rng, np.nan)
+    out_var[...] = np.where(ok, var, np.nan)
+    out_reason[...] = reason
+
+
+def _lamp_dot_block(geo: NDArray, rows: slice, width: int) -> NDArray[np.float32]:
+    """S·u for a block of rows, (R, W) float32, computed in float64 as the compiled kernel does."""
+    sx, sy, sz, ifx, ify, cx, cy, _ = lamp_geometry(geo)
+    i = np.arange(rows.start, rows.stop, dtype=np.float64)[:, None]
+    j = np.arange(width, dtype=np.float64)[None, :]
+    uy = (i - cy) * ify
+    a = sy * uy + sz
+    q = uy * uy + 1.0
+    ux = (j - cx) * ifx
+    return ((sx * ux + a) / np.sqrt(ux * ux + q)).astype(np.float32)
+
+
+def _fuse_numpy(fetch, n: int, c: tuple, b: tuple, geo: NDArray, bounds: NDArray,
+                out_range: NDArray, out_var: NDArray, out_reason: NDArray) -> None:
+    h, w = out_range.shape
+    for start in range(0, h, _NUMPY_BLOCK_ROWS):
+        rows = slice(start, min(start + _NUMPY_BLOCK_ROWS, h))
+        pairs = np.stack([fetch(rows, k) for k in range(n)]).view(np.float32)  # (N, R, 2W)
+        _fuse_block(pairs[..., 0::2], pairs[..., 1::2], c, b, _lamp_dot_block(geo, rows, w), bounds, float(geo[4]),
+                    out_range[rows], out_var[rows], out_reason[rows])
+
+
+def fuse_lookup_numpy(raw: NDArray, table: NDArray[np.uint64], c: tuple, b: tuple, geo: NDArray, bounds: NDArray,
+                      out_range: NDArray, out_var: NDArray, out_reason: NDArray) -> None:
+    """Range, variance and reason of every pixel of an integer frame (numpy path).
+
+    raw: (H, W, N) uint8/uint16 codes; table: (N, L) pairs (see :func:`pack_pairs`) per code,
+    y = ln E − offset; c: N centred attenuations (1/m); b: N log constants minus the table's
+    offset; geo: [mode, Sx, Sy, Sz, |S|, 1/fx, 1/fy, cx, cy]; bounds: [min, max] path length (m).
+    Outputs (H, W) float32 range (m), float32 variance (m²), uint8 reason, written in place.
+    """
+    _fuse_numpy(lambda rows, k: np.take(table[k], raw[rows, :, k]), len(c), c, b, geo, bounds,
+                out_range, out_var, out_reason)
+
+
+def fuse_arrays_numpy(pairs: NDArray[np.uint64], c: tuple, b: tuple, geo: NDArray, bounds: NDArray,
+                      out_range: NDArray, out_var: NDArray, out_reason: NDArray) -> None:
+    """As :func:`fuse_lookup_numpy` with the pairs given per pixel and channel, (H, W, N): for float frames."""
+    _fuse_numpy(lambda rows, k: np.ascontiguousarray(pairs[rows, :, k]), len(c), c, b, geo, bounds,
+                out_range, out_var, out_reason)
+
+
+try:
+    from uwcam.optics import kernels_numba as _compiled
+except ImportError as exc:
+    if exc.name and exc.name.startswith("uwcam"):
+        raise
+    if exc.name not in ("numba", "llvmlite"):  # installed, but broken (e.g. built for another numpy)
+        logging.getLogger(__name__).warning("numba cannot be imported (%s): ranging runs on numpy, ~20× slower", exc)
+    _compiled = None
+
+BACKEND: str = "numba" if _compiled is not None else "numpy"
+"""Which implementation :func:`fuse_lookup` and :func:`fuse_arrays` use: "numba" or "numpy"."""
+
+fuse_lookup = _compiled.fuse_lookup if _compiled is not None else fuse_lookup_numpy
+fuse_arrays = _compiled.fuse_arrays if _compiled is not None else fuse_arrays_numpy
