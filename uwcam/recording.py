@@ -98,6 +98,11 @@ def timestamp(ns: int):
 
 def raw_image(data: NDArray, log_time_ns: int, encoding: str | None = None) -> bytes:
     """foxglove.RawImage (protobuf bytes) of an (H, W[, C]) array, little-endian, unpadded."""
+    return raw_image_message(data, log_time_ns, encoding).encode()
+
+
+def raw_image_message(data: NDArray, log_time_ns: int, encoding: str | None = None):
+    """foxglove.RawImage message of an (H, W[, C]) array, little-endian, unpadded."""
     data = np.ascontiguousarray(data)
     if data.dtype.byteorder == ">":
         data = data.astype(data.dtype.newbyteorder("<"))
@@ -105,7 +110,7 @@ def raw_image(data: NDArray, log_time_ns: int, encoding: str | None = None) -> b
     step = w * (data.shape[2] if data.ndim == 3 else 1) * data.dtype.itemsize
     m = _messages()
     return m.RawImage(timestamp=timestamp(log_time_ns), frame_id=FRAME_ID, width=w, height=h,
-                      encoding=encoding or image_encoding(data), step=step, data=data.tobytes()).encode()
+                      encoding=encoding or image_encoding(data), step=step, data=data.tobytes())
 
 
 def decode_raw_image(message: Any) -> NDArray:
@@ -127,13 +132,18 @@ def depth_factor(profile: CalibrationProfile, height: int, width: int) -> NDArra
 
 
 def camera_calibration(profile: CalibrationProfile, width: int, height: int, log_time_ns: int) -> bytes:
+    """foxglove.CameraCalibration (protobuf bytes) of the profile's pinhole intrinsics."""
+    return calibration_message(profile, width, height, log_time_ns).encode()
+
+
+def calibration_message(profile: CalibrationProfile, width: int, height: int, log_time_ns: int):
     """foxglove.CameraCalibration of the profile's pinhole intrinsics (K all zero: uncalibrated)."""
     intr = profile.camera_intrinsics()
     fx, fy, cx, cy = (intr.fx, intr.fy, intr.cx, intr.cy) if intr else (0.0, 0.0, 0.0, 0.0)
     m = _messages()
     return m.CameraCalibration(timestamp=timestamp(log_time_ns), frame_id=FRAME_ID, width=width, height=height,
                                distortion_model="plumb_bob", D=[0.0] * 5, K=[fx, 0, cx, 0, fy, cy, 0, 0, 1],
-                               R=[1.0, 0, 0, 0, 1, 0, 0, 0, 1], P=[fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1, 0]).encode()
+                               R=[1.0, 0, 0, 0, 1, 0, 0, 0, 1], P=[fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1, 0])
 
 
 def profile_attachment_name(profile: CalibrationProfile) -> str:
@@ -312,7 +322,7 @@ def iter_recorded_frames(reader, start_time: int | None = None, end_time: int | 
     pending_meta: dict[int, dict] = {}
     pending_img: dict[int, NDArray] = {}
     for _schema, channel, message, decoded in reader.iter_decoded_messages(
-            topics=[IMAGE, IMAGE_METADATA], start_time=start_time, end_time=end_time):
+            topics=[IMAGE, IMAGE_METADATA], starting_at=start_time, ending_before=end_time):
         t = message.log_time
         if channel.topic == IMAGE:
             pending_img[t] = decode_raw_image(decoded)

@@ -67,10 +67,20 @@ def _open(path: str):
     return fh
 
 
+def _summary(path: str):
+    """The MCAP summary (None for a file without one); UserInputError if it is no MCAP file."""
+    from mcap.exceptions import McapError
+
+    with _open(path) as fh:
+        try:
+            return rec.open_reader(fh).get_summary()
+        except (McapError, ValueError, EOFError) as exc:
+            raise UserInputError(f"{path} is not a readable MCAP recording ({exc})") from None
+
+
 def ranged_frame_count(path: str) -> int:
     """Frames with a range in a recording (from its statistics; 0 if it has none)."""
-    with _open(path) as fh:
-        summary = rec.open_reader(fh).get_summary()
+    summary = _summary(path)
     if summary is None or summary.statistics is None:
         return 0
     ids = [cid for cid, ch in summary.channels.items() if ch.topic == rec.RANGING]
@@ -80,11 +90,7 @@ def ranged_frame_count(path: str) -> int:
 def plan(path: str, chunks_per_part: int = 4) -> list[Part]:
     """Cut a recording into parts of ``chunks_per_part`` MCAP chunks each, by the chunks' start
     times. A file without a chunk index (a repaired one) is a single part."""
-    with _open(path) as fh:
-        try:
-            summary = rec.open_reader(fh).get_summary()
-        except Exception as exc:  # the mcap package raises several types for a damaged file
-            raise UserInputError(f"{path} is not a readable MCAP recording ({exc})") from None
+    summary = _summary(path)
     if summary is None or not summary.chunk_indexes:
         return [Part(path, 0, END_OF_TIME)]
     starts = sorted({c.message_start_time for c in summary.chunk_indexes})
@@ -118,13 +124,13 @@ def process_part(part: Part, profile_yaml: str | None = None) -> PartResult:
         recorded = rec.read_profiles(reader)
         ambient = None
         if part.start_ns > 0:  # the ambient estimate in force when the part begins
-            for _s, _c, _m, decoded in reader.iter_decoded_messages(topics=[rec.AMBIENT], end_time=part.start_ns,
+            for _s, _c, _m, decoded in reader.iter_decoded_messages(topics=[rec.AMBIENT], ending_before=part.start_ns,
                                                                     reverse=True):
                 ambient = rec.decode_raw_image(decoded).astype(np.float64)
                 break
         images: dict[int, NDArray] = {}
         for _s, channel, message, decoded in reader.iter_decoded_messages(
-                topics=[rec.IMAGE, rec.AMBIENT, rec.RANGING], start_time=part.start_ns, end_time=part.end_ns):
+                topics=[rec.IMAGE, rec.AMBIENT, rec.RANGING], starting_at=part.start_ns, ending_before=part.end_ns):
             t = message.log_time
             if channel.topic == rec.IMAGE:
                 images[t] = rec.decode_raw_image(decoded)
@@ -241,7 +247,10 @@ def reprocess(inputs: Iterable[str], output: str, profile: str | None = None, sc
         profile_yaml = profile_to_yaml(load_profile(profile))
     total = sum(ranged_frame_count(p) for p in inputs)
     fn = partial(process_part, profile_yaml=profile_yaml)
-    bar = tqdm(total=total or None, unit="frame", desc="reprocess", disable=not progress, dynamic_ncols=True)
+    class Bar(tqdm):
+        monitor_interval = 0  # no monitor thread: updates come once per part anyway
+
+    bar = Bar(total=total or None, unit="frame", desc="reprocess", disable=not progress, dynamic_ncols=True)
     try:
         parts_by_input = [plan(p, chunks_per_part) for p in inputs]
         flat = [part for parts in parts_by_input for part in parts]
@@ -257,6 +266,7 @@ def _write_output(path: str, results: Iterable[PartResult], bar) -> None:
     folder = os.path.dirname(os.path.abspath(path))
     fd, tmp = tempfile.mkstemp(prefix=".reprocess-", suffix=".mcap", dir=folder)
     os.close(fd)
+    out = None
     try:
         out = rec.McapFile(tmp)
         attached: set[str] = set()
@@ -287,6 +297,8 @@ def _write_output(path: str, results: Iterable[PartResult], bar) -> None:
         out.finish()
         os.replace(tmp, path)
     except BaseException:
+        if out is not None:
+            out.abandon()
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise

@@ -94,7 +94,7 @@ class Recorder:
                 raise UserInputError(f"already recording into {self._files[-1]}; stop it first")
         if path is None:
             os.makedirs(self.config.folder, exist_ok=True)
-            self._repair_folder(self.config.folder)
+            repair_folder(self.config.folder)
             path = _unique(os.path.join(self.config.folder, time_name()))
         elif os.path.exists(path):
             raise UserInputError(f"{path} exists; give a new file name (recordings are never overwritten)")
@@ -117,9 +117,6 @@ class Recorder:
             self._state = "recording"
             self._started_wall = time.time()
             self._thread = threading.Thread(target=self._run, name="mcap-recorder", daemon=True)
-        self._last_profile: CalibrationProfile | None = None
-        self._last_ambient = None
-        self._attached: set[str] = set()
         self._last_reading_ns: int | None = None
         self._next_status = 0.0
         self.pipeline.subscribe(self._on_published)
@@ -175,6 +172,11 @@ class Recorder:
         self._attached = set()
         self._last_profile = None
         self._last_ambient = None
+        self._rotate_due = False
+        # Every file carries the calibration in use from its start (self-contained parts).
+        profile = self.pipeline.profile
+        self._file.attach_profile(profile, time.time_ns())
+        self._attached.add(profile.name)
 
     def _run(self) -> None:
         reason = "stopped"
@@ -251,7 +253,7 @@ class Recorder:
         c = self.config
         if (c.max_size_mb and self._file.size() >= c.max_size_mb * 1e6) or \
                 (c.max_duration_s and now - self._file_started >= c.max_duration_s):
-            self._rotate()
+            self._rotate_due = True  # the next frame opens the next file: no file without frames
 
     def _rotate(self) -> None:
         self._finish()
@@ -279,6 +281,8 @@ class Recorder:
             "dtype": frame.data.dtype.name, "ranged": ranged, "number": number}, t)
 
     def _write_item(self, item: tuple) -> None:
+        if self._rotate_due:
+            self._rotate()
         if item[0] == "unranged":
             _, frame, why = item
             self._frame_messages(frame, int(frame.wall_time * 1e9), why, None)
@@ -310,17 +314,20 @@ class Recorder:
         f.write(rec.VARIANCE, "foxglove.RawImage", rec.raw_image(variance, t, "32FC1"), t)
         f.write(rec.REASONS, "foxglove.RawImage", rec.raw_image(p.result.reasons, t, "mono8"), t)
 
-    @staticmethod
-    def _repair_folder(folder: str) -> None:
-        """Recordings left unfinished by a crash or power loss get their footer now."""
-        for name in sorted(os.listdir(folder)):
-            path = os.path.join(folder, name)
-            if name.endswith(".mcap") and os.path.isfile(path) and not rec.is_complete(path):
-                try:
-                    kept = rec.repair(path)
-                    log.warning("repaired unfinished recording %s (%d bytes kept)", path, kept)
-                except (OSError, rec.RecordingError) as exc:
-                    log.warning("could not repair %s: %s", path, exc)
+
+def repair_folder(folder: str) -> list[str]:
+    """Give recordings left unfinished by a crash or power loss their footer; returns their paths."""
+    repaired = []
+    for name in sorted(os.listdir(folder)):
+        path = os.path.join(folder, name)
+        if name.endswith(".mcap") and os.path.isfile(path) and not rec.is_complete(path):
+            try:
+                kept = rec.repair(path)
+                repaired.append(path)
+                log.warning("repaired unfinished recording %s (%d bytes kept)", path, kept)
+            except (OSError, rec.RecordingError) as exc:
+                log.warning("could not repair %s: %s", path, exc)
+    return repaired
 
 
 def ranging_record(p: Published, profile: CalibrationProfile, processing) -> dict:
