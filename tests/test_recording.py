@@ -356,7 +356,7 @@ def test_killed_daemon_leaves_a_recording_that_is_repaired_and_read(tmp_path):
     path = tmp_path / "recordings" / "dive.mcap"
     path.parent.mkdir()
     proc = subprocess.Popen([sys.executable, "-m", "uwcam", "run", "--config", str(tmp_path / "rig.yaml"), "--record", str(path)],
-                            cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+                            cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         assert wait_for(lambda: path.exists() and path.stat().st_size > 1_500_000, 120.0), "nothing recorded"
     finally:
@@ -367,3 +367,102 @@ def test_killed_daemon_leaves_a_recording_that_is_repaired_and_read(tmp_path):
     assert rec.is_complete(str(path))
     images = decoded(str(path), rec.IMAGE)
     assert len(images) >= 3 and all(image(m).shape == (120, 160, 3) for _, m in images)
+
+
+def test_recordings_api_starts_stops_lists_and_downloads(tmp_path):
+    from tests.test_api import Server
+
+    cfg = recording_config(tmp_path)
+    cfg.api.token = "s3cret"
+    auth = {"Authorization": "Bearer s3cret"}
+    with Server(cfg) as s:
+        assert wait_for(lambda: s.http.get("/api/v1/status").json()["frames"]["processed"] > 2, 60.0)
+        assert s.http.get("/api/v1/status").json()["recording"]["state"] == "idle"
+        assert s.http.post("/api/v1/recordings/start").status_code == 401  # state changes need the token
+        started = s.http.post("/api/v1/recordings/start", headers=auth)
+        assert started.status_code == 200 and started.json()["state"] == "recording"
+        name = os.path.basename(started.json()["file"])
+        assert name.startswith("uwcam-") and name.endswith("Z.mcap")
+        again = s.http.post("/api/v1/recordings/start", headers=auth)
+        assert again.status_code == 409 and "already recording" in again.json()["detail"]
+        assert wait_for(lambda: s.http.get("/api/v1/recordings/status").json()["frames_written"] >= 5, 30.0)
+        assert s.http.get("/api/v1/status").json()["recording"]["state"] == "recording"
+        listed = s.http.get("/api/v1/recordings").json()["recordings"]
+        assert [(r["name"], r["recording"], r["complete"]) for r in listed] == [(name, True, False)]
+        stopped = s.http.post("/api/v1/recordings/stop", headers=auth).json()
+        assert stopped["state"] == "idle" and stopped["last_stop_reason"] == "stopped on request"
+        listed = s.http.get("/api/v1/recordings").json()["recordings"]
+        assert [(r["name"], r["recording"], r["complete"]) for r in listed] == [(name, False, True)]
+        got = s.http.get(f"/api/v1/recordings/{name}")
+        assert got.status_code == 200 and got.content == (tmp_path / "recordings" / name).read_bytes()
+        for bad in ("..%2Frig.yaml", "nothing.mcap", ".hidden.mcap"):
+            assert s.http.get(f"/api/v1/recordings/{bad}").status_code == 404
+    (tmp_path / "dl.mcap").write_bytes(got.content)
+    assert len(decoded(str(tmp_path / "dl.mcap"), rec.DEPTH)) == stopped["frames_written"]
+
+
+def test_foxglove_server_carries_the_topics_and_a_point_cloud(tmp_path):
+    """A real client of the Foxglove WebSocket protocol: subscribe, receive, decode with the
+    advertised protobuf schema (stock protobuf runtime)."""
+    import asyncio
+    import base64
+    import json
+    import struct
+
+    import websockets
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+
+    from uwcam.config import FoxgloveConfig
+
+    cfg = small_config()
+    cfg.foxglove = FoxgloveConfig(enabled=True, port=0, rate_hz=20, point_stride=4)
+
+    def decoder(channel):
+        fds = descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(channel["schema"]))
+        pool = descriptor_pool.DescriptorPool()
+        for fd in fds.file:
+            pool.Add(fd)
+        return message_factory.GetMessageClass(pool.FindMessageTypeByName(channel["schemaName"].lstrip(".")))
+
+    async def client(port):
+        async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"],
+                                      max_size=None) as ws:
+            assert ws.subprotocol in ("foxglove.sdk.v1", "foxglove.websocket.v1")
+            channels = {}
+            while not {rec.DEPTH, "/uwcam/points", rec.IMAGE, rec.CALIBRATION} <= set(channels):
+                msg = json.loads(await ws.recv())
+                if msg["op"] == "advertise":
+                    channels.update({c["topic"]: c for c in msg["channels"]})
+            wanted = [rec.DEPTH, "/uwcam/points", rec.IMAGE]
+            await ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                {"id": i, "channelId": channels[t]["id"]} for i, t in enumerate(wanted)]}))
+            got = {}
+            while len(got) < len(wanted):
+                data = await ws.recv()
+                if isinstance(data, bytes) and data[0] == 0x01:  # message data
+                    sub, _t = struct.unpack_from("<IQ", data, 1)
+                    topic = wanted[sub]
+                    got.setdefault(topic, decoder(channels[topic]).FromString(data[13:]))
+            return channels, got
+
+    with running(cfg) as d:
+        channels, got = asyncio.run(client(d.foxglove.port))
+        status = d.status()["foxglove"]
+        intr = d.pipeline.profile.camera_intrinsics()
+    assert channels[rec.DEPTH]["schemaName"] == "foxglove.RawImage" and channels["/uwcam/points"]["schemaName"] == "foxglove.PointCloud"
+    assert status["frames_sent"] > 0 and status["error"] is None
+    depth = got[rec.DEPTH]
+    assert (depth.width, depth.height, depth.encoding) == (160, 120, "32FC1")
+    z = np.frombuffer(depth.data, "<f4").reshape(120, 160)
+    assert np.nanmedian(z[40:80, 60:100]) == pytest.approx(SEABED_Z_M, rel=0.02)
+    raw = got[rec.IMAGE]
+    assert raw.encoding == "16UC3" and len(raw.data) == 160 * 120 * 3 * 2
+    cloud = got["/uwcam/points"]
+    fields = {f.name: f.offset for f in cloud.fields}
+    assert fields == {"x": 0, "y": 4, "z": 8, "red": 12, "green": 13, "blue": 14} and cloud.point_stride == 16
+    pts = np.frombuffer(cloud.data, dtype=[("xyz", "<f4", 3), ("rgb", "u1", 3), ("pad", "u1")])
+    assert 0.5 * (120 // 4) * (160 // 4) < len(pts) <= (120 // 4) * (160 // 4)
+    # every point lies on its pixel's ray: x/z = (u − cx)/fx for a pixel u on the 4-pixel grid
+    u = pts["xyz"][:, 0] / pts["xyz"][:, 2] * intr.fx + intr.cx
+    assert np.allclose(u / 4, np.round(u / 4), atol=1e-3)
+    assert np.median(pts["xyz"][:, 2]) == pytest.approx(SEABED_Z_M, rel=0.05)
