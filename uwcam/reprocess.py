@@ -172,7 +172,8 @@ def process_part(part: Part, profile_yaml: str | None = None) -> PartResult:
             ranging = dict(record, profile=profile.name, attenuation_differences=[float(x) for x in v],
                            log_constants=[float(x) for x in b], reprocessed_from=record["profile"])
             out.frames.append(FrameResult(t, depth, variance, result.reasons.copy(), ranging))
-            out.profiles.setdefault(profile.name, profile_to_yaml(profile))
+            if profile.name not in out.profiles:
+                out.profiles[profile.name] = profile_to_yaml(profile)
     return out
 
 
