@@ -7,7 +7,7 @@ depend on the pixels' values), and reprocessed (1) in this process, (2) on a loc
 of ``--workers`` worker processes (its start-up counted separately). Figures are wall-clock on
 whatever machine runs this; on a shared machine compare the ratio, not the absolute numbers.
 
-    .venv/bin/python bench/bench_reprocess.py --size 640x480 --frames 200 --workers 2
+    .venv/bin/python bench/bench_reprocess.py --size 640x480 --frames 100 --workers 2
 """
 
 from __future__ import annotations
@@ -68,7 +68,7 @@ def lengthen(src: str, dst: str, frames: int) -> int:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--size", default="640x480", help="frame size WxH (default 640x480)")
-    ap.add_argument("--frames", type=int, default=200, help="frames in the reprocessed dive (default 200)")
+    ap.add_argument("--frames", type=int, default=100, help="frames in the reprocessed dive (default 100)")
     ap.add_argument("--workers", type=int, default=2, help="worker processes of the local cluster (default 2)")
     args = ap.parse_args()
     w, h = (int(v) for v in args.size.lower().split("x"))

@@ -429,11 +429,11 @@ def test_foxglove_server_carries_the_topics_and_a_point_cloud(tmp_path):
                                       max_size=None) as ws:
             assert ws.subprotocol in ("foxglove.sdk.v1", "foxglove.websocket.v1")
             channels = {}
-            while not {rec.DEPTH, "/uwcam/points", rec.IMAGE, rec.CALIBRATION} <= set(channels):
+            while not {rec.DEPTH, "/uwcam/points", rec.IMAGE, rec.CALIBRATION, rec.STATUS, rec.RANGEFINDER} <= set(channels):
                 msg = json.loads(await ws.recv())
                 if msg["op"] == "advertise":
                     channels.update({c["topic"]: c for c in msg["channels"]})
-            wanted = [rec.DEPTH, "/uwcam/points", rec.IMAGE]
+            wanted = [rec.DEPTH, "/uwcam/points", rec.IMAGE, rec.STATUS]
             await ws.send(json.dumps({"op": "subscribe", "subscriptions": [
                 {"id": i, "channelId": channels[t]["id"]} for i, t in enumerate(wanted)]}))
             got = {}
@@ -442,7 +442,10 @@ def test_foxglove_server_carries_the_topics_and_a_point_cloud(tmp_path):
                 if isinstance(data, bytes) and data[0] == 0x01:  # message data
                     sub, _t = struct.unpack_from("<IQ", data, 1)
                     topic = wanted[sub]
-                    got.setdefault(topic, decoder(channels[topic]).FromString(data[13:]))
+                    if channels[topic]["encoding"] == "json":
+                        got.setdefault(topic, json.loads(data[13:]))
+                    else:
+                        got.setdefault(topic, decoder(channels[topic]).FromString(data[13:]))
             return channels, got
 
     with running(cfg) as d:
@@ -451,6 +454,7 @@ def test_foxglove_server_carries_the_topics_and_a_point_cloud(tmp_path):
         intr = d.pipeline.profile.camera_intrinsics()
     assert channels[rec.DEPTH]["schemaName"] == "foxglove.RawImage" and channels["/uwcam/points"]["schemaName"] == "foxglove.PointCloud"
     assert status["frames_sent"] > 0 and status["error"] is None
+    assert got[rec.STATUS]["camera"]["health"]["state"] == "ok" and got[rec.STATUS]["foxglove"]["url"].startswith("ws://")
     depth = got[rec.DEPTH]
     assert (depth.width, depth.height, depth.encoding) == (160, 120, "32FC1")
     z = np.frombuffer(depth.data, "<f4").reshape(120, 160)
@@ -466,3 +470,28 @@ def test_foxglove_server_carries_the_topics_and_a_point_cloud(tmp_path):
     u = pts["xyz"][:, 0] / pts["xyz"][:, 2] * intr.fx + intr.cx
     assert np.allclose(u / 4, np.round(u / 4), atol=1e-3)
     assert np.median(pts["xyz"][:, 2]) == pytest.approx(SEABED_Z_M, rel=0.05)
+
+
+def test_a_slow_disk_drops_counted_frames_and_stop_is_prompt(tmp_path, monkeypatch):
+    """Writing slower than the camera delivers: the queue stays bounded, losses are counted,
+    and stop() finishes what is queued instead of chasing new frames."""
+    write = rec.McapFile.write
+
+    def slow_write(self, *args, **kwargs):
+        time.sleep(0.01)  # ~90 ms a frame against a frame every 50 ms
+        write(self, *args, **kwargs)
+
+    monkeypatch.setattr(rec.McapFile, "write", slow_write)
+    with running(recording_config(tmp_path, queue_frames=4)) as d:
+        d.recorder.start(str(tmp_path / "slow.mcap"))
+        peak = 0
+        deadline = time.monotonic() + 60.0
+        while d.recorder.status()["frames_dropped"] < 5 and time.monotonic() < deadline:
+            peak = max(peak, d.recorder.status()["queued"])
+            time.sleep(0.01)
+        began = time.monotonic()
+        status = d.recorder.stop()
+        took = time.monotonic() - began
+    assert status["state"] == "idle" and status["frames_dropped"] >= 5 and peak <= 4
+    assert took < 5.0  # at most the 4 queued frames (~0.4 s) plus closing the file
+    assert len(decoded(str(tmp_path / "slow.mcap"), rec.IMAGE)) == status["frames_written"]

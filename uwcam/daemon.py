@@ -129,7 +129,8 @@ class Daemon:
         if self.config.foxglove.enabled:
             from uwcam.outputs.foxglove import FoxgloveOutput
 
-            self.foxglove = FoxgloveOutput(self.pipeline, self.config.foxglove)
+            self.foxglove = FoxgloveOutput(self.pipeline, self.config.foxglove, status=self.status,
+                                           rangefinder=self.rangefinder)
             self.foxglove.start()
 
     def stop(self) -> None:

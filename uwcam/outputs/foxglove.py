@@ -9,9 +9,11 @@ second, so a slow client or a busy encoder never slows the loop (skipped frames 
 
 from __future__ import annotations
 
+import json
 import logging
 import threading
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -48,9 +50,13 @@ def point_cloud(range_m: np.ndarray, rays: np.ndarray, rgb: np.ndarray, stride: 
 class FoxgloveOutput:
     """The Foxglove WebSocket server and its sender thread."""
 
-    def __init__(self, pipeline: FramePipeline, config: FoxgloveConfig) -> None:
+    def __init__(self, pipeline: FramePipeline, config: FoxgloveConfig,
+                 status: Callable[[], dict] | None = None, rangefinder: object | None = None) -> None:
         self.pipeline = pipeline
         self.config = config
+        self._status_fn = status
+        self.rangefinder = rangefinder
+        self._next_status = 0.0
         self._lock = threading.Lock()  # guards the one-slot holder and the counters
         self._ready = threading.Condition(self._lock)
         self._newest: Published | None = None
@@ -78,6 +84,8 @@ class FoxgloveOutput:
             rec.REASONS: channels.RawImageChannel(rec.REASONS, context=ctx),
             rec.CALIBRATION: channels.CameraCalibrationChannel(rec.CALIBRATION, context=ctx),
             POINTS: channels.PointCloudChannel(POINTS, context=ctx),
+            rec.STATUS: foxglove.Channel(rec.STATUS, context=ctx),
+            rec.RANGEFINDER: foxglove.Channel(rec.RANGEFINDER, context=ctx),
         }
         self._thread = threading.Thread(target=self._run, name="foxglove-output", daemon=True)
         self._thread.start()
@@ -156,6 +164,13 @@ class FoxgloveOutput:
         ch[rec.DEPTH].log(rec.raw_image_message(depth, t, "32FC1"), log_time=t)
         ch[rec.VARIANCE].log(rec.raw_image_message(variance, t, "32FC1"), log_time=t)
         ch[rec.REASONS].log(rec.raw_image_message(p.result.reasons, t, "mono8"), log_time=t)
+        reading = self.rangefinder.latest() if self.rangefinder is not None else None
+        if reading is not None:
+            ch[rec.RANGEFINDER].log({"range_m": reading.range_m, "confidence": reading.confidence,
+                                     "wall_time": reading.wall_time}, log_time=int(reading.wall_time * 1e9))
+        if self._status_fn is not None and time.monotonic() >= self._next_status:
+            self._next_status = time.monotonic() + 1.0
+            ch[rec.STATUS].log(json.loads(json.dumps(self._status_fn(), default=str)), log_time=time.time_ns())
         if rays is not None:
             data, _n = point_cloud(p.result.range, rays, rgb, self.config.point_stride)
             f32, u8 = m.PackedElementFieldNumericType.Float32, m.PackedElementFieldNumericType.Uint8

@@ -127,6 +127,9 @@ class Recorder:
 
     def stop(self, reason: str = "stopped on request") -> dict:
         """Stop: write what is queued, finish the file. Returns the final status."""
+        # No new frames from here on: the writer drains what is queued (at most queue_frames).
+        self.pipeline.unsubscribe(self._on_published)
+        self.pipeline.unsubscribe_unranged(self._on_unranged)
         with self._lock:
             thread = self._thread
             if thread is None:
