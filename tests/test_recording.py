@@ -495,3 +495,30 @@ def test_a_slow_disk_drops_counted_frames_and_stop_is_prompt(tmp_path, monkeypat
     assert status["state"] == "idle" and status["frames_dropped"] >= 5 and peak <= 4
     assert took < 5.0  # at most the 4 queued frames (~0.4 s) plus closing the file
     assert len(decoded(str(tmp_path / "slow.mcap"), rec.IMAGE)) == status["frames_written"]
+
+
+def test_lamp_off_frames_and_ambient_are_recorded_and_reprocessed(tmp_path):
+    """With daylight and a lamp-off frame every 4, the dark frames are recorded too, the ambient
+    light subtracted is recorded when it changes, and reprocessing (cut into parts that begin
+    after an ambient update) reproduces the recorded depth exactly."""
+    cfg = recording_config(tmp_path)
+    cfg.simulation["ambient"] = [0.05, 0.05, 0.05]
+    cfg.processing = cfg.processing.model_copy(update={"lamp_off_interval": 4})
+    path = str(tmp_path / "daylight.mcap")
+    with running(cfg) as d:
+        d.recorder.start(path)
+        assert wait_for(lambda: d.recorder.status()["frames_written"] >= 40, 60.0)
+        d.recorder.stop()
+    meta = [m for _, m in decoded(path, rec.IMAGE_METADATA)]
+    dark = [m for m in meta if m["ranged"] == "lamp off"]
+    assert len(dark) >= 3 and all(m["lamp_on"] is False for m in dark)
+    ambient = decoded(path, rec.AMBIENT)
+    assert len(ambient) >= 2 and ambient[0][1].encoding == "32FC3"
+    ranging = [r for _, r in decoded(path, rec.RANGING)]
+    assert sum(r["ambient_subtracted"] for r in ranging) >= 10
+    assert len(plan(path)) >= 3
+    reprocess([path], str(tmp_path / "again.mcap"), progress=False)
+    recorded, again = decoded(path, rec.DEPTH), decoded(str(tmp_path / "again.mcap"), rec.DEPTH)
+    assert len(recorded) == len(again)
+    for (_, a), (_, b) in zip(recorded, again):
+        assert np.array_equal(image(a), image(b), equal_nan=True)
