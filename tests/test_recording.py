@@ -522,3 +522,25 @@ def test_lamp_off_frames_and_ambient_are_recorded_and_reprocessed(tmp_path):
     assert len(recorded) == len(again)
     for (_, a), (_, b) in zip(recorded, again):
         assert np.array_equal(image(a), image(b), equal_nan=True)
+
+
+def test_foxglove_port_taken_and_bad_record_paths_give_one_line_errors(tmp_path, capsys):
+    import socket
+
+    from uwcam.cli import main
+    from uwcam.config import FoxgloveConfig
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        cfg = small_config()
+        cfg.foxglove = FoxgloveConfig(enabled=True, port=taken.getsockname()[1])
+        d = Daemon(cfg)
+        with pytest.raises(UserInputError, match="cannot start the Foxglove server on 127.0.0.1:.*choose another foxglove.port"):
+            d.start()
+    (tmp_path / "old.mcap").write_bytes(b"x")
+    for record, message in ((tmp_path / "old.mcap", "exists"), (tmp_path / "no" / "x.mcap", "folder does not exist"),
+                            (tmp_path / "x.bag", "must end in .mcap")):
+        assert main(["run", "--record", str(record)]) == 2
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1

@@ -344,6 +344,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.record:
         if os.path.exists(args.record):
             raise UserInputError(f"{args.record} exists; give a new file name (recordings are never overwritten)")
+        if not args.record.endswith(".mcap"):
+            raise UserInputError(f"--record {args.record}: the file name must end in .mcap")
+        if not os.path.isdir(os.path.dirname(os.path.abspath(args.record))):
+            raise UserInputError(f"--record {args.record}: its folder does not exist; create it first")
         config.recording.start_file = args.record
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     app = create_app(config)

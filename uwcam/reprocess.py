@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+from functools import partial
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 
@@ -108,10 +109,16 @@ def _corrected(profile: CalibrationProfile, recorded: CalibrationProfile | None,
             profile.array("log_constant") + (b - recorded.array("log_constant")))
 
 
-def process_part(part: Part, profile_yaml: str | None = None) -> PartResult:
+def process_part(part: Part, profile_yaml: str | None = None, kernel_threads: int | None = None) -> PartResult:
     """Range every ranged frame of one part again. ``profile_yaml``: a profile to use instead of
-    the one each frame was recorded with. Runs on a Dask worker or in this process."""
+    the one each frame was recorded with. ``kernel_threads``: threads of the compiled ranging
+    kernel (None: numba's default, all cores). Runs on a Dask worker or in this process."""
     import yaml
+
+    if kernel_threads is not None:
+        import numba
+
+        numba.set_num_threads(kernel_threads)  # a per-thread setting: this worker thread only
 
     from uwcam.profile import profile_from_mapping
 
@@ -188,11 +195,16 @@ def _in_order(parts: list[Part], fn: Callable[[Part], PartResult], scheduler: st
         return
     from distributed import Client, LocalCluster
 
+    # On a cluster the parallelism is across parts: one kernel thread per task, or every worker's
+    # numba threads would fight over the same cores.
+    fn = partial(fn, kernel_threads=1)
     cluster = None
     if scheduler == "local":
         n = workers or max(1, min(len(parts), os.cpu_count() or 1))
-        # Processes, one thread each: the ranging kernels hold the GIL for part of their work.
-        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None)
+        # Processes, one thread each (decoding and encoding hold the GIL); idle OpenMP threads
+        # sleep rather than spin.
+        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+                               env={"OMP_WAIT_POLICY": "PASSIVE"})
         client = Client(cluster)
     else:
         try:
@@ -234,8 +246,6 @@ def reprocess(inputs: Iterable[str], output: str, profile: str | None = None, sc
               workers: int | None = None, progress: bool = True, chunks_per_part: int = 4) -> list[str]:
     """Range recordings again into new MCAP files with depth, variance, reasons and ranging topics.
     Returns the output paths; each is written to a temporary name and renamed when complete."""
-    from functools import partial
-
     from tqdm import tqdm
 
     inputs = list(inputs)

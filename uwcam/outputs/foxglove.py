@@ -19,6 +19,7 @@ import numpy as np
 
 from uwcam import recording as rec
 from uwcam.config import FoxgloveConfig
+from uwcam.fileio import UserInputError
 from uwcam.optics.geometry import pixel_rays
 from uwcam.outputs.recorder import to_depth
 from uwcam.pipeline import FramePipeline, Published
@@ -73,8 +74,12 @@ class FoxgloveOutput:
 
         # A context of our own: nothing else logged through the SDK's global context leaks in.
         self._ctx = foxglove.Context()
-        self.server = foxglove.start_server(name="uwcam", host=self.config.host, port=self.config.port,
-                                            context=self._ctx)
+        try:
+            self.server = foxglove.start_server(name="uwcam", host=self.config.host, port=self.config.port,
+                                                context=self._ctx)
+        except Exception as exc:  # the SDK reports a taken port or a bad address as a RuntimeError
+            raise UserInputError(f"cannot start the Foxglove server on {self.config.host}:{self.config.port} ({exc}); "
+                                 "choose another foxglove.port or host") from None
         ctx = self._ctx
         self._ch = {
             rec.IMAGE: channels.RawImageChannel(rec.IMAGE, context=ctx),

@@ -56,6 +56,7 @@ class Recorder:
         self._status_fn = status
         self.rangefinder = rangefinder
         self._lock = threading.Lock()  # guards the queue and the counters read by status()
+        self._control = threading.Lock()  # one start or stop at a time (API requests run in parallel)
         self._ready = threading.Condition(self._lock)
         self._queue: collections.deque = collections.deque()
         self._thread: threading.Thread | None = None
@@ -89,6 +90,10 @@ class Recorder:
     # -------------------------------------------------------------------------- control
     def start(self, path: str | None = None) -> dict:
         """Start recording into ``path`` (must not exist) or a time-named file in the folder."""
+        with self._control:
+            return self._start(path)
+
+    def _start(self, path: str | None) -> dict:
         with self._lock:
             if self._thread is not None:
                 raise UserInputError(f"already recording into {self._files[-1]}; stop it first")
@@ -127,6 +132,10 @@ class Recorder:
 
     def stop(self, reason: str = "stopped on request") -> dict:
         """Stop: write what is queued, finish the file. Returns the final status."""
+        with self._control:
+            return self._stop_recording(reason)
+
+    def _stop_recording(self, reason: str) -> dict:
         # No new frames from here on: the writer drains what is queued (at most queue_frames).
         self.pipeline.unsubscribe(self._on_published)
         self.pipeline.unsubscribe_unranged(self._on_unranged)
