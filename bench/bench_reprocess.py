@@ -106,10 +106,11 @@ def main() -> None:
         print(f"load average while measuring: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
         out_mb = os.path.getsize(os.path.join(tmp, "one.mcap")) / 1e6 / n
 
-    per_worker = n / dask / args.workers
+    per_worker = n / dask / args.workers  # as measured here, on however many free cores there were
     dive_frames = 3600 * 10  # a one-hour dive at 10 frames/s
     print("\ncampaign of 50 one-hour dives at 10 frames/s "
-          f"({50 * dive_frames:,} frames, {50 * dive_frames * size_mb / n / 1e6:.1f} TB raw):")
+          f"({50 * dive_frames:,} frames, {50 * dive_frames * size_mb / n / 1e6:.1f} TB raw), "
+          f"at {per_worker:.1f} frames/s per worker as measured above:")
     for workers in (1, 16, 64, 256):
         rate = per_worker * workers
         print(f"  {workers:4d} workers: {50 * dive_frames / rate / 3600:8.1f} h  (~{rate:,.0f} frames/s, "

@@ -63,7 +63,7 @@ class ReplayCamera(CameraDriver):
                 raise ConfigurationError(f"cannot read a frame rate from {self.source}; give fps")
             self.fps = float(fps or recorded)
         else:
-            raise ConfigurationError(f"replay source {self.source} is neither a folder of frames, a video "
+            raise ConfigurationError(f"replay source {self.source} is neither a folder of frames nor a video "
                                      f"({', '.join(VIDEO_SUFFIXES)}) nor an MCAP recording (.mcap)")
         if not self.fps > 0:
             raise ConfigurationError(f"replay fps must be positive, got {self.fps}")
