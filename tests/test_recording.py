@@ -5,6 +5,7 @@ recording cleanly when the disk fills, the folder goes or the writer is killed."
 import contextlib
 import hashlib
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -198,6 +199,18 @@ def test_dask_local_cluster_with_two_workers_equals_one_process(dive, tmp_path):
     assert two.returncode == 0, two.stderr
     assert _messages_digest(str(tmp_path / "one.mcap")) == _messages_digest(str(tmp_path / "two.mcap"))
     assert len(decoded(str(tmp_path / "two.mcap"), rec.DEPTH)) == len(decoded(dive["path"], rec.DEPTH))
+    gone = subprocess.run(base + ["-o", str(tmp_path / "three.mcap"), "--scheduler", "tcp://127.0.0.1:9"],
+                          capture_output=True, text=True, timeout=120)
+    assert gone.returncode == 2 and "cannot reach the Dask scheduler at tcp://127.0.0.1:9" in gone.stderr
+    assert not (tmp_path / "three.mcap").exists()
+
+
+def test_several_inputs_go_to_a_folder_one_output_each(dive, tmp_path):
+    second = tmp_path / "second.mcap"
+    shutil.copy(dive["path"], second)
+    outputs = reprocess([dive["path"], str(second)], str(tmp_path / "out"), progress=False)
+    assert outputs == [str(tmp_path / "out" / "dive.mcap"), str(tmp_path / "out" / "second.mcap")]
+    assert _messages_digest(outputs[0]) == _messages_digest(outputs[1])
 
 
 def test_reprocess_shows_progress_and_rejects_bad_input(dive, tmp_path, capsys):
