@@ -158,13 +158,18 @@ JSON_SCHEMA = json.dumps({"type": "object"}).encode()
 class McapFile:
     """One MCAP file being written: channels registered on first use, chunked and indexed."""
 
-    def __init__(self, path: str, chunk_size: int = 1 << 20) -> None:
+    def __init__(self, path: str, chunk_size: int = 1 << 20, replace: bool = False) -> None:
+        """replace: write over an existing file (only for a temporary file of one's own)."""
         from mcap.writer import CompressionType, Writer
 
         self.path = path
-        self._fh = open(path, "wb")
-        self.writer = Writer(self._fh, chunk_size=chunk_size, compression=CompressionType.ZSTD)
-        self.writer.start(profile="", library="uwcam")
+        self._fh = open(path, "wb" if replace else "xb")  # never over a recording by accident
+        try:
+            self.writer = Writer(self._fh, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+            self.writer.start(profile="", library="uwcam")
+        except BaseException:
+            self._fh.close()
+            raise
         self._channels: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
         self.messages = 0

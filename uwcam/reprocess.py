@@ -279,7 +279,7 @@ def _write_output(path: str, results: Iterable[PartResult], bar) -> None:
     os.close(fd)
     out = None
     try:
-        out = rec.McapFile(tmp)
+        out = rec.McapFile(tmp, replace=True)  # the empty temporary file made above
         attached: set[str] = set()
         last_profile = None
         for result in results:

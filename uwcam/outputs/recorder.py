@@ -112,6 +112,8 @@ class Recorder:
         self._part = 1
         try:
             self._open(path)
+        except FileExistsError:
+            raise UserInputError(f"{path} exists; give a new file name (recordings are never overwritten)") from None
         except OSError as exc:
             raise UserInputError(f"cannot create {path}: {exc.strerror}") from None
         with self._lock:
@@ -159,10 +161,11 @@ class Recorder:
     def _status_locked(self) -> dict:
         recording = self._thread is not None and self._state == "recording"
         size = self.bytes_closed
-        if self._file is not None:
+        current = self._file  # replaced by the writer thread at rotation: read it once
+        if current is not None:
             try:
-                size += self._file.size()
-            except (OSError, ValueError):
+                size += current.size()
+            except (OSError, ValueError):  # closed in the meantime
                 pass
         return {
             "state": "recording" if recording else "idle",
