@@ -45,10 +45,17 @@ class Part:
 
 @dataclass
 class FrameResult:
+    """One frame ranged again, its messages already encoded (on the worker, not the client)."""
+
     log_time_ns: int
-    depth: NDArray[np.float32]
-    variance: NDArray[np.float32]
-    reasons: NDArray[np.uint8]
+    width: int
+    height: int
+    depth: bytes
+    """foxglove.RawImage 32FC1, metres along the optical axis."""
+    variance: bytes
+    """foxglove.RawImage 32FC1, m²."""
+    reasons: bytes
+    """foxglove.RawImage mono8."""
     ranging: dict
 
 
@@ -178,7 +185,9 @@ def process_part(part: Part, profile_yaml: str | None = None, kernel_threads: in
             depth, variance = to_depth(result.range, result.variance, factors[shape])
             ranging = dict(record, profile=profile.name, attenuation_differences=[float(x) for x in v],
                            log_constants=[float(x) for x in b], reprocessed_from=record["profile"])
-            out.frames.append(FrameResult(t, depth, variance, result.reasons.copy(), ranging))
+            h, w = raw.shape[:2]
+            out.frames.append(FrameResult(t, w, h, rec.raw_image(depth, t, "32FC1"), rec.raw_image(variance, t, "32FC1"),
+                                          rec.raw_image(result.reasons, t, "mono8"), ranging))
             if profile.name not in out.profiles:
                 out.profiles[profile.name] = profile_to_yaml(profile)
     return out
@@ -295,15 +304,14 @@ def _write_output(path: str, results: Iterable[PartResult], bar) -> None:
                     from uwcam.profile import profile_from_mapping
 
                     prof = profile_from_mapping(yaml.safe_load(result.profiles[name]))
-                    h, w = fr.depth.shape
                     out.write(rec.CALIBRATION, "foxglove.CameraCalibration",
-                              rec.camera_calibration(prof, w, h, fr.log_time_ns), fr.log_time_ns)
+                              rec.camera_calibration(prof, fr.width, fr.height, fr.log_time_ns), fr.log_time_ns)
                     last_profile = name
                 t = fr.log_time_ns
                 out.write_json(rec.RANGING, fr.ranging, t)
-                out.write(rec.DEPTH, "foxglove.RawImage", rec.raw_image(fr.depth, t, "32FC1"), t)
-                out.write(rec.VARIANCE, "foxglove.RawImage", rec.raw_image(fr.variance, t, "32FC1"), t)
-                out.write(rec.REASONS, "foxglove.RawImage", rec.raw_image(fr.reasons, t, "mono8"), t)
+                out.write(rec.DEPTH, "foxglove.RawImage", fr.depth, t)
+                out.write(rec.VARIANCE, "foxglove.RawImage", fr.variance, t)
+                out.write(rec.REASONS, "foxglove.RawImage", fr.reasons, t)
             bar.update(len(result.frames))
         out.finish()
         os.replace(tmp, path)
