@@ -69,6 +69,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--size", default="640x480", help="frame size WxH (default 640x480)")
     ap.add_argument("--frames", type=int, default=100, help="frames in the reprocessed dive (default 100)")
+    ap.add_argument("--part-mb", type=float, default=32.0, help="megabytes per unit of work (default 32)")
     ap.add_argument("--workers", type=int, default=2, help="worker processes of the local cluster (default 2)")
     args = ap.parse_args()
     w, h = (int(v) for v in args.size.lower().split("x"))
@@ -79,14 +80,14 @@ def main() -> None:
         size_mb = os.path.getsize(dive) / 1e6
         assert ranged_frame_count(dive) == n
         print(f"dive: {n} frames of {w}x{h}x3 uint16, {size_mb:.0f} MB ({size_mb / n:.2f} MB/frame), "
-              f"{len(plan(dive))} parts; CPU cores here: {os.cpu_count()}")
+              f"{len(plan(dive, args.part_mb))} parts of ~{args.part_mb:g} MB; CPU cores here: {os.cpu_count()}")
 
         # Warm both paths (imports, compiled kernels loaded from numba's cache): a campaign pays
         # this once per process, not per frame.
-        first = plan(dive)[0]
+        first = plan(dive, args.part_mb)[0]
         process_part(first)
         t = time.perf_counter()
-        reprocess([dive], os.path.join(tmp, "one.mcap"), progress=False)
+        reprocess([dive], os.path.join(tmp, "one.mcap"), progress=False, part_mb=args.part_mb)
         one = time.perf_counter() - t
         print(f"one process:             {n / one:7.1f} frames/s  ({one:.1f} s)")
 
@@ -98,7 +99,8 @@ def main() -> None:
             client.run(process_part, first, None, 1)
             startup = time.perf_counter() - t
             t = time.perf_counter()
-            reprocess([dive], os.path.join(tmp, "dask.mcap"), progress=False, scheduler=c.scheduler_address)
+            reprocess([dive], os.path.join(tmp, "dask.mcap"), progress=False, scheduler=c.scheduler_address,
+                      part_mb=args.part_mb)
             dask = time.perf_counter() - t
             client.close()
         print(f"local cluster, {args.workers} workers: {n / dask:7.1f} frames/s  ({dask:.1f} s, "

@@ -153,8 +153,8 @@ def test_recording_reads_back_with_the_stock_reader(dive):
 
 def test_reprocess_with_the_recorded_profile_reproduces_the_recorded_depth(dive, tmp_path):
     out = str(tmp_path / "again.mcap")
-    assert len(plan(dive["path"])) >= 3  # several parts, so the cut between them is exercised
-    reprocess([dive["path"]], out, progress=False)
+    assert len(plan(dive["path"], part_mb=1)) >= 3  # several parts, so the cut between them is exercised
+    reprocess([dive["path"]], out, progress=False, part_mb=1)
     for topic in (rec.DEPTH, rec.VARIANCE, rec.REASONS):
         recorded, again = decoded(dive["path"], topic), decoded(out, topic)
         assert [t for t, _ in recorded] == [t for t, _ in again]
@@ -191,7 +191,8 @@ def _messages_digest(path):
 @pytest.mark.slow
 def test_dask_local_cluster_with_two_workers_equals_one_process(dive, tmp_path):
     # In a child process: Dask's client keeps threads of its own that outlive a test.
-    base = [sys.executable, "-m", "uwcam", "reprocess", dive["path"], "--quiet"]
+    assert len(plan(dive["path"], part_mb=1)) >= 4
+    base = [sys.executable, "-m", "uwcam", "reprocess", dive["path"], "--quiet", "--part-mb", "1"]
     one = subprocess.run(base + ["-o", str(tmp_path / "one.mcap")], capture_output=True, text=True, timeout=300)
     assert one.returncode == 0, one.stderr
     two = subprocess.run(base + ["-o", str(tmp_path / "two.mcap"), "--scheduler", "--workers", "2"],
@@ -529,8 +530,8 @@ def test_lamp_off_frames_and_ambient_are_recorded_and_reprocessed(tmp_path):
     assert len(ambient) >= 2 and ambient[0][1].encoding == "32FC3"
     ranging = [r for _, r in decoded(path, rec.RANGING)]
     assert sum(r["ambient_subtracted"] for r in ranging) >= 10
-    assert len(plan(path)) >= 3
-    reprocess([path], str(tmp_path / "again.mcap"), progress=False)
+    assert len(plan(path, part_mb=1)) >= 3
+    reprocess([path], str(tmp_path / "again.mcap"), progress=False, part_mb=1)
     recorded, again = decoded(path, rec.DEPTH), decoded(str(tmp_path / "again.mcap"), rec.DEPTH)
     assert len(recorded) == len(again)
     for (_, a), (_, b) in zip(recorded, again):

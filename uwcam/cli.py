@@ -366,8 +366,10 @@ def cmd_reprocess(args: argparse.Namespace) -> int:
 
     if args.workers is not None and not 1 <= args.workers <= 1024:
         raise UserInputError(f"--workers must be 1 to 1024, got {args.workers}")
+    if not 0.01 <= args.part_mb <= 1e5:
+        raise UserInputError(f"--part-mb must be 0.01 to 100000, got {args.part_mb}")
     outputs = reprocess(args.inputs, args.output, profile=args.profile, scheduler=args.scheduler,
-                        workers=args.workers, progress=not args.quiet)
+                        workers=args.workers, progress=not args.quiet, part_mb=args.part_mb)
     for path in outputs:
         print(f"wrote {path}")
     return 0
@@ -471,6 +473,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="run on a Dask cluster: a scheduler address (tcp://host:8786; workers must see the same "
                           "paths), or without ADDRESS a local cluster on this machine (default: in this process)")
     rep.add_argument("--workers", type=int, metavar="N", help="worker processes of the local cluster (default: CPU count)")
+    rep.add_argument("--part-mb", type=float, default=64.0, metavar="MB",
+                     help="megabytes of recording per unit of work, cut at MCAP chunks (default 64)")
     rep.add_argument("--quiet", action="store_true", help="no progress bar")
     rep.set_defaults(func=cmd_reprocess)
 

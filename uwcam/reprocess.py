@@ -95,15 +95,21 @@ def ranged_frame_count(path: str) -> int:
     return sum(summary.statistics.channel_message_counts.get(cid, 0) for cid in ids)
 
 
-def plan(path: str, chunks_per_part: int = 4) -> list[Part]:
-    """Cut a recording into parts of ``chunks_per_part`` MCAP chunks each, by the chunks' start
-    times. A file without a chunk index (a repaired one) is a single part."""
+def plan(path: str, part_mb: float = 64.0) -> list[Part]:
+    """Cut a recording into parts of about ``part_mb`` megabytes of (uncompressed) chunks each,
+    at chunk boundaries, by the chunks' start times: big enough that opening the file and
+    building the estimator are small beside the ranging, small enough to spread a dive over
+    many workers. A file without a chunk index (a repaired one) is a single part."""
     summary = _summary(path)
     if summary is None or not summary.chunk_indexes:
         return [Part(path, 0, END_OF_TIME)]
-    starts = sorted({c.message_start_time for c in summary.chunk_indexes})
-    bounds = starts[::chunks_per_part]
-    bounds[0] = 0
+    chunks = sorted(summary.chunk_indexes, key=lambda c: c.message_start_time)
+    bounds, size = [0], 0
+    for chunk in chunks:
+        if size >= part_mb * 1e6 and chunk.message_start_time > bounds[-1]:
+            bounds.append(chunk.message_start_time)
+            size = 0
+        size += chunk.uncompressed_size
     return [Part(path, a, b) for a, b in zip(bounds, bounds[1:] + [END_OF_TIME])]
 
 
@@ -252,7 +258,7 @@ def output_paths(inputs: list[str], output: str) -> list[str]:
 
 
 def reprocess(inputs: Iterable[str], output: str, profile: str | None = None, scheduler: str | None = None,
-              workers: int | None = None, progress: bool = True, chunks_per_part: int = 4) -> list[str]:
+              workers: int | None = None, progress: bool = True, part_mb: float = 64.0) -> list[str]:
     """Range recordings again into new MCAP files with depth, variance, reasons and ranging topics.
     Returns the output paths; each is written to a temporary name and renamed when complete."""
     from tqdm import tqdm
@@ -272,7 +278,7 @@ def reprocess(inputs: Iterable[str], output: str, profile: str | None = None, sc
 
     bar = Bar(total=total or None, unit="frame", desc="reprocess", disable=not progress, dynamic_ncols=True)
     try:
-        parts_by_input = [plan(p, chunks_per_part) for p in inputs]
+        parts_by_input = [plan(p, part_mb) for p in inputs]
         flat = [part for parts in parts_by_input for part in parts]
         results = _in_order(flat, fn, scheduler, workers)
         for parts, out_path in zip(parts_by_input, outputs):
