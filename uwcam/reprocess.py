@@ -277,6 +277,7 @@ def reprocess(inputs: Iterable[str], output: str, profile: str | None = None, sc
         monitor_interval = 0  # no monitor thread: updates come once per part anyway
 
     bar = Bar(total=total or None, unit="frame", desc="reprocess", disable=not progress, dynamic_ncols=True)
+    results = None
     try:
         parts_by_input = [plan(p, part_mb) for p in inputs]
         flat = [part for parts in parts_by_input for part in parts]
@@ -284,6 +285,8 @@ def reprocess(inputs: Iterable[str], output: str, profile: str | None = None, sc
         for parts, out_path in zip(parts_by_input, outputs):
             _write_output(out_path, (next(results) for _ in parts), bar)
     finally:
+        if results is not None:
+            results.close()  # on an error too: the Dask client and any local cluster shut down now
         bar.close()
     return outputs
 
