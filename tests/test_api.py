@@ -254,7 +254,9 @@ def test_schemathesis_finds_no_server_errors(tmp_path):
     # The schemathesis CLI installed beside this interpreter (in .venv), PATH or not.
     st = Path(sys.executable).with_name("st")
     assert st.exists(), "schemathesis is part of the test dependencies"
-    with Server(small_config()) as s:
+    cfg = small_config()
+    cfg.recording.folder = str(tmp_path / "recordings")  # the fuzzer starts recordings too
+    with Server(cfg) as s:
         assert wait_for(lambda: s.daemon.pipeline.latest is not None, 30.0)
         run = subprocess.run([str(st), "run", f"{s.url}/openapi.json", "--checks", "not_a_server_error", "-n", "30",
                               "--generation-deterministic", "--request-timeout", "20"],

@@ -353,6 +353,14 @@ def cmd_run(args: argparse.Namespace) -> int:
         except ValidationError as exc:
             raise UserInputError(explain_validation_error(exc, "command line").replace("key 'api.", "option '--")) from None
     check_devices(config)
+    if args.record:
+        if os.path.exists(args.record):
+            raise UserInputError(f"{args.record} exists; give a new file name (recordings are never overwritten)")
+        if not args.record.endswith(".mcap"):
+            raise UserInputError(f"--record {args.record}: the file name must end in .mcap")
+        if not os.path.isdir(os.path.dirname(os.path.abspath(args.record))):
+            raise UserInputError(f"--record {args.record}: its folder does not exist; create it first")
+        config.recording.start_file = args.record
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     host, port = config.api.host, config.api.port
     try:  # bound before anything starts, so a port in use is one line, not a startup traceback
@@ -377,6 +385,20 @@ def cmd_run(args: argparse.Namespace) -> int:
     finally:
         daemon.stop()
         sock.close()
+    return 0
+
+
+def cmd_reprocess(args: argparse.Namespace) -> int:
+    from uwcam.reprocess import reprocess
+
+    if args.workers is not None and not 1 <= args.workers <= 1024:
+        raise UserInputError(f"--workers must be 1 to 1024, got {args.workers}")
+    if not 0.01 <= args.part_mb <= 1e5:
+        raise UserInputError(f"--part-mb must be 0.01 to 100000, got {args.part_mb}")
+    outputs = reprocess(args.inputs, args.output, profile=args.profile, scheduler=args.scheduler,
+                        workers=args.workers, progress=not args.quiet, part_mb=args.part_mb)
+    for path in outputs:
+        print(f"wrote {path}")
     return 0
 
 
@@ -467,7 +489,22 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--config", metavar="FILE", help="rig configuration (YAML); default: the embedded simulated rig")
     run.add_argument("--host", help="API address (default 127.0.0.1)")
     run.add_argument("--port", type=int, help="API port (default 8080)")
+    run.add_argument("--record", metavar="FILE.mcap", help="record the dive into this MCAP file from start to stop")
     run.set_defaults(func=cmd_run)
+
+    rep = sub.add_parser("reprocess", help="range recorded dives (MCAP) again, here or on a Dask cluster")
+    rep.add_argument("inputs", nargs="+", metavar="IN.mcap", help="recordings made by uwcam run")
+    rep.add_argument("-o", "--output", required=True, metavar="OUT",
+                     help="output .mcap for one input, else a folder (one file per input, same names)")
+    rep.add_argument("--profile", metavar="P.yaml", help="calibration profile to use (default: the one recorded in each file)")
+    rep.add_argument("--scheduler", nargs="?", const="local", metavar="ADDRESS",
+                     help="run on a Dask cluster: a scheduler address (tcp://host:8786; workers must see the same "
+                          "paths), or without ADDRESS a local cluster on this machine (default: in this process)")
+    rep.add_argument("--workers", type=int, metavar="N", help="worker processes of the local cluster (default: CPU count)")
+    rep.add_argument("--part-mb", type=float, default=64.0, metavar="MB",
+                     help="megabytes of recording per unit of work, cut at MCAP chunks (default 64)")
+    rep.add_argument("--quiet", action="store_true", help="no progress bar")
+    rep.set_defaults(func=cmd_reprocess)
 
     cfg = sub.add_parser("config", help="configuration tools")
     cfg_sub = cfg.add_subparsers(dest="config_command", required=True, metavar="ACTION")

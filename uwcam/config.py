@@ -161,6 +161,41 @@ class ApiConfig(Strict):
     may show uwcam's pages in a frame."""
 
 
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+
+
+class RecordingConfig(Strict):
+    """MCAP recordings of dives (raw frames, range results, status); see docs/recording.md."""
+
+    folder: Annotated[str, Field(min_length=1)] = "recordings"
+    """Where recordings started from the API go, named by their start time (UTC)."""
+    start_file: Annotated[str, Field(min_length=1)] | None = None
+    """Record into this .mcap file from start to stop (what ``uwcam run --record FILE`` sets)."""
+    max_size_mb: Annotated[FiniteFloat, Field(gt=0, le=1e7)] | None = 4000.0
+    """Start a new file (rotation) when one reaches this size in megabytes; None: no limit."""
+    max_duration_s: Annotated[FiniteFloat, Field(gt=0, le=1e7)] | None = None
+    """Start a new file when one has recorded this long; None: no limit."""
+    queue_frames: Annotated[int, Field(ge=1, le=10000)] = 32
+    """Frames waiting for the disk; beyond this the oldest is dropped and counted."""
+    chunk_kb: Annotated[FiniteFloat, Field(ge=16, le=65536)] = 1024
+    """MCAP chunk size: a crash loses at most the chunk being filled; reprocessing splits at chunks."""
+    status_interval_s: Annotated[FiniteFloat, Field(gt=0, le=3600)] = 1.0
+    """How often the daemon's status is written into the recording."""
+
+
+class FoxgloveConfig(Strict):
+    """Live view in Foxglove over its WebSocket protocol (opt-in; see docs/recording.md)."""
+
+    enabled: bool = False
+    host: Annotated[str, Field(min_length=1)] = "127.0.0.1"
+    """Address to listen on; the protocol has no authentication, so keep it on a trusted network."""
+    port: Annotated[int, Field(ge=0, le=65535)] = 8765
+    rate_hz: Annotated[FiniteFloat, Field(gt=0, le=120)] = 10.0
+    """Most frames per second sent."""
+    point_stride: Annotated[int, Field(ge=1, le=64)] = 2
+    """Every this many pixels in x and y becomes a point of the point cloud."""
+
+
 class DaemonConfig(Strict):
     version: Literal[1] = CONFIG_VERSION
     camera: CameraConfig = CameraConfig()
@@ -178,6 +213,8 @@ class DaemonConfig(Strict):
     altitude...) when devices are simulated; see uwcam.simulation.options."""
     processing: ProcessingConfig = ProcessingConfig()
     api: ApiConfig = ApiConfig()
+    recording: RecordingConfig = RecordingConfig()
+    foxglove: FoxgloveConfig = FoxgloveConfig()
 
     @field_validator("simulation")
     @classmethod

@@ -94,6 +94,8 @@ class Daemon:
         self.lamp = None
         self.rangefinder = None
         self.pipeline: FramePipeline | None = None
+        self.recorder = None
+        self.foxglove = None
         self.profile_name = ""
         self.profiles: dict[str, CalibrationProfile] = {}
         """Calibration profiles known to the daemon by name; the active one is ``profile_name``."""
@@ -176,6 +178,7 @@ class Daemon:
             self.camera.start()
             if self.rangefinder is not None:
                 self.rangefinder.start()
+            self._start_outputs()
             self.pipeline.start()
         except BaseException:
             self.stop()
@@ -224,10 +227,27 @@ class Daemon:
         except OSError as exc:
             log.error("could not save state in %s: %s", self.state_dir, exc)
 
+    def _start_outputs(self) -> None:
+        """The recorder (idle until asked, or recording from the start) and the Foxglove server."""
+        from uwcam.outputs.recorder import Recorder
+
+        self.recorder = Recorder(self.pipeline, self.config.recording, status=self.status, rangefinder=self.rangefinder)
+        if self.config.recording.start_file:
+            self.recorder.start(self.config.recording.start_file)
+        if self.config.foxglove.enabled:
+            from uwcam.outputs.foxglove import FoxgloveOutput
+
+            self.foxglove = FoxgloveOutput(self.pipeline, self.config.foxglove, status=self.status,
+                                           rangefinder=self.rangefinder)
+            self.foxglove.start()
+
     def stop(self) -> None:
         """Stop the loop, switch the lamp off, release every device. Safe to call twice."""
         if self.pipeline is not None:
             self.pipeline.stop()
+        for output in (self.recorder, self.foxglove):
+            if output is not None:
+                output.close()  # after the loop: everything it published is written
         if self.camera is not None:
             self.camera.stop()
         if self.rangefinder is not None:
@@ -323,4 +343,6 @@ class Daemon:
                             "reflectance": stats.get("reflectance")},
             "rangefinder": rf,
             "lamp": lamp,
+            "recording": self.recorder.status() if self.recorder else None,
+            "foxglove": self.foxglove.status() if self.foxglove else None,
         }

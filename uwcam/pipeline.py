@@ -42,6 +42,10 @@ class Published:
     result: RangeResult
     publish_monotonic_ns: int
     attenuation_differences: tuple[float, ...]
+    log_constants: tuple[float, ...] = ()
+    """The log constants b_k this frame was ranged with (the calibration's, or the surface's)."""
+    ambient: NDArray[np.float32] | None = None
+    """(H, W, C) light not from the lamp (DN, dark-corrected) subtracted from this frame, or None."""
 
     @property
     def latency_s(self) -> float:
@@ -225,6 +229,7 @@ class FramePipeline:
         self.previous_processing: ProcessingConfig | None = None
         self._latest: Published | None = None
         self._subscribers: list[Callable[[Published], None]] = []
+        self._unranged_subscribers: list[Callable[[Frame, str], None]] = []
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.processed = 0
@@ -291,6 +296,20 @@ class FramePipeline:
         if callback in self._subscribers:
             self._subscribers.remove(callback)
 
+    def subscribe_unranged(self, callback: Callable[[Frame, str], None]) -> None:
+        """``callback(frame, why)`` from the processing thread for every frame taken from the camera
+        that gets no range: "skipped for newer" or "lamp off". With :meth:`subscribe`, a recorder
+        sees every frame the camera delivered (lamp-off frames carry the ambient light). Must not block."""
+        self._unranged_subscribers.append(callback)
+
+    def unsubscribe_unranged(self, callback: Callable[[Frame, str], None]) -> None:
+        if callback in self._unranged_subscribers:
+            self._unranged_subscribers.remove(callback)
+
+    def _unranged(self, frame: Frame, why: str) -> None:
+        for callback in list(self._unranged_subscribers):
+            callback(frame, why)
+
     @property
     def latest(self) -> Published | None:
         with self._lock:
@@ -321,6 +340,7 @@ class FramePipeline:
                 continue
             while (newer := self.camera.get(timeout_s=0.0)) is not None:
                 self.skipped += 1  # always the newest: the older frame is dropped
+                self._unranged(frame, "skipped for newer")
                 frame = newer
             try:
                 self._process(frame)
@@ -400,6 +420,7 @@ class FramePipeline:
             self._lamp_commander.request(True)
             self._cycle, self._lit_since_dark = "lit", 0
         if processing.lamp_off_interval and self._dark_frame_due(frame, processing.lamp_off_interval):
+            self._unranged(frame, "lamp off")
             return
         ambient = self._ambient if processing.lamp_off_interval else None
         if tracker is not None and tracker.update(frame.data, ambient):
@@ -416,7 +437,8 @@ class FramePipeline:
         if processing.smoothing != "none" and processing.smoothing_stage == "after":
             result = smooth_range_map(result, processing.smoothing)
         now = time.monotonic_ns()
-        published = Published(self.processed + 1, frame, result, now, tuple(float(v) for v in attenuation))
+        published = Published(self.processed + 1, frame, result, now, tuple(float(v) for v in attenuation),
+                               tuple(float(v) for v in estimator.log_constant), ambient)
         with self._lock:
             self._latest = published
         self.processed += 1

@@ -1,0 +1,363 @@
+"""The MCAP recorder: every frame the camera delivered, raw at full bit depth, with the range
+results, into one MCAP file per recording (layout in :mod:`uwcam.recording`).
+
+An output of the frame loop: the loop's callbacks only append to a bounded queue (the oldest
+item is dropped and counted when the disk cannot keep up); one writer thread per recording
+encodes and writes. A write error (disk full, folder gone) or a vanished folder ends the
+recording cleanly: the file is cut after its last complete record and closed with a footer,
+so any MCAP reader reads it, and :meth:`Recorder.status` says why it stopped.
+"""
+
+from __future__ import annotations
+
+import collections
+import datetime as dt
+import errno
+import logging
+import os
+import threading
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from uwcam import recording as rec
+from uwcam.config import RecordingConfig
+from uwcam.drivers.base import Frame
+from uwcam.fileio import UserInputError
+from uwcam.pipeline import FramePipeline, Published
+from uwcam.profile import CalibrationProfile
+
+log = logging.getLogger(__name__)
+
+
+def time_name(now: float | None = None) -> str:
+    """File name of a recording started at ``now``: uwcam-YYYYmmddTHHMMSSZ.mcap (UTC)."""
+    t = dt.datetime.fromtimestamp(time.time() if now is None else now, dt.timezone.utc)
+    return f"uwcam-{t:%Y%m%dT%H%M%SZ}.mcap"
+
+
+def _unique(path: str) -> str:
+    stem, ext = os.path.splitext(path)
+    n = 2
+    while os.path.exists(path):
+        path = f"{stem}-{n}{ext}"
+        n += 1
+    return path
+
+
+class Recorder:
+    """Records the pipeline's frames on request; idle (no thread, not subscribed) otherwise."""
+
+    def __init__(self, pipeline: FramePipeline, config: RecordingConfig,
+                 status: Callable[[], dict] | None = None, rangefinder: object | None = None) -> None:
+        self.pipeline = pipeline
+        self.config = config
+        self._status_fn = status
+        self.rangefinder = rangefinder
+        self._lock = threading.Lock()  # guards the queue and the counters read by status()
+        self._control = threading.Lock()  # one start or stop at a time (API requests run in parallel)
+        self._ready = threading.Condition(self._lock)
+        self._queue: collections.deque = collections.deque()
+        self._thread: threading.Thread | None = None
+        self._stop_reason: str | None = None
+        self._state = "idle"
+        self._files: list[str] = []
+        self._file: rec.McapFile | None = None
+        self._started_wall: float | None = None
+        self._file_started = 0.0
+        self.frames_written = 0
+        self.frames_dropped = 0
+        self.bytes_closed = 0
+        self.last_stop_reason: str | None = None
+
+    # ---------------------------------------------------------------- loop-thread callbacks
+    def _enqueue(self, item: tuple) -> None:
+        with self._lock:
+            if len(self._queue) >= self.config.queue_frames:
+                self._queue.popleft()  # the disk cannot keep up: lose the oldest, count it
+                self.frames_dropped += 1
+            self._queue.append(item)
+            self._ready.notify()
+
+    def _on_published(self, published: Published) -> None:
+        # Profile and settings are read here, in the loop's thread, so they match the frame.
+        self._enqueue(("ranged", published, self.pipeline.profile, self.pipeline.processing))
+
+    def _on_unranged(self, frame: Frame, why: str) -> None:
+        self._enqueue(("unranged", frame, why))
+
+    # -------------------------------------------------------------------------- control
+    def start(self, path: str | None = None) -> dict:
+        """Start recording into ``path`` (must not exist) or a time-named file in the folder."""
+        with self._control:
+            return self._start(path)
+
+    def _start(self, path: str | None) -> dict:
+        with self._lock:
+            if self._thread is not None:
+                raise UserInputError(f"already recording into {self._files[-1]}; stop it first")
+        if path is None:
+            os.makedirs(self.config.folder, exist_ok=True)
+            repair_folder(self.config.folder)
+            path = _unique(os.path.join(self.config.folder, time_name()))
+        elif os.path.exists(path):
+            raise UserInputError(f"{path} exists; give a new file name (recordings are never overwritten)")
+        elif not path.endswith(".mcap"):
+            raise UserInputError(f"recording file {path} must end in .mcap")
+        folder = os.path.dirname(os.path.abspath(path))
+        if not os.path.isdir(folder):
+            raise UserInputError(f"folder {folder} does not exist; create it or record elsewhere")
+        self._base = path
+        self._part = 1
+        try:
+            self._open(path)
+        except FileExistsError:
+            raise UserInputError(f"{path} exists; give a new file name (recordings are never overwritten)") from None
+        except OSError as exc:
+            raise UserInputError(f"cannot create {path}: {exc.strerror}") from None
+        with self._lock:
+            self._files = [path]
+            self._queue.clear()
+            self.frames_written = self.frames_dropped = self.bytes_closed = 0
+            self._stop_reason = None
+            self._state = "recording"
+            self._started_wall = time.time()
+            self._thread = threading.Thread(target=self._run, name="mcap-recorder", daemon=True)
+        self._last_reading_ns: int | None = None
+        self._next_status = 0.0
+        self.pipeline.subscribe(self._on_published)
+        self.pipeline.subscribe_unranged(self._on_unranged)
+        self._thread.start()
+        log.info("recording into %s", path)
+        return self.status()
+
+    def stop(self, reason: str = "stopped on request") -> dict:
+        """Stop: write what is queued, finish the file. Returns the final status."""
+        with self._control:
+            return self._stop_recording(reason)
+
+    def _stop_recording(self, reason: str) -> dict:
+        # No new frames from here on: the writer drains what is queued (at most queue_frames).
+        self.pipeline.unsubscribe(self._on_published)
+        self.pipeline.unsubscribe_unranged(self._on_unranged)
+        with self._lock:
+            thread = self._thread
+            if thread is None:
+                return self._status_locked()
+            if self._stop_reason is None:
+                self._stop_reason = reason
+            self._ready.notify()
+        thread.join(timeout=60.0)
+        return self.status()
+
+    def close(self) -> None:
+        self.stop("the daemon stopped")
+
+    def status(self) -> dict:
+        with self._lock:
+            return self._status_locked()
+
+    def _status_locked(self) -> dict:
+        recording = self._thread is not None and self._state == "recording"
+        size = self.bytes_closed
+        current = self._file  # replaced by the writer thread at rotation: read it once
+        if current is not None:
+            try:
+                size += current.size()
+            except (OSError, ValueError):  # closed in the meantime
+                pass
+        return {
+            "state": "recording" if recording else "idle",
+            "file": self._files[-1] if self._files else None,
+            "files": list(self._files),
+            "started": self._started_wall,
+            "duration_s": round(time.time() - self._started_wall, 1) if recording and self._started_wall else None,
+            "frames_written": self.frames_written,
+            "frames_dropped": self.frames_dropped,
+            "queued": len(self._queue),
+            "bytes": size,
+            "last_stop_reason": self.last_stop_reason,
+        }
+
+    # ---------------------------------------------------------------------- writer thread
+    def _open(self, path: str) -> None:
+        self._file = rec.McapFile(path, chunk_size=int(self.config.chunk_kb * 1024))
+        self._file_started = time.monotonic()
+        self._attached = set()
+        self._last_profile = None
+        self._last_ambient = None
+        self._rotate_due = False
+        # Every file carries the calibration in use from its start (self-contained parts).
+        profile = self.pipeline.profile
+        self._file.attach_profile(profile, time.time_ns())
+        self._attached.add(profile.name)
+
+    def _run(self) -> None:
+        reason = "stopped"
+        try:
+            while True:
+                with self._lock:
+                    if not self._queue and self._stop_reason is None:
+                        # Woken by a frame, a stop, or the timeout: the folder, the rangefinder
+                        # and the status are checked even when no frame comes.
+                        self._ready.wait(timeout=0.25)
+                    item = self._queue.popleft() if self._queue else None
+                    stopping = item is None and self._stop_reason is not None
+                if item is not None:
+                    self._write_item(item)
+                self._housekeeping()
+                if stopping:
+                    reason = self._stop_reason
+                    break
+            self._finish()
+        except OSError as exc:
+            reason = self._failed(exc)
+        except Exception as exc:  # never leave a half-open file behind a silent thread
+            log.exception("recorder failed")
+            reason = self._failed(exc)
+        finally:
+            self.pipeline.unsubscribe(self._on_published)
+            self.pipeline.unsubscribe_unranged(self._on_unranged)
+            with self._lock:
+                self._state = "idle"
+                self.last_stop_reason = reason
+                self._thread = None
+                self._queue.clear()
+            log.info("recording stopped: %s", reason)
+
+    def _finish(self) -> None:
+        if self._file is not None:
+            self._file.finish()  # on an error, _failed() cuts the file at its last complete record
+            self.bytes_closed += os.path.getsize(self._file.path) if os.path.exists(self._file.path) else 0
+            self._file = None
+
+    def _failed(self, exc: Exception) -> str:
+        path = self._file.path if self._file is not None else (self._files[-1] if self._files else "?")
+        if self._file is not None:
+            self._file.abandon()
+            self._file = None
+        if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
+            reason = f"disk full: {path} ends at the last frame that fit"
+        elif isinstance(exc, OSError):
+            reason = f"write failed ({exc.strerror or exc}): {path} ends at the last complete frame"
+        else:
+            reason = f"recorder error ({type(exc).__name__}: {exc}); {path} ends at the last complete frame"
+        if os.path.exists(path):
+            try:
+                rec.repair(path)
+            except OSError as err:
+                reason += f"; could not close the file ({err.strerror}); run uwcam again to repair it"
+        log.error("recording stopped: %s", reason)
+        return reason
+
+    def _housekeeping(self) -> None:
+        if self._file is None:
+            return
+        if not os.path.exists(self._file.path):
+            raise FileNotFoundError(errno.ENOENT, "the recording file or its folder was removed", self._file.path)
+        now = time.monotonic()
+        reading = self.rangefinder.latest() if self.rangefinder is not None else None
+        if reading is not None and reading.monotonic_ns != self._last_reading_ns:
+            self._last_reading_ns = reading.monotonic_ns
+            self._file.write_json(rec.RANGEFINDER, {"range_m": reading.range_m, "confidence": reading.confidence,
+                                                    "wall_time": reading.wall_time}, int(reading.wall_time * 1e9))
+        if self._status_fn is not None and now >= self._next_status:
+            self._next_status = now + self.config.status_interval_s
+            self._file.write_json(rec.STATUS, self._status_fn(), time.time_ns())
+        c = self.config
+        if (c.max_size_mb and self._file.size() >= c.max_size_mb * 1e6) or \
+                (c.max_duration_s and now - self._file_started >= c.max_duration_s):
+            self._rotate_due = True  # the next frame opens the next file: no file without frames
+
+    def _rotate(self) -> None:
+        self._finish()
+        self._part += 1
+        stem, ext = os.path.splitext(self._base)
+        if os.path.basename(self._base).startswith("uwcam-") and os.path.dirname(self._base) == self.config.folder:
+            path = _unique(os.path.join(self.config.folder, time_name()))
+        else:
+            path = _unique(f"{stem}-{self._part:03d}{ext}")
+        self._open(path)
+        with self._lock:
+            self._files.append(path)
+        log.info("recording continues in %s", path)
+
+    def _frame_messages(self, frame: Frame, t: int, ranged: str, number: int | None) -> None:
+        f = self._file
+        f.write(rec.IMAGE, "foxglove.RawImage", rec.raw_image(frame.data, t), t)
+        c = frame.data.shape[-1]
+        per_channel = (lambda v: None if v is None else [float(v)] * c)  # one exposure/gain for all channels
+        f.write_json(rec.IMAGE_METADATA, {
+            "sequence": frame.sequence, "device_timestamp_ns": frame.device_timestamp_ns,
+            "host_monotonic_ns": frame.host_monotonic_ns, "wall_time": frame.wall_time,
+            "exposure_us": per_channel(frame.exposure_us), "gain_db": per_channel(frame.gain_db),
+            "lamp_on": frame.lamp_on, "channel_names": list(frame.channel_names), "bit_depth": frame.bit_depth,
+            "dtype": frame.data.dtype.name, "ranged": ranged, "number": number}, t)
+
+    def _write_item(self, item: tuple) -> None:
+        if self._rotate_due:
+            self._rotate()
+        if item[0] == "unranged":
+            _, frame, why = item
+            self._frame_messages(frame, int(frame.wall_time * 1e9), why, None)
+        else:
+            _, published, profile, processing = item
+            self._write_published(published, profile, processing)
+        with self._lock:
+            self.frames_written += 1
+
+    def _write_published(self, p: Published, profile: CalibrationProfile, processing) -> None:
+        f = self._file
+        frame, t = p.frame, int(p.frame.wall_time * 1e9)
+        h, w = frame.data.shape[:2]
+        if profile is not self._last_profile:
+            self._last_profile = profile
+            self._uz = rec.depth_factor(profile, h, w)
+            f.write(rec.CALIBRATION, "foxglove.CameraCalibration", rec.camera_calibration(profile, w, h, t), t)
+            if profile.name not in self._attached:
+                f.attach_profile(profile, t)
+                self._attached.add(profile.name)
+        self._frame_messages(frame, t, "ranged", p.number)
+        if p.ambient is not None and p.ambient is not self._last_ambient:
+            self._last_ambient = p.ambient
+            c = p.ambient.shape[-1]
+            f.write(rec.AMBIENT, "foxglove.RawImage", rec.raw_image(p.ambient.astype(np.float32), t, f"32FC{c}"), t)
+        f.write_json(rec.RANGING, ranging_record(p, profile, processing), t)
+        depth, variance = to_depth(p.result.range, p.result.variance, self._uz)
+        f.write(rec.DEPTH, "foxglove.RawImage", rec.raw_image(depth, t, "32FC1"), t)
+        f.write(rec.VARIANCE, "foxglove.RawImage", rec.raw_image(variance, t, "32FC1"), t)
+        f.write(rec.REASONS, "foxglove.RawImage", rec.raw_image(p.result.reasons, t, "mono8"), t)
+
+
+def repair_folder(folder: str) -> list[str]:
+    """Give recordings left unfinished by a crash or power loss their footer; returns their paths."""
+    repaired = []
+    for name in sorted(os.listdir(folder)):
+        path = os.path.join(folder, name)
+        if name.endswith(".mcap") and os.path.isfile(path) and not rec.is_complete(path):
+            try:
+                kept = rec.repair(path)
+                repaired.append(path)
+                log.warning("repaired unfinished recording %s (%d bytes kept)", path, kept)
+            except (OSError, rec.RecordingError) as exc:
+                log.warning("could not repair %s: %s", path, exc)
+    return repaired
+
+
+def ranging_record(p: Published, profile: CalibrationProfile, processing) -> dict:
+    """What a frame was ranged with: enough to range its raw frame again the same way."""
+    return {"number": p.number, "sequence": p.frame.sequence, "profile": profile.name,
+            "channel_names": profile.channel_names,
+            "attenuation_differences": list(p.attenuation_differences), "log_constants": list(p.log_constants),
+            "ambient_subtracted": p.ambient is not None,
+            "processing": {"pair": processing.pair, "smoothing": processing.smoothing,
+                           "smoothing_stage": processing.smoothing_stage,
+                           "path_length_bounds": list(processing.path_length_bounds)},
+            "depth": "metres along the optical axis (range along the pixel ray times u_z)"}
+
+
+def to_depth(range_m: np.ndarray, variance: np.ndarray, uz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Range along each pixel's ray → depth along the optical axis (REP 118), and its variance (m²)."""
+    depth = (range_m * uz).astype(np.float32)
+    return depth, (variance * (uz * uz)).astype(np.float32)

@@ -1,0 +1,332 @@
+"""``uwcam reprocess``: range recorded dives again from their raw frames, in one process or on a
+Dask cluster.
+
+Every ranged frame in a recording carries what it was ranged with (``/uwcam/ranging``: the
+attenuation differences tracked live from the patch, the log constants from the rangefinder,
+whether ambient light was subtracted, the processing settings), so a frame can be ranged again
+on its own. That makes the work embarrassingly parallel: a recording is cut into parts at its
+MCAP chunk boundaries (time ranges from the chunk index), and each part is read and ranged by
+whoever runs it; only the results travel back to be written in order.
+
+With the recorded calibration the result is the recorded depth, bit for bit. With another
+profile (``--profile``), the live corrections recorded are carried over as corrections
+relative to the calibration: the tracked drift of the attenuation differences (a change of
+water) and the surface's log constants relative to the target's (a surface of another hue).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from functools import partial
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from uwcam import recording as rec
+from uwcam.fileio import UserInputError
+from uwcam.outputs.recorder import to_depth
+from uwcam.profile import CalibrationProfile, load_profile, profile_to_yaml
+from uwcam.ranging import RangeEstimator, smooth_range_map
+
+END_OF_TIME = 2**63 - 1
+
+
+@dataclass(frozen=True)
+class Part:
+    """Messages of one recording with log times in [start_ns, end_ns): one unit of work."""
+
+    path: str
+    start_ns: int
+    end_ns: int
+
+
+@dataclass
+class FrameResult:
+    """One frame ranged again, its messages already encoded (on the worker, not the client)."""
+
+    log_time_ns: int
+    width: int
+    height: int
+    depth: bytes
+    """foxglove.RawImage 32FC1, metres along the optical axis."""
+    variance: bytes
+    """foxglove.RawImage 32FC1, m²."""
+    reasons: bytes
+    """foxglove.RawImage mono8."""
+    ranging: dict
+
+
+@dataclass
+class PartResult:
+    part: Part
+    frames: list[FrameResult] = field(default_factory=list)
+    profiles: dict[str, str] = field(default_factory=dict)
+    """Profiles used, by name, as YAML (attached to the output)."""
+
+
+def _open(path: str):
+    try:
+        fh = open(path, "rb")
+    except OSError as exc:
+        raise UserInputError(f"cannot read {path}: {exc.strerror}") from None
+    return fh
+
+
+def _summary(path: str):
+    """The MCAP summary (None for a file without one); UserInputError if it is no MCAP file."""
+    from mcap.exceptions import McapError
+
+    with _open(path) as fh:
+        try:
+            return rec.open_reader(fh).get_summary()
+        except (McapError, ValueError, EOFError) as exc:
+            raise UserInputError(f"{path} is not a readable MCAP recording ({exc})") from None
+
+
+def ranged_frame_count(path: str) -> int:
+    """Frames with a range in a recording (from its statistics; 0 if it has none)."""
+    summary = _summary(path)
+    if summary is None or summary.statistics is None:
+        return 0
+    ids = [cid for cid, ch in summary.channels.items() if ch.topic == rec.RANGING]
+    return sum(summary.statistics.channel_message_counts.get(cid, 0) for cid in ids)
+
+
+def plan(path: str, part_mb: float = 64.0) -> list[Part]:
+    """Cut a recording into parts of about ``part_mb`` megabytes of (uncompressed) chunks each,
+    at chunk boundaries, by the chunks' start times: big enough that opening the file and
+    building the estimator are small beside the ranging, small enough to spread a dive over
+    many workers. A file without a chunk index (a repaired one) is a single part."""
+    summary = _summary(path)
+    if summary is None or not summary.chunk_indexes:
+        return [Part(path, 0, END_OF_TIME)]
+    chunks = sorted(summary.chunk_indexes, key=lambda c: c.message_start_time)
+    bounds, size = [0], 0
+    for chunk in chunks:
+        if size >= part_mb * 1e6 and chunk.message_start_time > bounds[-1]:
+            bounds.append(chunk.message_start_time)
+            size = 0
+        size += chunk.uncompressed_size
+    return [Part(path, a, b) for a, b in zip(bounds, bounds[1:] + [END_OF_TIME])]
+
+
+def _corrected(profile: CalibrationProfile, recorded: CalibrationProfile | None, record: dict) -> tuple[NDArray, NDArray]:
+    v = np.array(record["attenuation_differences"], dtype=np.float64)
+    b = np.array(record["log_constants"], dtype=np.float64)
+    if recorded is None or profile is recorded:
+        return v, b
+    return (profile.array("attenuation_difference") + (v - recorded.array("attenuation_difference")),
+            profile.array("log_constant") + (b - recorded.array("log_constant")))
+
+
+def process_part(part: Part, profile_yaml: str | None = None, kernel_threads: int | None = None) -> PartResult:
+    """Range every ranged frame of one part again. ``profile_yaml``: a profile to use instead of
+    the one each frame was recorded with. ``kernel_threads``: threads of the compiled ranging
+    kernel (None: numba's default, all cores). Runs on a Dask worker or in this process."""
+    import yaml
+
+    if kernel_threads is not None:
+        import numba
+
+        numba.set_num_threads(kernel_threads)  # a per-thread setting: this worker thread only
+
+    from uwcam.profile import profile_from_mapping
+
+    override = None if profile_yaml is None else profile_from_mapping(yaml.safe_load(profile_yaml), "--profile")
+    out = PartResult(part)
+    estimators: dict[tuple, RangeEstimator] = {}
+    factors: dict[tuple, NDArray] = {}
+    with _open(part.path) as fh:
+        reader = rec.open_reader(fh)
+        recorded = rec.read_profiles(reader)
+        ambient = None
+        if part.start_ns > 0:  # the ambient estimate in force when the part begins
+            for _s, _c, _m, decoded in reader.iter_decoded_messages(topics=[rec.AMBIENT], ending_before=part.start_ns,
+                                                                    reverse=True):
+                ambient = rec.decode_raw_image(decoded).astype(np.float64)
+                break
+        images: dict[int, NDArray] = {}
+        for _s, channel, message, decoded in reader.iter_decoded_messages(
+                topics=[rec.IMAGE, rec.AMBIENT, rec.RANGING], starting_at=part.start_ns, ending_before=part.end_ns):
+            t = message.log_time
+            if channel.topic == rec.IMAGE:
+                images[t] = rec.decode_raw_image(decoded)
+                continue
+            if channel.topic == rec.AMBIENT:
+                ambient = rec.decode_raw_image(decoded).astype(np.float64)
+                continue
+            record, raw = decoded, images.pop(t, None)
+            if raw is None:
+                continue  # its image was lost (a write cut short); nothing to range
+            was = recorded.get(record["profile"])
+            profile = override or was
+            if profile is None:
+                raise UserInputError(f"{part.path}: frame {record['number']} was ranged with profile "
+                                     f"'{record['profile']}', which is not attached; give --profile")
+            if raw.ndim != 3 or raw.shape[-1] != len(profile.channels):
+                raise UserInputError(f"{part.path} has {raw.shape[-1] if raw.ndim == 3 else 1}-channel frames but profile "
+                                     f"'{profile.name}' has {len(profile.channels)} channels")
+            proc = record["processing"]
+            key = (profile.name, tuple(proc["pair"]) if proc["pair"] else None, tuple(proc["path_length_bounds"]))
+            if key not in estimators:
+                estimators[key] = RangeEstimator(profile, pair=key[1], path_length_bounds=key[2])
+            est = estimators[key]
+            v, b = _corrected(profile, was, record)
+            est.set_attenuation_differences(v)
+            est.set_log_constants(b)
+            data = raw
+            if proc["smoothing"] != "none" and proc["smoothing_stage"] == "before":
+                import cv2
+
+                data = cv2.blur(data, (3, 3)) if proc["smoothing"] == "mean" else cv2.medianBlur(data, 3)
+            result = est(data, background=ambient if record["ambient_subtracted"] else None)
+            if proc["smoothing"] != "none" and proc["smoothing_stage"] == "after":
+                result = smooth_range_map(result, proc["smoothing"])
+            shape = (profile.name, *raw.shape[:2])
+            if shape not in factors:
+                factors[shape] = rec.depth_factor(profile, *raw.shape[:2])
+            depth, variance = to_depth(result.range, result.variance, factors[shape])
+            ranging = dict(record, profile=profile.name, attenuation_differences=[float(x) for x in v],
+                           log_constants=[float(x) for x in b], reprocessed_from=record["profile"])
+            h, w = raw.shape[:2]
+            out.frames.append(FrameResult(t, w, h, rec.raw_image(depth, t, "32FC1"), rec.raw_image(variance, t, "32FC1"),
+                                          rec.raw_image(result.reasons, t, "mono8"), ranging))
+            if profile.name not in out.profiles:
+                out.profiles[profile.name] = profile_to_yaml(profile)
+    return out
+
+
+def _in_order(parts: list[Part], fn: Callable[[Part], PartResult], scheduler: str | None, workers: int | None,
+              ) -> Iterator[PartResult]:
+    """Results of ``fn`` over the parts, in order: here, or on a Dask cluster (``"local"``: a
+    cluster of ``workers`` processes on this machine started for the run; otherwise the
+    address of a running scheduler, whose workers must see the same file paths)."""
+    if scheduler is None:
+        for part in parts:
+            yield fn(part)
+        return
+    from distributed import Client, LocalCluster
+
+    # On a cluster the parallelism is across parts: one kernel thread per task, or every worker's
+    # numba threads would fight over the same cores.
+    fn = partial(fn, kernel_threads=1)
+    cluster = None
+    if scheduler == "local":
+        n = workers or max(1, min(len(parts), os.cpu_count() or 1))
+        # Processes, one thread each (decoding and encoding hold the GIL); idle OpenMP threads
+        # sleep rather than spin.
+        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+                               env={"OMP_WAIT_POLICY": "PASSIVE"})
+        client = Client(cluster)
+    else:
+        try:
+            client = Client(scheduler, timeout="15s")
+        except (OSError, TimeoutError) as exc:
+            raise UserInputError(f"cannot reach the Dask scheduler at {scheduler} ({exc}); is it running?") from None
+    try:
+        window = 2 * max(1, len(client.scheduler_info(n_workers=-1)["workers"]))
+        futures = []
+        # A bounded window of parts in flight keeps the client's memory to a few parts' results.
+        for i, part in enumerate(parts):
+            futures.append(client.submit(fn, part, pure=False))
+            if len(futures) > window:
+                yield futures.pop(0).result()
+        for f in futures:
+            yield f.result()
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def output_paths(inputs: list[str], output: str) -> list[str]:
+    """One output per input: ``output`` itself for one input and an .mcap name, else a folder."""
+    if len(inputs) == 1 and output.endswith(".mcap"):
+        paths = [output]
+    else:
+        os.makedirs(output, exist_ok=True)
+        paths = [os.path.join(output, os.path.basename(p)) for p in inputs]
+        if len(set(paths)) != len(paths):
+            raise UserInputError("two inputs share a file name; reprocess them into separate folders")
+    for p in paths:
+        if os.path.exists(p):
+            raise UserInputError(f"{p} exists; choose another output (outputs are never overwritten)")
+    return paths
+
+
+def reprocess(inputs: Iterable[str], output: str, profile: str | None = None, scheduler: str | None = None,
+              workers: int | None = None, progress: bool = True, part_mb: float = 64.0) -> list[str]:
+    """Range recordings again into new MCAP files with depth, variance, reasons and ranging topics.
+    Returns the output paths; each is written to a temporary name and renamed when complete."""
+    from tqdm import tqdm
+
+    inputs = list(inputs)
+    for p in inputs:
+        if not os.path.isfile(p):
+            raise UserInputError(f"recording {p} does not exist")
+    outputs = output_paths(inputs, output)
+    profile_yaml = None
+    if profile is not None:
+        profile_yaml = profile_to_yaml(load_profile(profile))
+    total = sum(ranged_frame_count(p) for p in inputs)
+    fn = partial(process_part, profile_yaml=profile_yaml)
+    class Bar(tqdm):
+        monitor_interval = 0  # no monitor thread: updates come once per part anyway
+
+    bar = Bar(total=total or None, unit="frame", desc="reprocess", disable=not progress, dynamic_ncols=True)
+    results = None
+    try:
+        parts_by_input = [plan(p, part_mb) for p in inputs]
+        flat = [part for parts in parts_by_input for part in parts]
+        results = _in_order(flat, fn, scheduler, workers)
+        for parts, out_path in zip(parts_by_input, outputs):
+            _write_output(out_path, (next(results) for _ in parts), bar)
+    finally:
+        if results is not None:
+            results.close()  # on an error too: the Dask client and any local cluster shut down now
+        bar.close()
+    return outputs
+
+
+def _write_output(path: str, results: Iterable[PartResult], bar) -> None:
+    folder = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(prefix=".reprocess-", suffix=".mcap", dir=folder)
+    os.close(fd)
+    out = None
+    try:
+        out = rec.McapFile(tmp, replace=True)  # the empty temporary file made above
+        attached: set[str] = set()
+        last_profile = None
+        for result in results:
+            for fr in result.frames:
+                name = fr.ranging["profile"]
+                if name not in attached:
+                    out.attach(f"{rec.PROFILE_PREFIX}{name}.yaml", rec.PROFILE_MEDIA_TYPE,
+                               result.profiles[name].encode(), fr.log_time_ns)
+                    attached.add(name)
+                if name != last_profile:
+                    import yaml
+
+                    from uwcam.profile import profile_from_mapping
+
+                    prof = profile_from_mapping(yaml.safe_load(result.profiles[name]))
+                    out.write(rec.CALIBRATION, "foxglove.CameraCalibration",
+                              rec.camera_calibration(prof, fr.width, fr.height, fr.log_time_ns), fr.log_time_ns)
+                    last_profile = name
+                t = fr.log_time_ns
+                out.write_json(rec.RANGING, fr.ranging, t)
+                out.write(rec.DEPTH, "foxglove.RawImage", fr.depth, t)
+                out.write(rec.VARIANCE, "foxglove.RawImage", fr.variance, t)
+                out.write(rec.REASONS, "foxglove.RawImage", fr.reasons, t)
+            bar.update(len(result.frames))
+        out.finish()
+        os.replace(tmp, path)
+    except BaseException:
+        if out is not None:
+            out.abandon()
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
