@@ -77,7 +77,9 @@ def test_noise_model_is_estimated_from_the_target_region():
     profile = calibrate(f, distances, inputs())
     # One frame per distance: read, shot and fixed pattern are told apart only by how the spread
     # grows with signal, so what must be right is the total variance over the signals seen.
-    signal = np.linspace(min(x.min() for x in f), max(x.max() for x in f), 50)[:, None]
+    lo = np.min([np.percentile(x.reshape(-1, 3), 1, axis=0) for x in f], axis=0)
+    hi = np.max([np.percentile(x.reshape(-1, 3), 99, axis=0) for x in f], axis=0)
+    signal = np.linspace(lo, hi, 50)  # (50, 3): each channel over the signals it showed
     predicted = signal_variance(signal, profile.array("read_noise"), profile.array("shot_gain"), 0.0,
                                 profile.array("fixed_pattern"))
     np.testing.assert_allclose(predicted, read**2 + gain * signal, rtol=0.1)
