@@ -30,6 +30,8 @@ MAX_SATURATED_FRACTION = 0.01
 FLOOR_SIGMAS = 3.0
 # Side of the box average applied before taking logs of the target (pixels).
 SMOOTHING = 5
+# Backscatter more than this many σ from 0 at any distance counts as measured (see calibrate_with_details).
+BACKSCATTER_SIGMAS = 3.0
 # Brightness bins of the plate, each a point of the noise-model fit.
 NOISE_BINS = 4
 
@@ -390,6 +392,12 @@ class BackscatterEstimate:
     """(N,) its variance from pixel noise, DN²."""
     black_mean: NDArray[np.float64]
     """(N,) mean signal of the black patch, DN."""
+    plate_log: NDArray[np.float64]
+    """(N,) ln of the plate's own light (backscatter excluded pixel by pixel) at the patch's pixels."""
+    plate_log_variance: NDArray[np.float64]
+    """(N,) its variance from pixel noise."""
+    pixels: NDArray[np.bool_]
+    """(H, W) the patch pixels used."""
 
 
 def backscatter_at_black_patch(
@@ -437,7 +445,12 @@ def backscatter_at_black_patch(
     black = signal[patch]
     lit = (plate_at_patch - black) / (rho_p - rho_b)
     level = (black - rho_b * lit).mean(axis=0)
+    # The plate's own light at these pixels, ρp·X, free of backscatter pixel by pixel whatever
+    # its spatial pattern (it cancels in plate − black).
+    difference = (plate_at_patch - black).mean(axis=0)
+    plate_log = np.log(np.maximum(difference, 1e-30)) + np.log(rho_p / (rho_p - rho_b))
     variance = np.zeros(signal.shape[-1])
+    log_variance = np.zeros(signal.shape[-1])
     if pixel_variance is not None:
         # bs = α·mean(black) − β·mean(plate fit), α = ρp/(ρp−ρb), β = ρb/(ρp−ρb).
         alpha, beta = rho_p / (rho_p - rho_b), rho_b / (rho_p - rho_b)
@@ -446,7 +459,8 @@ def backscatter_at_black_patch(
         leverage = float(mean_row @ np.linalg.pinv(a_ring.T @ a_ring) @ mean_row)
         var_plate = pixel_variance[ring].mean(axis=0) * leverage
         variance = alpha**2 * var_black + beta**2 * var_plate
-    return BackscatterEstimate(level, variance, black.mean(axis=0))
+        log_variance = (var_black + var_plate) / np.maximum(difference, 1e-30) ** 2
+    return BackscatterEstimate(level, variance, black.mean(axis=0), plate_log, log_variance, patch)
 
 
 def project_plate_box(centre_m: tuple[float, float], size_m: tuple[float, float], distance: float, intrinsics: Intrinsics) -> Box:
@@ -510,6 +524,8 @@ class DistanceGroup:
     log_signal: NDArray[np.float64] | None = None
     log_variance: NDArray[np.float64] | None = None
     backscatter: BackscatterEstimate | None = None
+    fit_pixels: NDArray[np.bool_] | None = None
+    """(H, W) the pixels whose light entered the fit."""
 
 
 @dataclass(frozen=True)
@@ -634,42 +650,59 @@ def calibrate_with_details(frames: list[NDArray], distances_m: list[float], inpu
         temporal = signal_variance_temporal(signal, noise) / frames_averaged
         return np.maximum(temporal + (noise.fixed_pattern * np.maximum(signal, 0)) ** 2, variance_floor(signal, step))
 
-    fitted: list[DistanceGroup] = []
-    log_signal, log_variance, path_lengths, log_spread_corrected = [], [], [], []
+    estimates: list[BackscatterEstimate | None] = []
     for g in groups:
-        m = len(g.images)
-        bs_level, bs_var = np.zeros(n_ch), np.zeros(n_ch)
         estimate = None
         if has_black and g.black is not None:
             estimate = backscatter_at_black_patch(g.mean_frame, g.black, g.target, inputs.black_reflectance,
-                                                  inputs.target_reflectance, pixel_variance(g.mean_frame, m))
-            # Subtracted as measured, not clipped at 0: clipping would bias clean water upward.
-            bs_level, bs_var = estimate.level, estimate.variance
-        if np.any(g.mean_frame[g.target].mean(axis=0) - bs_level <= 0):
-            k = int(np.argmin(g.mean_frame[g.target].mean(axis=0) - bs_level))
-            raise UserInputError(
-                f"the target region at {g.distance_m:g} m has no signal in channel {inputs.channel_names[k]} after dark "
-                "correction; check the lamp, the exposure and that the target is in the region"
-            )
-        ln_e, pixels = smoothed_log_signal(g.mean_frame, g.target, bs_level)
-        smooth = cv2.blur(g.mean_frame, (SMOOTHING, SMOOTHING), borderType=cv2.BORDER_REFLECT)
-        var_pix = pixel_variance(smooth, m)
-        lit = np.maximum(smooth - bs_level, 1e-30)
-        lv = log_mean_variance(pixels, lit, var_pix)
-        # The backscatter estimate's own error shifts every pixel's ln E by −δbs/E.
-        lv = lv + bs_var * np.mean(1.0 / lit[pixels] ** 2, axis=0)
-        lv = np.maximum(lv, variance_floor(np.exp(ln_e).mean(axis=0), step) / np.exp(ln_e).mean(axis=0) ** 2)
+                                                  inputs.target_reflectance, pixel_variance(g.mean_frame, len(g.images)))
+        estimates.append(estimate)
+    # Backscatter is not uniform over a plate (it follows the lamp's beam through the water), so a
+    # level measured at the patch cannot be subtracted from the whole plate. Where backscatter is
+    # measurable, the fit uses the plate's own light at the patch, which is free of it pixel by
+    # pixel; where it is not (clean water, a tank), the whole plate, which has many more pixels.
+    patch_local = has_black and any(
+        np.any(np.abs(e.level) > BACKSCATTER_SIGMAS * np.sqrt(e.variance) + 1e-9 * np.abs(e.black_mean))
+        for e in estimates if e is not None)
+
+    fitted: list[DistanceGroup] = []
+    log_signal, log_variance, path_lengths, log_spread_corrected = [], [], [], []
+    for g, estimate in zip(groups, estimates):
+        m = len(g.images)
+        if patch_local:
+            pixels = estimate.pixels
+            ln_mean = estimate.plate_log
+            lv = estimate.plate_log_variance
+            ln_e = np.broadcast_to(ln_mean, (int(pixels.sum()), n_ch))
+        else:
+            if np.any(g.mean_frame[g.target].mean(axis=0) <= 0):
+                k = int(np.argmin(g.mean_frame[g.target].mean(axis=0)))
+                raise UserInputError(
+                    f"the target region at {g.distance_m:g} m has no signal in channel {inputs.channel_names[k]} after dark "
+                    "correction; check the lamp, the exposure and that the target is in the region"
+                )
+            ln_e, pixels = smoothed_log_signal(g.mean_frame, g.target)
+            # Each pixel's expected signal, smoothed within the region only (a box reaching past the
+            # plate's edge or into the black patch would make its pixels look dark and noisy).
+            inside = g.target.astype(np.float64)
+            weight = cv2.blur(inside, (SMOOTHING, SMOOTHING), borderType=cv2.BORDER_CONSTANT)
+            smooth = cv2.blur(g.mean_frame * inside[..., None], (SMOOTHING, SMOOTHING), borderType=cv2.BORDER_CONSTANT)
+            smooth = smooth / np.maximum(weight, 1e-12)[..., None]
+            lv = log_mean_variance(pixels, np.maximum(smooth, 1e-30), pixel_variance(smooth, m))
+            ln_mean = ln_e.mean(axis=0)
+        lv = np.maximum(lv, variance_floor(np.exp(ln_mean), step) / np.exp(ln_mean) ** 2)
         u = rays[pixels] if rays is not None else np.array([[0.0, 0.0, 1.0]])
         dc = plane_camera_range(g.distance_m, u)
         ds = np.linalg.norm(dc[:, None] * u - lamp, axis=-1)
         path = float(np.mean(dc + ds))
-        log_signal.append(ln_e.mean(axis=0))
+        log_signal.append(ln_mean)
         log_variance.append(lv)
         path_lengths.append(path)
         if inputs.lamp_radius_m is not None:
             spread = spreading_log(ds, inputs.lamp_radius_m)
             log_spread_corrected.append((ln_e + spread[:, None]).mean(axis=0))
-        fitted.append(replace(g, path_length_m=path, log_signal=log_signal[-1], log_variance=lv, backscatter=estimate))
+        fitted.append(replace(g, path_length_m=path, log_signal=log_signal[-1], log_variance=lv, backscatter=estimate,
+                              fit_pixels=pixels))
 
     ref = inputs.reference
     fit = fit_attenuation_differences(np.array(log_signal), path_lengths, ref, np.array(log_variance))
@@ -719,7 +752,8 @@ def calibrate_with_details(frames: list[NDArray], distances_m: list[float], inpu
     residuals = {inputs.channel_names[k]: [float(r) for r in fit.residuals[:, k]] for k in range(n_ch)}
     provenance = Provenance(
         created=now_iso(),
-        method=f"{fit.method}; noise: {noise.method}",
+        method=f"{fit.method}; {'plate light at the black patch (backscatter measured)' if patch_local else 'whole plate'}; "
+               f"noise: {noise.method}",
         distances_m=[g.distance_m for g in fitted],
         frames_per_distance=[len(g.images) for g in fitted],
         path_lengths_m=path_lengths,
