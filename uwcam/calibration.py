@@ -280,6 +280,12 @@ def fit_lines(x: ArrayLike, y: ArrayLike, variance: ArrayLike | None = None) -> 
     return LineFit(intercept, slope, np.sqrt(var_intercept * scale), np.sqrt(var_slope * scale), residuals)
 
 
+def chi2_upper(dof: int, z: float = 1.645) -> float:
+    """Reduced χ² exceeded with probability ~5 % (z = 1.645) by chance, Wilson–Hilferty approximation."""
+    k = float(dof)
+    return (1.0 - 2.0 / (9.0 * k) + z * np.sqrt(2.0 / (9.0 * k))) ** 3
+
+
 def fit_attenuation_differences(
     log_signal: ArrayLike,
     path_lengths: ArrayLike,
@@ -294,9 +300,10 @@ def fit_attenuation_differences(
     use the closed form of DESIGN.md §4, more use generalised least squares on
     ln(E_k/E_ref) = b_k − V_k·d_T for all channels jointly: the ratios of one distance share the
     reference channel's noise, so they are correlated, and the joint fit gives the covariance of
-    every V and b with every other (``covariance``). With n ≥ 3 it is scaled up by the reduced χ²
-    when the scatter exceeds the stated variances (a bad distance or scattering shows up as
-    uncertainty, not false confidence); without variances the scatter alone sets it.
+    every V and b with every other (``covariance``). With spare degrees of freedom it is scaled by
+    the reduced χ² when the scatter is significantly (5 % level) more than the stated variances
+    allow (a bad distance or scattering shows up as uncertainty, not false confidence); without
+    variances the scatter alone sets it.
     """
     ln_e = np.asarray(log_signal, dtype=np.float64)
     d = np.asarray(path_lengths, dtype=np.float64)
@@ -328,7 +335,12 @@ def fit_attenuation_differences(
     dof = n_img * q - 2 * q
     if dof > 0:
         chi2 = float(resid @ inv @ resid) / dof
-        cov = cov * (chi2 if log_variance is None else max(1.0, chi2))
+        if log_variance is None:
+            cov = cov * chi2
+        elif chi2 > chi2_upper(dof):
+            # More scatter than the stated noise allows (a wrong distance, scattering): say so in the
+            # uncertainty. Scaling whenever χ² > 1 would inflate honest fits on average.
+            cov = cov * chi2
     elif log_variance is None:
         cov = np.full_like(cov, np.nan)  # nothing says how noisy equal-weight data with no spare degree are
     cov = 0.5 * (cov + cov.T)
