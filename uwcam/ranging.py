@@ -225,23 +225,31 @@ class RangeEstimator:
                                                             interpolation=cv2.INTER_AREA).reshape(gh, gw, -1)
         else:
             small, bg = frame.astype(np.float64), background
-        e = small - self.dark
+        # Channel planes (N, gh, gw): every operation below runs over whole planes.
+        raw = np.moveaxis(small, -1, 0)
+        e = raw - self.dark[:, None, None]
         if bg is not None:
-            e = e - bg
+            e = e - np.moveaxis(bg, -1, 0)
+        n = self.n_channels
         q = self.profile.quantisation_step
-        var = signal_variance(e if bg is None else e + bg, self.read_noise, self.shot_gain, q, self.fixed_pattern)
-        var = np.where(var > 0, var, 1.0)
-        usable = (e > np.maximum(self.floor, 0.0)) & (small < self.profile.saturation_level) & self.active
+        total = e if bg is None else e + np.moveaxis(bg, -1, 0)
+        weight, y = [], []
+        for k in range(n):
+            ek = e[k]
+            var = signal_variance(total[k], self.read_noise[k], self.shot_gain[k], q, self.fixed_pattern[k])
+            usable = (ek > max(self.floor[k], 0.0)) & (raw[k] < self.profile.saturation_level) & bool(self.active[k])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                weight.append(np.where(usable, ek * ek / np.where(var > 0, var, 1.0), 0.0))
+                y.append(np.where(usable, np.log(np.where(usable, ek, 1.0)) - self.log_constant[k], 0.0))
+        c = self.attenuation
         with np.errstate(divide="ignore", invalid="ignore"):
-            weight = np.where(usable, e * e / var, 0.0)
-            y = np.where(usable, np.log(np.where(usable, e, 1.0)) - self.log_constant, 0.0)
-            sw = weight.sum(axis=-1, keepdims=True)
-            c = self.attenuation
-            dc = c - (weight * c).sum(axis=-1, keepdims=True) / sw
-            spread = (weight * dc * dc).sum(axis=-1)
-            path = -(weight * dc * (y - (weight * y).sum(axis=-1, keepdims=True) / sw)).sum(axis=-1) / spread
+            sw = sum(weight)
+            c_mean = sum(weight[k] * c[k] for k in range(n)) / sw
+            y_mean = sum(weight[k] * y[k] for k in range(n)) / sw
+            spread = sum(weight[k] * (c[k] - c_mean) ** 2 for k in range(n))
+            path = -sum(weight[k] * (c[k] - c_mean) * (y[k] - y_mean) for k in range(n)) / spread
         cvv, cvb, cbb = self.covariance
-        var_path = calibration_path_variance(weight, c, path, cvv, cvb, cbb)
+        var_path = calibration_path_variance(np.stack(weight, axis=-1), c, path, cvv, cvb, cbb)
         deriv = camera_range_derivative(path, self.profile.lamp_position_m, self._rays_for(gh, gw, h, w))
         cal = (deriv * deriv * var_path).astype(np.float32)
         bad = ~np.isfinite(cal)

@@ -36,16 +36,29 @@ def calibration_path_variance(
     attenuation differences (1/m)², of attenuation differences with log constants (1/m, row V,
     column b) and of log constants. NaN where the pixel has no spread of attenuation.
     """
-    w = np.asarray(weight, dtype=np.float64)
+    w = np.moveaxis(np.asarray(weight, dtype=np.float64), -1, 0)  # (N, ...): whole planes per channel
     c = np.asarray(attenuation, dtype=np.float64)
     d = np.asarray(path_length, dtype=np.float64)
+    cvv, cvb, cbb = (np.asarray(m, dtype=np.float64) for m in (cvv, cvb, cbb))
+    n = w.shape[0]
     with np.errstate(divide="ignore", invalid="ignore"):
-        sw = w.sum(axis=-1, keepdims=True)
-        c_mean = (w * c).sum(axis=-1, keepdims=True) / sw
-        dc = c - c_mean
-        spread = (w * dc * dc).sum(axis=-1, keepdims=True)
-        h = w * dc / spread
-    vv = np.einsum("...k,kl,...l->...", h, np.asarray(cvv, dtype=np.float64), h)
-    vb = np.einsum("...k,kl,...l->...", h, np.asarray(cvb, dtype=np.float64), h)
-    bb = np.einsum("...k,kl,...l->...", h, np.asarray(cbb, dtype=np.float64), h)
-    return bb - 2.0 * d * vb + d * d * vv
+        sw = sum(w[k] for k in range(n))
+        c_mean = sum(w[k] * c[k] for k in range(n)) / sw
+        dc = [c[k] - c_mean for k in range(n)]
+        h = [w[k] * dc[k] for k in range(n)]
+        inv_spread = 1.0 / sum(h[k] * dc[k] for k in range(n))
+    # Σ_kl h_k h_l (Cbb − d(Cvb + Cvbᵀ) + d² Cvv)_kl over the pairs with a non-zero coefficient.
+    bb = vb = vv = 0.0
+    for k in range(n):
+        for m in range(k, n):
+            twice = 1.0 if k == m else 2.0
+            coef_b, coef_v = twice * cbb[k, m], twice * cvv[k, m]
+            coef_bv = twice * (cvb[k, m] + cvb[m, k])
+            if coef_b == 0 and coef_v == 0 and coef_bv == 0:
+                continue
+            pair = h[k] * h[m]
+            bb = bb + coef_b * pair
+            vb = vb + coef_bv * pair
+            vv = vv + coef_v * pair
+    with np.errstate(invalid="ignore"):
+        return (bb - d * vb + d * d * vv) * inv_spread * inv_spread
