@@ -27,6 +27,7 @@ from uwcam.drivers.base import (
     Frame,
     FrameTimeout,
 )
+from uwcam.rig import builtin_rig_path, load_rig
 from uwcam.simulation import Ambient, CameraModel, Lamp, SimulatedWorld, water_preset
 
 
@@ -48,6 +49,9 @@ class SimulatedRig:
     lamp_on: bool = True
     lamp_intensity: float = 1.0
     """0–1, set by the simulated lamp."""
+    plate_rig: str | None = None
+    """Built-in rig (e.g. "charuco-plate") drawn by the "plate" scene; None: the grey plate."""
+    _exposure: float | None = field(default=None, repr=False)
     _world: SimulatedWorld | None = field(default=None, repr=False)
     _cache: dict = field(default_factory=dict, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
@@ -62,15 +66,26 @@ class SimulatedRig:
                     water=water_preset(self.water, list(wl)), lamp=Lamp(position=self.lamp_offset),
                     camera=CameraModel(bits=self.bits), seed=self.seed, material=self.material,
                     ambient=None if self.ambient is None else Ambient(tuple(self.ambient)),
+                    rig=None if self.plate_rig is None else load_rig(builtin_rig_path(self.plate_rig)),
+                    fixed_exposure=self._exposure,
                 )
             return self._world
+
+    def place(self, distance: float) -> None:
+        """Move the scene (e.g. the plate in a tank) to ``distance`` m, keeping the exposure; the next frame shows it."""
+        with self._lock:
+            self._exposure = None if self._world is None else self._world.exposure
+            self.distance = float(distance)
+            self._world = None
+            self._cache = {}
 
     def expected(self) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
         """Mean and σ (DN) for the lamp's present state; lamp light scales with its intensity."""
         on = self.lamp_on and self.lamp_intensity > 0
         level = round(self.lamp_intensity, 2) if on else 0.0
         key = (on, level)
-        if key not in self._cache:
+        cache = self._cache  # place() swaps in a new dict: a world being replaced cannot write into it
+        if key not in cache:
             w = self.world
             if on:
                 lit = w.components(True)
@@ -78,8 +93,8 @@ class SimulatedRig:
                 radiance = ambient + level * (lit.total - ambient)
             else:
                 radiance = w.components(False).total
-            self._cache[key] = w.camera.expected(radiance, w.exposure)
-        return self._cache[key]
+            cache[key] = w.camera.expected(radiance, w.exposure)
+        return cache[key]
 
     def true_range(self) -> float:
         """Camera range (m) at the image centre, where the rangefinder points."""

@@ -16,7 +16,7 @@ from fastapi import Depends, FastAPI, Request
 from fastapi.responses import JSONResponse
 
 from uwcam import __version__
-from uwcam.api import lamp, metrics, profiles, session, settings, snapshots, status, stream
+from uwcam.api import calibration_session, lamp, metrics, profiles, session, settings, snapshots, status, stream
 from uwcam.api.common import Broadcaster
 from uwcam.api.security import Guard, required_token
 from uwcam.config import DaemonConfig
@@ -24,7 +24,7 @@ from uwcam.daemon import Daemon
 from uwcam.fileio import UserInputError
 
 ROUTERS = (status.router, snapshots.router, settings.router, profiles.router, lamp.router, session.router,
-           stream.router, metrics.router)
+           stream.router, metrics.router, calibration_session.router)
 
 
 def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
