@@ -29,3 +29,11 @@ def test_fusion_benchmark_runs(tmp_path):
     out = subprocess.run([sys.executable, str(ROOT / "bench" / "bench_fusion.py"), "--size", "320x240", "--repeat", "3"],
                          check=True, capture_output=True, text=True, timeout=600).stdout
     assert "× memcopy" in out and "straightforward numpy" in out
+    assert "calibration variance step, 1280x720" in out and "blocks vs every pixel" in out
+
+
+@pytest.mark.slow
+def test_calibration_study_runs():
+    out = subprocess.run([sys.executable, str(ROOT / "bench" / "calibration_study.py"), "--trials", "3", "--size", "160x120"],
+                         check=True, capture_output=True, text=True, timeout=600).stdout
+    assert "z-score sd" in out and "reported sigma / spread over calibrations" in out

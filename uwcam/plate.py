@@ -104,13 +104,18 @@ def locate_plate(frame: NDArray, rig: Rig, intrinsics: Intrinsics) -> PlatePose 
         return None
     obj_a, img_a = np.array(obj, np.float64), np.array(img, np.float64)
     k = np.array([[intrinsics.fx, 0, intrinsics.cx], [0, intrinsics.fy, intrinsics.cy], [0, 0, 1]], dtype=np.float64)
-    ok, rvec, tvec = cv2.solvePnP(obj_a, img_a, k, None, flags=cv2.SOLVEPNP_IPPE)
-    if not ok:
+    try:
+        ok, rvec, tvec = cv2.solvePnP(obj_a, img_a, k, None, flags=cv2.SOLVEPNP_IPPE)
+    except cv2.error:  # degenerate corners (a marker seen edge-on): no pose from this frame
+        return None
+    if not ok or not np.all(np.isfinite(tvec)):
         return None
     rot, _ = cv2.Rodrigues(rvec)
     normal = rot[:, 2]
     t = tvec.ravel()
     # The optical axis (0, 0, s) meets the plate's plane n·(x − t) = 0 at s = n·t / n_z.
+    if abs(normal[2]) < 1e-6:
+        return None  # the plate seen edge-on
     distance = float(normal @ t / normal[2])
     tilt = float(np.degrees(np.arccos(min(abs(normal[2]), 1.0))))
     reproj = float(np.sqrt(np.mean(np.sum((_project(obj_a, rvec, tvec, intrinsics) - img_a) ** 2, axis=1))))

@@ -32,7 +32,7 @@ class Start(BaseModel):
     model_config = ConfigDict(extra="forbid")
     rig: Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]{1,64}$")] = "charuco-plate"
     """A rig shipped in calibration_rigs/, with markers."""
-    intrinsics: tuple[Annotated[float, Field(gt=0, lt=1e5)], Annotated[float, Field(gt=0, lt=1e5)],
+    intrinsics: tuple[Annotated[float, Field(ge=1, le=1e5)], Annotated[float, Field(ge=1, le=1e5)],
                       Annotated[float, Field(ge=-1e5, le=1e5)], Annotated[float, Field(ge=-1e5, le=1e5)]] | None = None
     """fx, fy, cx, cy in pixels; default: the active profile's."""
     frames_per_capture: Annotated[int, Field(ge=1, le=50)] = 4
