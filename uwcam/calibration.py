@@ -30,8 +30,9 @@ MAX_SATURATED_FRACTION = 0.01
 FLOOR_SIGMAS = 3.0
 # Side of the box average applied before taking logs of the target (pixels).
 SMOOTHING = 5
-# Backscatter more than this many σ from 0 at any distance counts as measured (see calibrate_with_details).
-BACKSCATTER_SIGMAS = 3.0
+# Backscatter more than this many σ from 0 at any distance counts as measured (see calibrate_with_details);
+# at 5σ clean water is almost never taken for murky (6 tests per calibration: ~4e-6).
+BACKSCATTER_SIGMAS = 5.0
 # Brightness bins of the plate, each a point of the noise-model fit.
 NOISE_BINS = 4
 
