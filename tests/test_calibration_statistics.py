@@ -268,3 +268,109 @@ def test_a_bad_covariance_is_explained(tmp_path):
     path.write_text(yaml.safe_dump(data))
     with pytest.raises(UserInputError, match="positive semi-definite"):
         load_profile(path)
+
+
+# --- the calibration's variance in ranging, and the report -------------------------------------
+
+def covariance_profile(lamp=(0.3, 0.0, 0.0), shape=(120, 160)):
+    from tests.synthetic import make_profile
+    from uwcam.optics import Intrinsics
+    from uwcam.profile import CalibrationCovariance
+
+    intr = Intrinsics.from_fov(shape[1], shape[0], 60.0)
+    base = make_profile([0.46, 0.11, 0.06], [0.0, 0.0, 0.0], read_noise=5.0, shot_gain=0.3, lamp=lamp, intrinsics=intr)
+    a = np.random.default_rng(3).normal(size=(4, 4)) * np.array([3e-4, 3e-4, 2e-3, 2e-3])
+    cov = CalibrationCovariance(parameters=["V:G", "V:B", "b:G", "b:B"], matrix=(a @ a.T).tolist())
+    return base, base.model_copy(update={"covariance": cov}), intr
+
+
+def test_ranging_adds_the_calibration_variance_and_smoothing_keeps_it():
+    from uwcam.ranging import RangeEstimator, smooth_range_map
+
+    shape = (120, 160)
+    base, with_cov, intr = covariance_profile(shape=shape)
+    yy, _ = np.mgrid[0 : shape[0], 0 : shape[1]]
+    path = 3.0 + 6.0 * yy / shape[0]
+    clean = 5e4 * np.exp(-np.array([0.46, 0.11, 0.06]) * path[..., None])
+    frame = np.clip(np.rint(clean + np.sqrt(25 + 0.3 * clean) * np.random.default_rng(1).standard_normal(clean.shape)),
+                    0, 65535).astype(np.uint16)
+    plain = RangeEstimator(base)(frame)
+    full = RangeEstimator(with_cov)(frame)
+    assert plain.calibration_variance is None
+    np.testing.assert_array_equal(full.range, plain.range)
+    np.testing.assert_allclose(full.variance - plain.variance, full.calibration_variance, rtol=1e-5, atol=1e-12)
+    # Reference: every pixel's own sensitivity from its expected signal, by the formula written out here.
+    c = np.array([0.46, 0.11, 0.06])
+    w = clean**2 / (25 + 0.3 * clean + 1 / 12)
+    cw = (w * c).sum(-1, keepdims=True) / w.sum(-1, keepdims=True)
+    h = w * (c - cw) / (w * (c - cw) ** 2).sum(-1, keepdims=True)
+    cvv, cvb, cbb = with_cov.covariance_blocks()
+    hv = np.einsum("...k,...kl->...l", h, cbb - path[..., None, None] * (cvb + cvb.T) + path[..., None, None] ** 2 * cvv)
+    var_path = (hv * h).sum(-1)
+    from uwcam.optics import camera_range_derivative, pixel_rays
+
+    deriv = camera_range_derivative(path, with_cov.lamp_position_m, pixel_rays(intr, *shape))
+    expected = deriv**2 * var_path
+    inner = (slice(8, -8), slice(8, -8))  # the outermost blocks extrapolate
+    np.testing.assert_allclose(full.calibration_variance[inner], expected[inner], rtol=0.03)
+    smoothed = smooth_range_map(full, "mean")
+    # Averaging 9 pixels divides the pixel noise by 9 but leaves the calibration's share whole.
+    np.testing.assert_allclose(smoothed.variance[inner], (plain.variance[inner] / 9 + full.calibration_variance[inner]),
+                               rtol=0.05)
+
+
+def test_calibrate_report_is_one_self_contained_html(tmp_path, capsys):
+    import re
+
+    water = water_preset("ideal", WAVELENGTHS)
+    frames, at, inputs = tank_frames(water, (1.0, 2.0), 2, size=(160, 120))
+    files, args = [], []
+    for i, (f, d) in enumerate(zip(frames, at)):
+        path = tmp_path / f"f{i}.npy"
+        np.save(path, f)
+        files.append(str(path))
+        args += ["--distance", str(d)]
+    intr = inputs.intrinsics
+    report = tmp_path / "report.html"
+    rc = main(["calibrate", *files, *args, "--rig", "grey-plate", "--intrinsics", f"{intr.fx},{intr.fy},{intr.cx},{intr.cy}",
+               "--lamp-offset", "0.3,0,0", "--dark-level", ",".join([str(inputs.dark_level[0])] * 3),
+               "-o", str(tmp_path / "p.yaml"), "--report", str(report)])
+    assert rc == 0, capsys.readouterr().err
+    text = report.read_text()
+    sources = re.findall(r"src=['\"]([^'\"]+)", text)
+    assert len(sources) == 5 and all(s.startswith("data:image/png;base64,") for s in sources)
+    assert "href=" not in text and "<script" not in text
+    for heading in ("log-ratio", "residuals", "noise", "overlay", "range-sigma"):
+        assert f"<h2>{heading}</h2>" in text
+    assert load_profile(tmp_path / "p.yaml").provenance.frames_per_distance == [2, 2]
+    assert main(["calibrate", *files, *args, "-o", str(tmp_path / "q.yaml"), "--report", str(tmp_path / "r.pdf")]) == 2
+    assert "--report" in capsys.readouterr().err and not (tmp_path / "q.yaml").exists()
+
+
+def test_black_patch_edges_do_not_leak_into_the_single_frame_noise_model():
+    """One frame per distance, a black patch inside the target box: the noise region keeps clear of its
+    edges (the old neighbour differences across them inflated the variance about 5×)."""
+    from tests.synthetic import RGB_ATTENUATION, plate_frame
+    from uwcam.optics import Intrinsics, signal_variance
+
+    shape, fov = (120, 160), 50.0
+    intr = Intrinsics.from_fov(shape[1], shape[0], fov)
+    rng = np.random.default_rng(8)
+    read, gain = 5.0, 0.4
+    frames, boxes = [], []
+    for d in (1.0, 1.6, 2.4):
+        f, _ = plate_frame(d, RGB_ATTENUATION, np.array([0.7, 1.0, 0.85]) * 4e5, np.full(3, 0.18), shape, fov_deg=fov)
+        box = project_plate_box((0.1, 0.1), (0.12, 0.12), d, intr)
+        x, y, w, h = box
+        f[y : y + h, x : x + w] *= 0.03 / 0.18
+        frames.append(f + np.sqrt(read**2 + gain * f) * rng.standard_normal(f.shape))
+        boxes.append(box)
+    inputs = CalibrationInputs(channel_names=["R", "G", "B"], wavelengths_nm=[None] * 3, target_reflectance=np.full(3, 0.18),
+                               black_reflectance=np.full(3, 0.03), black_boxes=boxes, intrinsics=intr,
+                               saturation_level=1e12, quantisation_step=0.0)
+    details = calibrate_with_details(frames, [1.0, 1.6, 2.4], inputs)
+    p = details.profile
+    for _, point in details.noise_points:
+        model = signal_variance(point.mean, p.array("read_noise"), p.array("shot_gain"), 0.0, p.array("fixed_pattern"))
+        # Within 20 % everywhere (read noise is the least determined part, at the black patch): not 5×.
+        np.testing.assert_allclose(model, read**2 + gain * point.mean, rtol=0.2)
