@@ -2,7 +2,6 @@
 the simulated camera, lamp and sonar sharing one world whose marker plate the test moves between
 captures (SimulatedRig.place, as a crew moves the plate)."""
 
-import numpy as np
 import pytest
 
 from tests.test_api import Server

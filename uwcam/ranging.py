@@ -77,7 +77,7 @@ class RangeEstimator:
         self.fixed_pattern = profile.array("fixed_pattern")
         self.covariance = profile.covariance_blocks()
         self.with_calibration_variance = bool(calibration_variance) and any(np.any(m != 0) for m in self.covariance)
-        self._low_res_rays: dict[tuple[int, int], NDArray | None] = {}
+        self._low_res_rays: dict[tuple[int, int, int, int], NDArray | None] = {}
         self.backscatter = None if backscatter_level is None else np.asarray(backscatter_level, dtype=np.float64)
         v = profile.array("attenuation_difference")
         b = profile.array("log_constant")
@@ -269,7 +269,7 @@ class RangeEstimator:
 
     def _rays_for(self, gh: int, gw: int, h: int, w: int) -> NDArray | None:
         """Unit rays of the block centres (gh, gw, 3), or None (optical axis) without intrinsics."""
-        key = (gh, gw)
+        key = (gh, gw, h, w)
         if key not in self._low_res_rays:
             intr = self.profile.camera_intrinsics()
             rays = None
