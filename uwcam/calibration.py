@@ -434,22 +434,27 @@ def backscatter_at_black_patch(
     """
     rho_b = np.asarray(black_reflectance, dtype=np.float64)
     rho_p = np.asarray(plate_reflectance, dtype=np.float64)
+    if not black_mask.any():
+        raise UserInputError("the black patch region holds no pixels; check the regions")
     patch = _interior(black_mask, EDGE)
-    if not patch.any():
-        raise UserInputError("the black patch region is too small to measure; it needs more than 5×5 pixels")
+    edge = EDGE
+    if patch.sum() < 4:
+        patch, edge = black_mask, 0  # a patch a few pixels wide (small or far): keep every pixel of it
     ys, xs = np.nonzero(black_mask)
     size = max(int(min(np.ptp(ys), np.ptp(xs)) + 1), 4)
-    ring = _dilate(black_mask, max(size // 2, 4)) & ~_dilate(black_mask, EDGE) & _interior(plate_mask, EDGE)
+    ring = _dilate(black_mask, max(size // 2, 4)) & ~_dilate(black_mask, edge) & _interior(plate_mask, edge)
     ring &= ~black_mask
-    if ring.sum() < 24:
+    if ring.sum() < 6:
         raise UserInputError("the black patch is not surrounded by enough plate pixels to interpolate the plate's light across it; "
                              "check the regions (the patch must lie inside the plate, away from its edges)")
     cy, cx, scale = ys.mean(), xs.mean(), float(size)
+    quadratic = ring.sum() >= 24  # a few ring pixels only support a plane
 
     def design(mask: NDArray[np.bool_]) -> NDArray:
         yy, xx = np.nonzero(mask)
         u, v = (xx - cx) / scale, (yy - cy) / scale
-        return np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=1)
+        terms = [np.ones_like(u), u, v] + ([u * u, u * v, v * v] if quadratic else [])
+        return np.stack(terms, axis=1)
 
     a_ring, a_patch = design(ring), design(patch)
     plate_values = signal[ring]
@@ -636,23 +641,28 @@ def calibrate_with_details(frames: list[NDArray], distances_m: list[float], inpu
         usable = target & ~clipped
         mean_frame = np.mean([f.astype(np.float64) for f in stack], axis=0) - dark
         # Noise region: away from the plate's edges and from the black patch (and from anything,
-        # like markers, outside the target region).
-        region = _interior(usable, EDGE)
-        if black is not None:
-            region &= ~_dilate(black, EDGE + SMOOTHING)
-        if region.sum() < 3:
+        # like markers, outside the target region); on a plate only a few pixels across, as close as it takes.
+        away = np.zeros(shape, bool) if black is None else black
+        candidates = [_interior(usable, EDGE) & ~_dilate(away, EDGE + SMOOTHING), _interior(usable, 1) & ~_dilate(away, 1),
+                      usable & ~away]
+        region = next((r for r in candidates if (r[:, 2:] & r[:, 1:-1] & r[:, :-2]).sum() >= 2), None)
+        if region is None:
             raise UserInputError(f"the target region of {label} is too small to measure its noise; check the regions")
         # The plate's light falls off toward its edges: bins of brightness give the noise model
         # several signal levels per distance.
         brightness = cv2.blur(mean_frame.sum(axis=-1), (SMOOTHING, SMOOTHING))
         edges = np.quantile(brightness[region], np.linspace(0, 1, NOISE_BINS + 1))
+        before = len(noise_points)
         for j in range(NOISE_BINS):
             part = region & (brightness >= edges[j]) & (brightness <= edges[j + 1])
             if part.sum() >= 64:
                 noise_points.append((f"plate {distance:g} m, level {j + 1}", noise_point(stack, part, dark)))
+        if len(noise_points) == before:
+            noise_points.append((f"plate {distance:g} m", noise_point(stack, region, dark)))
         if black is not None:
             patch = _interior(black, EDGE)
-            if patch.sum() >= 3:
+            triples = patch[:, 2:] & patch[:, 1:-1] & patch[:, :-2]
+            if triples.sum() >= 2:  # a patch too small to measure its noise still gives backscatter
                 noise_points.append((f"black patch {distance:g} m", noise_point(stack, patch, dark)))
         groups.append(DistanceGroup(distance, [names[i] for i in idx], mean_frame, usable, black))
 
