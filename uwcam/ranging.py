@@ -218,10 +218,11 @@ class RangeEstimator:
         h, w = frame.shape[:2]
         gh, gw = max(h // block, 1), max(w // block, 1)
         if block > 1:
-            # The 2×2 pixels at each block's centre: enough to weigh the channels (the weights only
-            # need the signal to a few %), and it reads 1/16 of the frame rather than all of it.
-            small = _block_centres(np.asarray(frame), block, gh, gw)
-            bg = None if background is None else _block_centres(np.asarray(background), block, gh, gw)
+            small = cv2.resize(frame, (gw, gh), interpolation=cv2.INTER_AREA).astype(np.float64)
+            if small.ndim == 2:
+                small = small[:, :, None]
+            bg = None if background is None else cv2.resize(np.asarray(background, np.float32), (gw, gh),
+                                                            interpolation=cv2.INTER_AREA).reshape(gh, gw, -1)
         else:
             small, bg = frame.astype(np.float64), background
         # Channel planes (N, gh, gw): every operation below runs over whole planes.
@@ -278,16 +279,6 @@ class RangeEstimator:
                                              (intr.cy + 0.5) / sy - 0.5), gh, gw)
             self._low_res_rays[key] = rays
         return self._low_res_rays[key]
-
-
-def _block_centres(data: NDArray, block: int, gh: int, gw: int) -> NDArray[np.float64]:
-    """(gh, gw, N) mean of the 2×2 pixels at the centre of each block×block block of ``data`` (H, W, N)."""
-    a = block // 2 - 1
-    out = np.zeros((gh, gw, data.shape[-1]), np.float64)
-    for dy in (0, 1):
-        for dx in (0, 1):
-            out += data[a + dy :: block, a + dx :: block][:gh, :gw]
-    return out * 0.25
 
 
 def smooth_range_map(result: RangeResult, kind: str = "mean") -> RangeResult:
