@@ -33,6 +33,7 @@ SMOOTHING = 5
 # Backscatter more than this many σ from 0 at any distance counts as measured (see calibrate_with_details);
 # at 5σ clean water is almost never taken for murky (6 tests per calibration: ~4e-6).
 BACKSCATTER_SIGMAS = 5.0
+BACKSCATTER_FRACTION = 1e-3
 # Brightness bins of the plate, each a point of the noise-model fit.
 NOISE_BINS = 4
 
@@ -684,8 +685,11 @@ def calibrate_with_details(frames: list[NDArray], distances_m: list[float], inpu
     # level measured at the patch cannot be subtracted from the whole plate. Where backscatter is
     # measurable, the fit uses the plate's own light at the patch, which is free of it pixel by
     # pixel; where it is not (clean water, a tank), the whole plate, which has many more pixels.
+    # Measured: more than 5σ from 0 and more than 0.1 % of the plate's light (below that its unevenness
+    # over the plate moves ln E by less than 1e-4; noise-free frames have σ ≈ 0).
     patch_local = has_black and any(
-        np.any(np.abs(e.level) > BACKSCATTER_SIGMAS * np.sqrt(e.variance) + 1e-9 * np.abs(e.black_mean))
+        np.any((np.abs(e.level) > BACKSCATTER_SIGMAS * np.sqrt(e.variance))
+               & (np.abs(e.level) > BACKSCATTER_FRACTION * np.exp(e.plate_log)))
         for e in estimates if e is not None)
 
     fitted: list[DistanceGroup] = []
