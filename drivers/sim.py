@@ -27,6 +27,7 @@ from uwcam.drivers.base import (
     Frame,
     FrameTimeout,
 )
+from uwcam.rig import builtin_rig_path, load_rig
 from uwcam.simulation import Ambient, CameraModel, Lamp, SimulatedWorld, water_preset
 from uwcam.simulation._jit import set_threads
 from uwcam.simulation.survey import SurveyMotion, SurveyWorld
@@ -69,6 +70,9 @@ class SimulatedRig:
     """Survey: seconds from lowest to highest and back."""
     clock: Callable[[], float] = field(default=time.monotonic, repr=False)
     """Survey time source (s); the survey starts when the world is built."""
+    plate_rig: str | None = None
+    """Built-in rig (e.g. "charuco-plate") drawn by the "plate" scene; None: the grey plate."""
+    _exposure: float | None = field(default=None, repr=False)
     _world: SimulatedWorld | SurveyWorld | None = field(default=None, repr=False)
     _t0: float = field(default=0.0, repr=False)
     _cache: dict = field(default_factory=dict, repr=False)
@@ -89,9 +93,20 @@ class SimulatedRig:
                                           altitude_period=self.altitude_period)
                     self._world = SurveyWorld(size=tuple(self.size), motion=motion, **common)
                 else:
-                    self._world = SimulatedWorld(scene=self.scene, distance=self.distance, size=tuple(self.size), **common)
+                    self._world = SimulatedWorld(
+                        scene=self.scene, distance=self.distance, size=tuple(self.size), **common,
+                        rig=None if self.plate_rig is None else load_rig(builtin_rig_path(self.plate_rig)),
+                        fixed_exposure=self._exposure)
                 self._t0 = self.clock()
             return self._world
+
+    def place(self, distance: float) -> None:
+        """Move the scene (e.g. the plate in a tank) to ``distance`` m, keeping the exposure; the next frame shows it."""
+        with self._lock:
+            self._exposure = None if self._world is None else self._world.exposure
+            self.distance = float(distance)
+            self._world = None
+            self._cache = {}
 
     @property
     def moving(self) -> bool:
@@ -133,7 +148,8 @@ class SimulatedRig:
             state = self.snapshot()[:2]
         on, level = state
         key = (on, level)
-        if key not in self._cache:
+        cache = self._cache  # place() swaps in a new dict: a world being replaced cannot write into it
+        if key not in cache:
             w = self.world
             if on:
                 lit = w.components(True)
@@ -141,8 +157,8 @@ class SimulatedRig:
                 radiance = ambient + level * (lit.total - ambient)
             else:
                 radiance = w.components(False).total
-            self._cache[key] = w.camera.expected(radiance, w.exposure)
-        return self._cache[key]
+            cache[key] = w.camera.expected(radiance, w.exposure)
+        return cache[key]
 
     def true_range(self) -> float:
         """Camera range (m) at the image centre, where the rangefinder points: for the survey,

@@ -37,3 +37,11 @@ def test_daemon_benchmark_runs():
                           "--fps", "20", "--frames", "2", "--seconds", "2", "--startup-seconds", "4"],
                          check=True, capture_output=True, text=True, timeout=600).stdout
     assert "first range" in out and "resident memory peak" in out and "processed" in out
+    assert "calibration variance step, 1280x720" in out and "blocks vs every pixel" in out
+
+
+@pytest.mark.slow
+def test_calibration_study_runs():
+    out = subprocess.run([sys.executable, str(ROOT / "bench" / "calibration_study.py"), "--trials", "3", "--size", "160x120"],
+                         check=True, capture_output=True, text=True, timeout=600).stdout
+    assert "z-score sd" in out and "reported sigma / spread over calibrations" in out

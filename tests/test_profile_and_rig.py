@@ -21,7 +21,7 @@ def test_profile_round_trip(profile_file):
     again = load_profile(profile_file)
     assert again.channel_names == ["R", "G", "B"]
     np.testing.assert_allclose(again.array("attenuation_difference"), [0.0, -0.35, -0.40])
-    assert yaml.safe_load(profile_file.read_text())["version"] == 1
+    assert yaml.safe_load(profile_file.read_text())["version"] == 2
 
 
 def edit(path, change):
@@ -36,7 +36,7 @@ def edit(path, change):
         (lambda d: d["channels"][1].update(read_noise=-1), r"key 'channels\.1\.read_noise': Input should be greater than or equal to 0 \(got -1\)"),
         (lambda d: d.update(colour="blue"), r"key 'colour': unknown key; remove it or check its spelling"),
         (lambda d: d.pop("saturation_level"), r"key 'saturation_level': required key is missing"),
-        (lambda d: d.update(version=7), r"profile version 7 is newer than this uwcam understands \(1\); upgrade uwcam"),
+        (lambda d: d.update(version=7), r"profile version 7 is newer than this uwcam understands \(2\); upgrade uwcam"),
         (lambda d: d.update(format="something"), r"key 'format' must be 'uwcam-calibration-profile'"),
         (lambda d: d.update(reference_channel="X"), r"reference_channel 'X' is not one of the channels \['R', 'G', 'B'\]"),
         (lambda d: d["channels"][1].update(name="R"), r"channel names must be unique"),
@@ -90,7 +90,7 @@ def test_builtin_rigs_load():
     colour = load_rig(builtin_rig_path("colour-plate"))
     rho = resolve_reflectance(colour.plate.reflectance, ["R", "G", "B"], [675.0, 575.0, 475.0], "plate")
     np.testing.assert_allclose(rho, [0.345, 0.265, 0.17])
-    with pytest.raises(UserInputError, match="known rigs: colour-plate, grey-plate"):
+    with pytest.raises(UserInputError, match="known rigs: charuco-plate, colour-plate, grey-plate"):
         builtin_rig_path("tank")
 
 

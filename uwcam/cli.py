@@ -68,7 +68,7 @@ def default_saturation(dtype: np.dtype) -> float:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from uwcam.calibration import CalibrationInputs, calibrate, project_plate_box
+    from uwcam.calibration import CalibrationInputs, calibrate_with_details, project_plate_box
     from uwcam.imageio import read_frame
     from uwcam.profile import save_profile
     from uwcam.rig import load_rig, resolve_reflectance
@@ -168,11 +168,41 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         target_description=description,
         image_names=[str(p) for p in args.images],
     )
-    profile = calibrate(frames, distances, inputs)
+    report = Path(args.report) if args.report else None
+    if report is not None:
+        if report.suffix.lower() not in (".html", ".htm"):
+            raise UserInputError(f"--report {report} must be an .html file")
+        if not report.parent.exists():
+            raise UserInputError(f"output folder {report.parent} of --report does not exist")
+    details = calibrate_with_details(frames, distances, inputs)
+    profile = details.profile
     save_profile(profile, out)
+    if report is not None:
+        from uwcam.calibration_report import html_report
+        from uwcam.fileio import atomic_write
+
+        with atomic_write(report, "w") as fh:
+            fh.write(html_report(details))
+        print(f"wrote {report}")
     v = ", ".join(f"{c.name}−{profile.reference_channel} {c.attenuation_difference:+.4f}±{c.attenuation_difference_std:.4f}"
                   for c in profile.channels if c.name != profile.reference_channel)
     print(f"wrote {out}: attenuation differences (1/m) {v}; rms residual {profile.provenance.rms_residual:.2e}")
+    return 0
+
+
+def cmd_rig_print(args: argparse.Namespace) -> int:
+    from uwcam.rig import load_rig
+    from uwcam.rig_artwork import write_artwork
+
+    out = Path(args.output)
+    if out.suffix.lower() != ".pdf":
+        raise UserInputError(f"the artwork {out} must be a .pdf file")
+    if not out.parent.exists():
+        raise UserInputError(f"output folder {out.parent} does not exist")
+    rig = load_rig(resolve_rig_path(args.rig))
+    write_artwork(rig, out)
+    w, h = rig.plate.size_m
+    print(f"wrote {out}: {rig.name}, {w * 100:g} × {h * 100:g} cm at true scale; print at 100 % and check the 10 cm bar")
     return 0
 
 
@@ -420,9 +450,11 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     cal = sub.add_parser("calibrate", help="make a calibration profile from a target imaged at known distances")
-    cal.add_argument("images", nargs="+", metavar="IMAGE", help="target images (.npy, .tif, .png), one per distance")
+    cal.add_argument("images", nargs="+", metavar="IMAGE",
+                     help="target images (.npy, .tif, .png), one per --distance; several at one distance are averaged")
     cal.add_argument("--distance", type=float, action="append", metavar="D",
-                     help="camera-to-target distance along the optical axis in metres, one per image in order")
+                     help="camera-to-target distance along the optical axis in metres, one per image in order "
+                          "(repeat a distance for several frames taken there)")
     cal.add_argument("--target-reflectance", metavar="R1,R2,...", help="target reflectance per channel (default: spectrally flat)")
     cal.add_argument("--rig", metavar="RIG.yaml", help="rig file describing the target (calibration_rigs/)")
     cal.add_argument("--roi", metavar="X,Y,W,H", help="target region in pixels (default: the whole image)")
@@ -438,7 +470,16 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--saturation", type=float, metavar="DN", help="raw level at which pixels clip (default: the dtype's maximum)")
     cal.add_argument("--name", help="name stored in the profile (default: the file's stem)")
     cal.add_argument("-o", "--output", required=True, metavar="PROFILE.yaml", help="profile to write")
+    cal.add_argument("--report", metavar="REPORT.html",
+                     help="also write a self-contained HTML report: fits, residuals, noise model, plate overlay, range σ")
     cal.set_defaults(func=cmd_calibrate)
+
+    rig = sub.add_parser("rig", help="calibration rig tools")
+    rig_sub = rig.add_subparsers(dest="rig_command", required=True, metavar="ACTION")
+    rig_print = rig_sub.add_parser("print", help="draw a rig's plate (markers, target, black patch) at true scale as PDF")
+    rig_print.add_argument("rig", metavar="RIG", help="rig file or built-in rig name (e.g. charuco-plate)")
+    rig_print.add_argument("-o", "--output", required=True, metavar="BOARD.pdf")
+    rig_print.set_defaults(func=cmd_rig_print)
 
     rng = sub.add_parser("range", help="turn an image into a range map with a calibration profile")
     rng.add_argument("profile", metavar="PROFILE.yaml")

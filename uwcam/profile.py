@@ -2,8 +2,13 @@
 
 A profile stores, per channel, the attenuation difference c_k − c_ref (1/m), the log
 constant b_k = ln(K_k ρ_k / K_ref ρ_ref) of the calibration target, their
-uncertainties, the camera noise model and noise floor, plus the lamp position,
-optional intrinsics and where the calibration came from.
+uncertainties, the camera noise model and noise floor, plus the joint covariance of
+all attenuation differences and log constants, the lamp position, optional intrinsics
+and where the calibration came from.
+
+Version history: 1 → 2 added the joint ``covariance`` and each channel's ``fixed_pattern``
+noise term. A version-1 file still loads: its per-channel uncertainties become a diagonal
+covariance (version 1 recorded no correlations) and its fixed pattern is 0 (not measured).
 """
 
 from __future__ import annotations
@@ -20,11 +25,7 @@ from uwcam.fileio import UserInputError, atomic_write, explain_validation_error,
 from uwcam.optics.geometry import Intrinsics
 
 PROFILE_FORMAT = "uwcam-calibration-profile"
-PROFILE_VERSION = 1
-
-# version → function taking the mapping of that version and returning version + 1.
-# Empty while there is one version; a new version adds its step here.
-_MIGRATIONS: dict[int, Any] = {}
+PROFILE_VERSION = 2
 
 NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
 Finite = Annotated[float, Field(allow_inf_nan=False)]
@@ -59,6 +60,8 @@ class ChannelCalibration(Strict):
     """Read noise, DN rms."""
     shot_gain: NonNegative = 0.0
     """Shot-noise variance per DN of signal (DN per photo-electron)."""
+    fixed_pattern: NonNegative = 0.0
+    """Pixel response non-uniformity: relative rms of the fixed pattern (0.01 = 1 %), variance (fixed_pattern·E)²."""
     noise_floor: NonNegative = 0.0
     """Dark-corrected signal in DN at or below which the channel carries no surface signal (0: not measured)."""
 
@@ -71,9 +74,11 @@ class Provenance(Strict):
     method: str
     """How attenuation differences were found."""
     distances_m: list[Finite] = []
-    """Camera-to-target distances along the optical axis, metres."""
+    """Camera-to-target distances along the optical axis, metres (one per distance imaged)."""
+    frames_per_distance: list[Annotated[int, Field(ge=1)]] = []
+    """Frames averaged at each distance (empty: one each)."""
     path_lengths_m: list[Finite] = []
-    """Mean lamp→target→camera path length over the target region, metres."""
+    """Mean lamp→target→camera path length over the target region at each distance, metres."""
     images: list[str] = []
     """The images used, in order."""
     target: str = "spectrally flat target"
@@ -101,11 +106,37 @@ class BackscatterSamples(Strict):
     """Relative exposure of each image (levels are divided by it); 1 when exposure was fixed."""
 
 
+class CalibrationCovariance(Strict):
+    """Joint covariance of the calibration's attenuation differences and log constants.
+
+    ``parameters`` names each row: ``V:<channel>`` for c_k − c_ref (1/m) and ``b:<channel>``
+    for the log constant, for every channel but the reference (whose are 0 by definition).
+    """
+
+    parameters: Annotated[list[str], Field(min_length=2)]
+    """Row and column names, e.g. [V:G, V:B, b:G, b:B]."""
+    matrix: list[list[Finite]]
+    """Symmetric positive semi-definite matrix, units (1/m)², 1/m and 1 as the names say."""
+
+    @model_validator(mode="after")
+    def _square(self) -> "CalibrationCovariance":
+        n = len(self.parameters)
+        if len(self.matrix) != n or any(len(row) != n for row in self.matrix):
+            raise ValueError(f"covariance matrix must be {n}×{n}, one row and column per parameter")
+        m = np.array(self.matrix, dtype=np.float64)
+        scale = max(float(np.max(np.abs(np.diag(m)))), 1e-300)
+        if not np.allclose(m, m.T, rtol=1e-6, atol=1e-12 * scale):
+            raise ValueError("covariance matrix must be symmetric")
+        if np.min(np.linalg.eigvalsh(0.5 * (m + m.T))) < -1e-9 * scale:
+            raise ValueError("covariance matrix must be positive semi-definite (no negative variances)")
+        return self
+
+
 class CalibrationProfile(Strict):
     """Everything the intensity–range transform needs for one camera, lamp and water."""
 
     format: Literal["uwcam-calibration-profile"] = PROFILE_FORMAT
-    version: Literal[1] = PROFILE_VERSION
+    version: Literal[2] = PROFILE_VERSION
     name: Annotated[str, Field(min_length=1)]
     """Human-readable name of this calibration."""
     reference_channel: str
@@ -124,6 +155,8 @@ class CalibrationProfile(Strict):
     """Pinhole intrinsics fx, fy, cx, cy in pixels."""
     backscatter: BackscatterSamples | None = None
     """Backscatter measured during calibration (when the target had a black patch)."""
+    covariance: CalibrationCovariance | None = None
+    """Joint covariance of attenuation differences and log constants; None: uncorrelated, from the stds."""
     provenance: Provenance
 
     @model_validator(mode="after")
@@ -145,6 +178,11 @@ class CalibrationProfile(Strict):
                 raise ValueError(f"backscatter levels and noise_sigma need one entry per channel {names}")
             if len(bs.patch_pixels) != n or any(len(v) != n for v in bs.levels.values()):
                 raise ValueError(f"backscatter needs {n} patch_pixels and {n} levels per channel, one per distance")
+        if self.covariance is not None:
+            others = [n for n in names if n != self.reference_channel]
+            want = [f"V:{n}" for n in others] + [f"b:{n}" for n in others]
+            if self.covariance.parameters != want:
+                raise ValueError(f"covariance parameters must be {want} (attenuation differences, then log constants)")
         if self.intrinsics is not None:
             if set(self.intrinsics) != {"fx", "fy", "cx", "cy"}:
                 raise ValueError(f"intrinsics need exactly fx, fy, cx, cy, got {sorted(self.intrinsics)}")
@@ -167,6 +205,47 @@ class CalibrationProfile(Strict):
 
     def camera_intrinsics(self) -> Intrinsics | None:
         return None if self.intrinsics is None else Intrinsics(**self.intrinsics)
+
+    def covariance_blocks(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(Cvv, Cvb, Cbb), each (N, N) in channel order with zero reference row and column:
+        covariances of attenuation differences, of attenuation differences with log constants,
+        and of log constants. Without a stored covariance, diagonal from the stds."""
+        n = len(self.channels)
+        cvv, cvb, cbb = np.zeros((n, n)), np.zeros((n, n)), np.zeros((n, n))
+        if self.covariance is None:
+            cvv[np.diag_indices(n)] = self.array("attenuation_difference_std") ** 2
+            cbb[np.diag_indices(n)] = self.array("log_constant_std") ** 2
+            return cvv, cvb, cbb
+        others = [k for k in range(n) if k != self.reference_index]
+        m = np.array(self.covariance.matrix, dtype=np.float64)
+        q = len(others)
+        idx = np.ix_(others, others)
+        cvv[idx], cvb[idx], cbb[idx] = m[:q, :q], m[:q, q:], m[q:, q:]
+        return cvv, cvb, cbb
+
+
+def _v1_to_v2(data: dict[str, Any]) -> dict[str, Any]:
+    """Version 1 had per-channel stds only: the covariance is theirs, uncorrelated."""
+    out = dict(data)
+    out["version"] = 2
+    channels = data.get("channels")
+    ref = data.get("reference_channel")
+    if isinstance(channels, list) and all(isinstance(c, dict) for c in channels):
+        others = [c for c in channels if c.get("name") != ref]
+        try:
+            variances = [float(c.get("attenuation_difference_std", 0.0)) ** 2 for c in others] + \
+                        [float(c.get("log_constant_std", 0.0)) ** 2 for c in others]
+        except (TypeError, ValueError):
+            return out  # validation will name the bad value
+        if others and all(np.isfinite(variances)):
+            names = [str(c.get("name")) for c in others]
+            out["covariance"] = {"parameters": [f"V:{n}" for n in names] + [f"b:{n}" for n in names],
+                                 "matrix": np.diag(variances).tolist()}
+    return out
+
+
+# version → function taking the mapping of that version and returning version + 1.
+_MIGRATIONS: dict[int, Any] = {1: _v1_to_v2}
 
 
 def _migrate(data: dict[str, Any], source: str) -> dict[str, Any]:

@@ -10,11 +10,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from uwcam.fileio import UserInputError
+
 from uwcam.optics import kernels
+from uwcam.optics.calibration_variance import calibration_path_variance
+from uwcam.optics.geometry import Intrinsics, camera_range_derivative, pixel_rays
 from uwcam.optics.noise import signal_variance
 from uwcam.optics.validity import ChannelState, channel_states
 from uwcam.profile import CalibrationProfile
@@ -23,6 +27,9 @@ from uwcam.profile import CalibrationProfile
 _IGNORED = 4
 # With a known background subtracted, a channel needs this many σ of signal to be used.
 BACKGROUND_SIGMAS = 3.0
+# The calibration's share of the variance is smooth across the image: it is computed on blocks
+# of this many pixels a side and interpolated (bench/bench_fusion.py prints the error and cost).
+CALIBRATION_VARIANCE_BLOCK = 8
 
 
 @dataclass(frozen=True)
@@ -35,6 +42,9 @@ class RangeResult:
     """Variance of ``range`` in m²; NaN where invalid."""
     reasons: NDArray[np.uint8]
     """:class:`uwcam.optics.validity.Reason` code per pixel."""
+    calibration_variance: NDArray[np.float32] | None = None
+    """The part of ``variance`` that comes from the calibration (m²), the same in every frame and
+    correlated between pixels; None when not added."""
 
 
 class RangeEstimator:
@@ -48,12 +58,15 @@ class RangeEstimator:
         surface_reflectance: NDArray | list[float] | None = None,
         backscatter_level: NDArray | list[float] | None = None,
         path_length_bounds: tuple[float, float] = (0.0, np.inf),
+        calibration_variance: bool = True,
     ) -> None:
         """pair: two channel names for single-pair ranging (default: fuse all channels).
         surface_reflectance: (N,) reflectance of the imaged surface, when it differs in hue
         from the calibration target (only ratios matter). backscatter_level: (N,) signal
         (DN, dark-corrected) of open water; pixels not above it carry no surface signal.
-        path_length_bounds: (min, max) accepted path length d_T in metres."""
+        path_length_bounds: (min, max) accepted path length d_T in metres.
+        calibration_variance: add the calibration's own uncertainty (the profile's covariance of
+        attenuation differences and log constants) to every pixel's variance."""
         self.profile = profile
         names = profile.channel_names
         n = len(names)
@@ -62,6 +75,10 @@ class RangeEstimator:
         self.floor = profile.array("noise_floor")
         self.read_noise = profile.array("read_noise")
         self.shot_gain = profile.array("shot_gain")
+        self.fixed_pattern = profile.array("fixed_pattern")
+        self.covariance = profile.covariance_blocks()
+        self.with_calibration_variance = bool(calibration_variance) and any(np.any(m != 0) for m in self.covariance)
+        self._low_res_rays: dict[tuple[int, int, int, int], NDArray | None] = {}
         self.backscatter = None if backscatter_level is None else np.asarray(backscatter_level, dtype=np.float64)
         v = profile.array("attenuation_difference")
         b = profile.array("log_constant")
@@ -125,7 +142,7 @@ class RangeEstimator:
         state = channel_states(raw, e, self.floor, self.profile.saturation_level, self.backscatter)
         with np.errstate(divide="ignore", invalid="ignore"):
             total = e if background is None else e + background
-            var = signal_variance(total, self.read_noise, self.shot_gain, self.profile.quantisation_step)
+            var = signal_variance(total, self.read_noise, self.shot_gain, self.profile.quantisation_step, self.fixed_pattern)
             # A profile without any noise model (float data, nothing measured) counts as 1 DN of noise.
             var = np.where(var > 0, var, 1.0)
             if background is not None:
@@ -196,7 +213,84 @@ class RangeEstimator:
             kernels.fuse_arrays(pairs, self._c, (0.0,) * self.n_channels, *common)
         else:
             raise UserInputError(f"unsupported pixel type {frame.dtype}; give uint8, uint16 or float images")
+        if self.with_calibration_variance:
+            cal = self.calibration_variance(frame, background)
+            np.add(out.variance, cal, out=out.variance)  # NaN (invalid) stays NaN
+            out = RangeResult(out.range, out.variance, out.reasons, cal)
         return out
+
+    def calibration_variance(self, frame: NDArray, background: NDArray | None = None,
+                             block: int = CALIBRATION_VARIANCE_BLOCK) -> NDArray[np.float32]:
+        """(H, W) variance of camera range (m²) due to the calibration's uncertainty, for ``frame`` (H, W, N).
+
+        Computed on block averages (``block`` pixels a side; 1: every pixel) with the fusion
+        weights of the noise model (see :mod:`uwcam.optics.calibration_variance`), then
+        interpolated bilinearly; blocks without a range take their neighbours' largest value.
+        """
+        h, w = frame.shape[:2]
+        gh, gw = max(h // block, 1), max(w // block, 1)
+        if block > 1:
+            small = cv2.resize(frame, (gw, gh), interpolation=cv2.INTER_AREA).astype(np.float64)
+            if small.ndim == 2:
+                small = small[:, :, None]
+            bg = None if background is None else cv2.resize(np.asarray(background, np.float32), (gw, gh),
+                                                            interpolation=cv2.INTER_AREA).reshape(gh, gw, -1)
+        else:
+            small, bg = frame.astype(np.float64), background
+        # Channel planes (N, gh, gw): every operation below runs over whole planes.
+        raw = np.moveaxis(small, -1, 0)
+        e = raw - self.dark[:, None, None]
+        if bg is not None:
+            e = e - np.moveaxis(bg, -1, 0)
+        n = self.n_channels
+        q = self.profile.quantisation_step
+        total = e if bg is None else e + np.moveaxis(bg, -1, 0)
+        weight, y = [], []
+        for k in range(n):
+            ek = e[k]
+            var = signal_variance(total[k], self.read_noise[k], self.shot_gain[k], q, self.fixed_pattern[k])
+            usable = (ek > max(self.floor[k], 0.0)) & (raw[k] < self.profile.saturation_level) & bool(self.active[k])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                weight.append(np.where(usable, ek * ek / np.where(var > 0, var, 1.0), 0.0))
+                y.append(np.where(usable, np.log(np.where(usable, ek, 1.0)) - self.log_constant[k], 0.0))
+        c = self.attenuation
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sw = sum(weight)
+            c_mean = sum(weight[k] * c[k] for k in range(n)) / sw
+            y_mean = sum(weight[k] * y[k] for k in range(n)) / sw
+            spread = sum(weight[k] * (c[k] - c_mean) ** 2 for k in range(n))
+            path = -sum(weight[k] * (c[k] - c_mean) * (y[k] - y_mean) for k in range(n)) / spread
+        cvv, cvb, cbb = self.covariance
+        var_path = calibration_path_variance(np.stack(weight, axis=-1), c, path, cvv, cvb, cbb)
+        deriv = camera_range_derivative(path, self.profile.lamp_position_m, self._rays_for(gh, gw, h, w))
+        cal = (deriv * deriv * var_path).astype(np.float32)
+        bad = ~np.isfinite(cal)
+        if bad.all():
+            return np.zeros((h, w), np.float32)
+        if bad.any():
+            # Blocks without a range (dark, saturated, out of bounds) take their neighbours' largest value, so no
+            # valid pixel next to them gets less than its share or a NaN from the interpolation.
+            filled = np.where(bad, 0.0, cal).astype(np.float32)
+            for _ in range(3):
+                grown = cv2.dilate(filled, np.ones((3, 3), np.uint8))
+                filled = np.where(bad & (filled == 0), grown, filled)
+            cal = filled
+        if block == 1:
+            return cal
+        return cv2.resize(cal, (w, h), interpolation=cv2.INTER_LINEAR)
+
+    def _rays_for(self, gh: int, gw: int, h: int, w: int) -> NDArray | None:
+        """Unit rays of the block centres (gh, gw, 3), or None (optical axis) without intrinsics."""
+        key = (gh, gw, h, w)
+        if key not in self._low_res_rays:
+            intr = self.profile.camera_intrinsics()
+            rays = None
+            if intr is not None and np.any(self.profile.lamp_position_m):
+                sx, sy = w / gw, h / gh  # block (i, j) centres at ((j + 0.5)·sx − 0.5, (i + 0.5)·sy − 0.5)
+                rays = pixel_rays(Intrinsics(intr.fx / sx, intr.fy / sy, (intr.cx + 0.5) / sx - 0.5,
+                                             (intr.cy + 0.5) / sy - 0.5), gh, gw)
+            self._low_res_rays[key] = rays
+        return self._low_res_rays[key]
 
 
 def smooth_range_map(result: RangeResult, kind: str = "mean") -> RangeResult:
@@ -214,10 +308,12 @@ def smooth_range_map(result: RangeResult, kind: str = "mean") -> RangeResult:
     h, w = r.shape
     windows = np.stack([padded[dy : dy + h, dx : dx + w] for dy in range(3) for dx in range(3)])
     count = np.isfinite(windows).sum(axis=0)
+    # The calibration's share is common to neighbouring pixels: averaging does not reduce it.
+    cal = 0.0 if result.calibration_variance is None else result.calibration_variance
     with np.errstate(invalid="ignore", divide="ignore"):
         if kind == "mean":
             smoothed = np.nansum(windows, axis=0) / count
-            variance = result.variance / np.maximum(count, 1)
+            variance = (result.variance - cal) / np.maximum(count, 1) + cal
         else:
             import warnings
 
@@ -229,4 +325,5 @@ def smooth_range_map(result: RangeResult, kind: str = "mean") -> RangeResult:
         np.where(valid, smoothed, np.nan).astype(np.float32),
         np.where(valid, variance, np.nan).astype(np.float32),
         result.reasons.copy(),
+        result.calibration_variance,
     )

@@ -3,7 +3,10 @@
 A rig file (``calibration_rigs/*.yaml``) describes a calibration plate: its size,
 its reflectance per channel (a single grey value, one value per channel, or a sampled
 spectrum interpolated at the channels' centre wavelengths), a black patch on it, and
-optionally where plate and patch appear in the image in pixels.
+optionally where plate and patch appear in the image in pixels. A plate may also carry
+fiducial markers (OpenCV ArUco) around its target region: they locate the plate in the
+image and give its distance and tilt (see :mod:`uwcam.plate`), and ``uwcam rig print``
+draws the plate's artwork at true scale.
 """
 
 from __future__ import annotations
@@ -73,6 +76,39 @@ class Patch(Strict):
     reflectance: ReflectanceSpec
 
 
+class Area(Strict):
+    """A rectangle on the plate (plate coordinates: metres from its centre, x right, y down)."""
+
+    centre_m: tuple[float, float] = (0.0, 0.0)
+    size_m: tuple[Annotated[float, Field(gt=0)], Annotated[float, Field(gt=0)]]
+
+
+class Marker(Strict):
+    id: Annotated[int, Field(ge=0, le=999)]
+    """Marker id in the board's dictionary."""
+    centre_m: tuple[float, float]
+    """Centre of the marker's outer black square, plate coordinates (m)."""
+
+
+class MarkerBoard(Strict):
+    """ArUco markers printed on the plate around its target region."""
+
+    dictionary: Annotated[str, Field(pattern=r"^DICT_[A-Z0-9_]+$")] = "DICT_4X4_50"
+    """OpenCV predefined dictionary name."""
+    marker_size_m: Annotated[float, Field(gt=0)]
+    """Side of each marker's outer black square, metres."""
+    reflectance: ReflectanceSpec = 0.04
+    """Reflectance of the printed black."""
+    markers: Annotated[list[Marker], Field(min_length=1)]
+
+    @model_validator(mode="after")
+    def _unique(self) -> "MarkerBoard":
+        ids = [m.id for m in self.markers]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"marker ids must be unique, got {ids}")
+        return self
+
+
 class Plate(Strict):
     size_m: tuple[Annotated[float, Field(gt=0)], Annotated[float, Field(gt=0)]]
     """Width and height of the plate, metres."""
@@ -80,6 +116,27 @@ class Plate(Strict):
     """Reflectance of the plate's main surface."""
     black_patch: Patch | None = None
     """A dark patch whose image gives each channel's noise floor."""
+    target: Area | None = None
+    """The part of the plate used as calibration target, clear of markers (default: the whole plate)."""
+    markers: MarkerBoard | None = None
+    """Fiducial markers that locate the plate in the image."""
+
+    @model_validator(mode="after")
+    def _inside(self) -> "Plate":
+        half = (self.size_m[0] / 2, self.size_m[1] / 2)
+        areas = [("target", self.target), ("black_patch", self.black_patch)]
+        areas += [(f"marker {m.id}", Area(centre_m=m.centre_m, size_m=(self.markers.marker_size_m,) * 2))
+                  for m in (self.markers.markers if self.markers else [])]
+        for what, a in areas:
+            if a is None:
+                continue
+            for axis in (0, 1):
+                if abs(a.centre_m[axis]) + a.size_m[axis] / 2 > half[axis] + 1e-9:
+                    raise ValueError(f"{what} reaches beyond the plate's edge")
+        return self
+
+    def target_area(self) -> Area:
+        return self.target or Area(size_m=self.size_m)
 
 
 class PixelRegions(Strict):

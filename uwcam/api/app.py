@@ -22,7 +22,8 @@ from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 
 from uwcam import __version__
-from uwcam.api import lamp, metrics, profiles, recordings, session, settings, snapshots, status, stream, view, web
+from uwcam.api import (calibration_session, lamp, metrics, profiles, recordings, session, settings, snapshots, status,
+                       stream, view, web)
 from uwcam.api.backpressure import ConnectionSocket
 from uwcam.api.common import Broadcaster
 from uwcam.api.limits import BodyLimit
@@ -50,7 +51,7 @@ def openapi_with_bearer(app: FastAPI) -> dict:
 
 
 ROUTERS = (status.router, snapshots.router, settings.router, profiles.router, lamp.router, session.router,
-           stream.router, view.router, metrics.router, recordings.router, web.router)
+           stream.router, view.router, metrics.router, recordings.router, calibration_session.router, web.router)
 
 
 def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:

@@ -305,6 +305,29 @@ def marker_plate(centre: tuple[float, float], side: float, distance: float, mark
     return Plane((centre[0], centre[1], distance), (0.0, 0.0, -1.0), "white", half_size=(half, half), patches=patches)
 
 
+def marker_cells(dictionary: str, marker_id: int) -> NDArray[np.bool_]:
+    """(n, n) True for the black cells of an ArUco marker, its one-cell black border included."""
+    import cv2
+
+    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
+    cells = d.markerSize + 2
+    bits = cv2.aruco.generateImageMarker(d, marker_id, cells * 10)
+    return cv2.resize(bits, (cells, cells), interpolation=cv2.INTER_AREA) < 128
+
+
+def marker_patches(dictionary: str, marker_id: int, centre: tuple[float, float], side: float,
+                   material: str) -> tuple[tuple[tuple[float, float], tuple[float, float], str], ...]:
+    """A marker's black cells as plane patches (centre, size, material), plate coordinates."""
+    black = marker_cells(dictionary, marker_id)
+    cells = black.shape[0]
+    cell = side / cells
+    return tuple(
+        ((centre[0] - side / 2 + (j + 0.5) * cell, centre[1] - side / 2 + (i + 0.5) * cell), (cell * 1.001, cell * 1.001),
+         material)
+        for i in range(cells) for j in range(cells) if black[i, j]
+    )
+
+
 def build_scene(name: str, distance: float, rig: Rig | None = None, material: str | None = None) -> Scene:
     """A scene with its seabed (or plate) at camera distance ``distance`` metres along the axis.
 
@@ -360,6 +383,11 @@ def _build_scene(name: str, distance: float, rig: Rig | None) -> Scene:
             bp = rig.plate.black_patch
             patches = ((bp.centre_m, bp.size_m, "black"),)
             materials["black"] = bp.reflectance
+        if rig.plate.markers is not None:
+            board = rig.plate.markers
+            materials["marker"] = board.reflectance
+            for m in board.markers:
+                patches += marker_patches(board.dictionary, m.id, m.centre_m, board.marker_size_m, "marker")
         half = (rig.plate.size_m[0] / 2, rig.plate.size_m[1] / 2)
         plate = Plane((0.0, 0.0, z), (0.0, 0.0, -1.0), "plate", half_size=half, patches=patches)
         return Scene(name, (plate,), materials, textured=())

@@ -28,33 +28,39 @@ def calibrate_in_simulation(
     seed_base: int = 0,
     channels: Channels | None = None,
     name: str = "simulated tank calibration",
+    frames_per_distance: int = 1,
 ) -> CalibrationProfile:
     """A calibration profile from the grey plate at ``distances`` (m) in ``water``.
 
     camera: its peak_code (auto-exposure target) defaults to 70 % of full scale so the flat
     plate does not clip; the first plate's exposure is then held for the others (absolute
     attenuation needs that). noise_free: use expected values instead of noisy frames.
-    Frame k at distance d uses seed ``seed_base + int(d)``.
+    Frame k at distance d uses seed ``seed_base + int(d)``. frames_per_distance: noisy frames
+    taken at each distance (averaged by the calibration, their differences give the temporal noise).
     """
+    if frames_per_distance < 1:
+        raise ValueError(f"frames_per_distance must be at least 1, got {frames_per_distance}")
     channels = channels or Channels()
     camera = camera or CameraModel()
     if camera.peak_code is None:
         camera = replace(camera, peak_code=0.7 * 2**camera.bits)
     plate = load_rig(builtin_rig_path("grey-plate"))
-    frames, exposure = [], None
+    frames, exposure, at = [], None, []
     for d in distances:
         world = SimulatedWorld(scene="plate", distance=d, size=tuple(size), channels=channels, water=water, lamp=lamp,
                                camera=camera, gate_width=gate_width, fixed_exposure=exposure, seed=seed_base + int(d))
         exposure = world.exposure
-        frames.append(world.noise_free_frame() if noise_free else world.frame(0))
+        for k in range(1 if noise_free else frames_per_distance):
+            frames.append(world.noise_free_frame() if noise_free else world.frame(k))
+            at.append(d)
     intr, patch = world.intrinsics, plate.plate.black_patch
     n = len(channels.names)
-    return calibrate(frames, list(distances), CalibrationInputs(
+    return calibrate(frames, at, CalibrationInputs(
         channel_names=list(channels.names), wavelengths_nm=list(channels.wavelengths_nm),
         target_reflectance=np.full(n, 0.18), black_reflectance=np.full(n, 0.03),
         lamp_position_m=tuple(lamp.position), intrinsics=intr,
-        target_boxes=[project_plate_box((0, 0), plate.plate.size_m, d, intr) for d in distances],
-        black_boxes=[project_plate_box(patch.centre_m, patch.size_m, d, intr) for d in distances],
+        target_boxes=[project_plate_box((0, 0), plate.plate.size_m, d, intr) for d in at],
+        black_boxes=[project_plate_box(patch.centre_m, patch.size_m, d, intr) for d in at],
         dark_level=np.full(n, world.camera.dark_level_dn), saturation_level=2**camera.bits - 1,
         lamp_radius_m=lamp.effective_radius, name=name, target_description="grey plate in the simulated water",
     ))

@@ -1,0 +1,290 @@
+"""A guided calibration at the tank: the state of one session, independent of the HTTP layer.
+
+The engineer positions the marker plate while the session reports, from the newest frame,
+whether the plate is found, its distance and tilt from the markers' pose, how the typed (or
+rangefinder) distance compares, each channel's signal against the floor, saturation and
+coverage. Captures take N frames at a distance and are refused, changing nothing, when the
+plate is not found, saturated, too dark or not where the engineer says. A fit uses every
+capture not held back; a held-back distance then validates the new profile, and only a
+validated profile can be accepted (saved and activated by the caller).
+"""
+
+from __future__ import annotations
+
+import threading
+import uuid
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from uwcam.calibration import MAX_SATURATED_FRACTION, CalibrationDetails, CalibrationInputs, calibrate_with_details
+from uwcam.fileio import UserInputError
+from uwcam.optics.geometry import Intrinsics, pixel_rays, plane_camera_range
+from uwcam.plate import PlatePose, locate_plate
+from uwcam.profile import CalibrationProfile
+from uwcam.rig import Rig, resolve_reflectance
+
+# Distances closer than this count as the same distance (m).
+SAME_DISTANCE_M = 0.01
+
+
+class SessionError(Exception):
+    """A request the session refuses; ``status`` is the HTTP status that says why (409 state, 422 input)."""
+
+    def __init__(self, status: int, message: str) -> None:
+        super().__init__(message)
+        self.status = status
+
+
+@dataclass
+class Capture:
+    distance_m: float
+    frames: list[NDArray]
+    held_back: bool
+    pose: PlatePose
+    rangefinder_m: float | None
+    exposure_us: float | None
+
+    def summary(self) -> dict:
+        return {"distance_m": self.distance_m, "frames": len(self.frames), "held_back": self.held_back,
+                "marker_distance_m": round(self.pose.distance_m, 4), "tilt_deg": round(self.pose.tilt_deg, 2),
+                "rangefinder_m": self.rangefinder_m, "markers_found": len(self.pose.markers_found)}
+
+
+@dataclass
+class CalibrationSession:
+    rig_name: str
+    rig: Rig
+    intrinsics: Intrinsics
+    base: CalibrationProfile
+    """The active profile when the session started: channels, dark level, floor, saturation, lamp."""
+    frames_per_capture: int = 4
+    distance_tolerance_m: float = 0.05
+    exposure: dict = field(default_factory=dict)
+    id: str = field(default_factory=lambda: uuid.uuid4().hex[:12])
+    state: str = "positioning"
+    captures: list[Capture] = field(default_factory=list)
+    details: CalibrationDetails | None = None
+    validation: list[dict] = field(default_factory=list)
+    lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+    _plots: dict[str, bytes] = field(default_factory=dict, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.rig.plate.markers is None:
+            raise SessionError(422, f"rig {self.rig_name} has no markers, and the session finds the plate by them; "
+                                    "use a rig with markers such as charuco-plate")
+        names = self.base.channel_names
+        wavelengths = [c.wavelength_nm for c in self.base.channels]
+        try:
+            self.plate_reflectance = resolve_reflectance(self.rig.plate.reflectance, names, wavelengths, f"plate of rig {self.rig_name}")
+            bp = self.rig.plate.black_patch
+            self.black_reflectance = None if bp is None else resolve_reflectance(bp.reflectance, names, wavelengths,
+                                                                                  f"black patch of rig {self.rig_name}")
+        except UserInputError as exc:
+            raise SessionError(422, str(exc)) from None
+
+    # -- live feedback -------------------------------------------------------------------------
+    def _tolerance(self, distance: float) -> float:
+        return max(self.distance_tolerance_m, 0.02 * distance)
+
+    def feedback(self, frame: NDArray, typed_distance_m: float | None, rangefinder_m: float | None,
+                 exposure_us: float | None = None) -> dict:
+        """What the engineer needs while positioning the plate, from one frame (H, W, N)."""
+        pose = locate_plate(frame, self.rig, self.intrinsics)
+        out: dict = {"plate_found": pose is not None, "typed_distance_m": typed_distance_m, "rangefinder_m": rangefinder_m,
+                     "exposure_us": exposure_us, "advice": []}
+        if pose is None:
+            out["advice"].append(f"no marker of rig {self.rig_name} in view: bring the whole plate into the image, lit")
+            return out
+        x, y, w, h = pose.target_box
+        target = np.asarray(frame)[y : y + h, x : x + w].reshape(-1, frame.shape[-1])
+        signal = target.astype(np.float64).mean(axis=0) - self.base.array("dark_level")
+        floor = self.base.array("noise_floor")
+        saturated = float(np.mean(np.any(target >= self.base.saturation_level, axis=1)))
+        out.update({
+            "marker_distance_m": round(pose.distance_m, 4), "tilt_deg": round(pose.tilt_deg, 2),
+            "markers_found": pose.markers_found, "reprojection_px": round(pose.reprojection_px, 3),
+            "coverage": round(pose.coverage, 4), "saturated_fraction": round(saturated, 5),
+            "target_box": list(pose.target_box), "black_box": None if pose.black_box is None else list(pose.black_box),
+            "channels": {n: {"signal_dn": round(float(s), 2), "floor_dn": round(float(f), 2), "above_floor": bool(s > f)}
+                         for n, s, f in zip(self.base.channel_names, signal, floor)},
+        })
+        for label, value in (("typed", typed_distance_m), ("rangefinder", rangefinder_m)):
+            if value is not None:
+                agrees = abs(value - pose.distance_m) <= self._tolerance(value)
+                out[f"{label}_agrees"] = agrees
+                if not agrees:
+                    out["advice"].append(f"the {label} distance {value:.3f} m differs from the markers' {pose.distance_m:.3f} m")
+        if saturated > MAX_SATURATED_FRACTION:
+            out["advice"].append("the target is saturated: lower the lamp or the exposure")
+        if not np.all(signal > floor):
+            out["advice"].append("a channel is below its noise floor: bring the plate closer or raise the lamp")
+        if pose.tilt_deg > 10:
+            out["advice"].append(f"the plate is tilted {pose.tilt_deg:.0f}°: turn it square to the camera")
+        return out
+
+    # -- captures ------------------------------------------------------------------------------
+    def capture(self, frames: list[NDArray], distance_m: float, held_back: bool, rangefinder_m: float | None,
+                exposures: list[float | None]) -> Capture:
+        """Check N frames taken at ``distance_m`` and keep them; SessionError (nothing kept) when they are unusable."""
+        if self.state not in ("positioning", "fitted"):
+            raise SessionError(409, f"the session is {self.state}; start a new one")
+        if not (np.isfinite(distance_m) and 0.05 <= distance_m <= 100.0):
+            raise SessionError(422, f"distance_m must be between 0.05 and 100 m, got {distance_m}")
+        known = [e for e in exposures if e is not None]
+        if known and (max(known) - min(known) > 1e-6 * max(known) or
+                      (self.exposure.get("exposure_us") is not None and abs(known[0] - self.exposure["exposure_us"]) > 1e-6 * known[0])):
+            raise SessionError(409, "the camera's exposure changed during the session; fix the exposure and start again")
+        stack = np.asarray(frames)
+        mean = stack.astype(np.float64).mean(axis=0)
+        pose = locate_plate(mean, self.rig, self.intrinsics)
+        if pose is None:
+            raise SessionError(422, f"plate not found: no marker of rig {self.rig_name} in view; bring the whole plate into "
+                                    "the image and capture again")
+        x, y, w, h = pose.target_box
+        saturated = float(np.max(np.mean(np.any(stack[:, y : y + h, x : x + w] >= self.base.saturation_level, axis=-1),
+                                         axis=(1, 2))))
+        if saturated > MAX_SATURATED_FRACTION:
+            raise SessionError(422, f"{saturated:.0%} of the plate's target region is saturated; lower the lamp or the "
+                                    "exposure and capture again")
+        signal = mean[y : y + h, x : x + w].reshape(-1, mean.shape[-1]).mean(axis=0) - self.base.array("dark_level")
+        floor = self.base.array("noise_floor")
+        if not np.all(signal > floor):
+            k = int(np.argmin(signal - floor))
+            raise SessionError(422, f"channel {self.base.channel_names[k]} is below its noise floor on the plate "
+                                    f"({signal[k]:.1f} ≤ {floor[k]:.1f} DN); bring the plate closer or raise the lamp")
+        tol = self._tolerance(distance_m)
+        if abs(pose.distance_m - distance_m) > tol:
+            raise SessionError(422, f"the markers put the plate at {pose.distance_m:.3f} m but {distance_m:.3f} m was given "
+                                    f"(tolerance {tol:.3f} m); measure the distance again")
+        if rangefinder_m is not None and abs(rangefinder_m - distance_m) > tol:
+            raise SessionError(422, f"the rangefinder reads {rangefinder_m:.3f} m but {distance_m:.3f} m was given "
+                                    f"(tolerance {tol:.3f} m); measure the distance again")
+        others = [c for c in self.captures if c.held_back != held_back]
+        if any(abs(c.distance_m - distance_m) < SAME_DISTANCE_M for c in others):
+            raise SessionError(422, f"{distance_m:g} m is already used {'for the fit' if held_back else 'as the held-back distance'}; "
+                                    "a held-back distance must differ from the fitted ones")
+        cap = Capture(float(distance_m), [np.asarray(f) for f in frames], bool(held_back), pose, rangefinder_m,
+                      known[0] if known else None)
+        self.captures.append(cap)
+        if self.exposure.get("exposure_us") is None and known:
+            self.exposure["exposure_us"] = known[0]
+        # New data: any earlier fit no longer describes the captures.
+        self.state, self.details, self.validation, self._plots = "positioning", None, [], {}
+        return cap
+
+    # -- fit and validation ----------------------------------------------------------------------
+    def fit(self) -> dict:
+        used = [c for c in self.captures if not c.held_back]
+        distances = sorted({round(c.distance_m, 2) for c in used})
+        if len(distances) < 2:
+            raise SessionError(409, f"the fit needs captures at two or more distances, got {distances or 'none'}")
+        frames, at, target_boxes, black_boxes = [], [], [], []
+        for c in used:
+            for f in c.frames:
+                frames.append(f)
+                at.append(c.distance_m)
+                target_boxes.append(c.pose.target_box)
+                black_boxes.append(c.pose.black_box)
+        has_black = self.black_reflectance is not None and all(b is not None for b in black_boxes)
+        base = self.base
+        inputs = CalibrationInputs(
+            channel_names=base.channel_names, wavelengths_nm=[c.wavelength_nm for c in base.channels],
+            target_reflectance=self.plate_reflectance, black_reflectance=self.black_reflectance if has_black else None,
+            target_boxes=target_boxes, black_boxes=black_boxes if has_black else None,
+            lamp_position_m=tuple(base.lamp_position_m), intrinsics=self.intrinsics, dark_level=base.array("dark_level"),
+            saturation_level=base.saturation_level, quantisation_step=base.quantisation_step,
+            reference=base.reference_index, name=f"tank-{self.id}", target_description=f"rig {self.rig_name} in the tank",
+            image_names=[f"capture {i + 1} at {d:g} m" for i, d in enumerate(at)],
+        )
+        try:
+            details = calibrate_with_details(frames, at, inputs)
+        except UserInputError as exc:
+            raise SessionError(422, f"the fit failed: {exc}") from None
+        self.details, self._plots = details, {}
+        self.validation = [self._validate(c, details.profile) for c in self.captures if c.held_back]
+        self.state = "fitted"
+        return self.fit_summary()
+
+    def _validate(self, capture: Capture, profile: CalibrationProfile) -> dict:
+        """Range one frame of a held-back capture with the new profile and compare with the distance given."""
+        from uwcam.ranging import RangeEstimator
+
+        frame = capture.frames[0]
+        result = RangeEstimator(profile)(frame)
+        x, y, w, h = capture.pose.target_box
+        rng = result.range[y : y + h, x : x + w].astype(np.float64)
+        var = result.variance[y : y + h, x : x + w].astype(np.float64)
+        cal = result.calibration_variance
+        rays = pixel_rays(self.intrinsics, *frame.shape[:2])[y : y + h, x : x + w]
+        truth = plane_camera_range(capture.distance_m, rays)
+        ok = np.isfinite(rng)
+        if ok.mean() < 0.5:
+            return {"distance_m": capture.distance_m, "passed": False, "valid_fraction": float(ok.mean()),
+                    "reason": "fewer than half the plate's pixels have a range with the new profile"}
+        err = float(np.median(rng[ok] - truth[ok]))
+        cal_var = 0.0 if cal is None else float(np.mean(cal[y : y + h, x : x + w][ok]))
+        pixel_var = float(np.mean(var[ok])) - cal_var
+        sigma = float(np.sqrt(cal_var + pixel_var / ok.sum() * np.pi / 2))  # σ of a median of n noisy pixels
+        allowed = max(3.0 * sigma, self._tolerance(capture.distance_m))
+        return {"distance_m": capture.distance_m, "median_range_error_m": round(err, 5),
+                "relative_error": round(err / capture.distance_m, 6), "rms_pixel_error_m": round(float(np.sqrt(np.mean((rng[ok] - truth[ok]) ** 2))), 5),
+                "predicted_sigma_m": round(sigma, 5), "allowed_m": round(allowed, 5), "valid_fraction": round(float(ok.mean()), 4),
+                "passed": bool(abs(err) <= allowed)}
+
+    def fit_summary(self) -> dict:
+        if self.details is None:
+            return {}
+        p = self.details.profile
+        return {
+            "method": p.provenance.method,
+            "distances_m": p.provenance.distances_m,
+            "frames_per_distance": p.provenance.frames_per_distance,
+            "channels": {c.name: {"attenuation_difference": c.attenuation_difference,
+                                  "attenuation_difference_std": c.attenuation_difference_std,
+                                  "log_constant": c.log_constant, "log_constant_std": c.log_constant_std,
+                                  "read_noise": c.read_noise, "shot_gain": c.shot_gain, "fixed_pattern": c.fixed_pattern,
+                                  "noise_floor": c.noise_floor} for c in p.channels},
+            "residuals": p.provenance.residuals,
+            "rms_residual": p.provenance.rms_residual,
+            "validation": self.validation,
+            "plots": [f"plots/{name}.png" for name in _plot_names()],
+        }
+
+    def plot(self, name: str) -> bytes:
+        from uwcam.calibration_report import figure
+
+        if self.details is None:
+            raise SessionError(409, "no fit yet: POST …/fit first")
+        if name not in _plot_names():
+            raise SessionError(404, f"no plot '{name}'; plots: {', '.join(_plot_names())}")
+        if name not in self._plots:
+            self._plots[name] = figure(self.details, name)
+        return self._plots[name]
+
+    def acceptable(self) -> CalibrationProfile:
+        """The fitted profile, if a held-back distance validated it."""
+        if self.state != "fitted" or self.details is None:
+            raise SessionError(409, f"nothing to accept: the session is {self.state}; capture and fit first")
+        if not self.validation:
+            raise SessionError(409, "capture a held-back distance (held_back: true) and fit again to validate the profile "
+                                    "before accepting it")
+        failed = [v for v in self.validation if not v["passed"]]
+        if failed:
+            v = failed[0]
+            raise SessionError(409, f"validation failed at {v['distance_m']:g} m ({v.get('reason') or 'range error ' + str(v['median_range_error_m']) + ' m'}); "
+                                    "check the distances and capture again")
+        return self.details.profile
+
+    def summary(self) -> dict:
+        return {"id": self.id, "state": self.state, "rig": self.rig_name, "frames_per_capture": self.frames_per_capture,
+                "distance_tolerance_m": self.distance_tolerance_m, "exposure": self.exposure,
+                "intrinsics": [self.intrinsics.fx, self.intrinsics.fy, self.intrinsics.cx, self.intrinsics.cy],
+                "captures": [c.summary() for c in self.captures], "fit": self.fit_summary()}
+
+
+def _plot_names() -> list[str]:
+    from uwcam.calibration_report import PLOTS
+
+    return list(PLOTS)
