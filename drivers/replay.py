@@ -39,9 +39,11 @@ class ReplayCamera(CameraDriver):
         source: str
         """A recording: a folder of frames or a file of them."""
         fps: Annotated[Real, Field(gt=0, le=10000)] | None = None
-        """Pace of the replay; None: as fast as it is read."""
+        """Frames per second; None: the recorded rate of a video or MCAP recording, else 10."""
         loop: Flag = True
         channel_names: ChannelNames = ["R", "G", "B"]
+        fast: Flag = False
+        """MCAP recordings only: deliver frames as fast as they are read (no pacing)."""
 
     name = "replay"
 

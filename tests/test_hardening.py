@@ -195,7 +195,11 @@ def test_profile_changes_are_validated_completely_then_applied(server):
         if isinstance(value, dict):
             return {mapping.get(k, k): (mapping.get(v, v) if k in ("name", "reference_channel") else rename(v))
                     for k, v in value.items()}
-        return [rename(v) for v in value] if isinstance(value, list) else value
+        if isinstance(value, list):
+            return [rename(v) for v in value]
+        if isinstance(value, str) and value[:2] in ("V:", "b:"):  # covariance parameters, e.g. "V:G"
+            return value[:2] + mapping.get(value[2:], value[2:])
+        return value
 
     renamed = rename(original)
     up = server.http.put("/api/v1/calibration/profiles/renamed", content=yaml.safe_dump(renamed))

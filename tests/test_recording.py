@@ -178,7 +178,7 @@ def test_reprocess_with_another_profile(dive, tmp_path):
         np.testing.assert_allclose(image(b), image(a), rtol=1e-5, equal_nan=True)
     assert decoded(str(out / "dive.mcap"), rec.RANGING)[0][1]["profile"] == "same calibration, new file"
     two = same.model_dump(mode="json") | {"name": "two channels", "channels": same.model_dump(mode="json")["channels"][:2],
-                                          "backscatter": None}
+                                          "backscatter": None, "covariance": None}
     save_profile(profile_from_mapping(two), tmp_path / "two.yaml")
     with pytest.raises(UserInputError, match="3-channel frames but profile 'two channels' has 2 channels"):
         reprocess([dive["path"]], str(tmp_path / "x.mcap"), profile=str(tmp_path / "two.yaml"), progress=False)

@@ -45,6 +45,20 @@ class SimulationOptions(BaseModel):
     """Survey: lowest and highest altitude above the smooth seabed, m."""
     altitude_period: Annotated[float, Field(ge=10, le=3600)] = 120.0
     """Survey: seconds from the lowest altitude to the highest and back."""
+    plate_rig: str | None = None
+    """Scene ``plate``: a built-in calibration rig to draw (e.g. charuco-plate); None: the grey plate."""
+
+    @field_validator("plate_rig")
+    @classmethod
+    def _known_rig(cls, v: str | None) -> str | None:
+        if v is not None:
+            from uwcam.rig import builtin_rig_path
+
+            try:
+                builtin_rig_path(v)
+            except Exception as exc:  # the rig module says which rigs exist
+                raise ValueError(str(exc)) from None
+        return v
 
     @field_validator("scene")
     @classmethod
