@@ -9,6 +9,7 @@ import { PointCloudView } from "./viewer3d.js";
 const $ = (id) => document.getElementById(id);
 const STALE_AFTER_MS = 1500;
 const MAX_PINS = 8;
+const REQUEST_TIMEOUT_MS = 15000;
 
 const state = {
   hello: null,
@@ -49,10 +50,23 @@ async function api(path, { method = "GET", body, type = "application/json" } = {
   const headers = {};
   if (body !== undefined) headers["Content-Type"] = type;
   if (method !== "GET" && state.csrf) headers["X-CSRF-Token"] = state.csrf;
-  const response = await fetch(path, {
-    method, headers, credentials: "same-origin",
-    body: body === undefined ? undefined : type === "application/json" ? JSON.stringify(body) : body,
-  });
+  // Every request the page makes sets a value (none adds to one), so a request that hangs — a
+  // tether dropping packets, a stale kept-alive connection — is abandoned after a while and sent
+  // once more rather than leaving a control dead.
+  let response;
+  for (let attempt = 1; ; attempt++) {
+    try {
+      response = await fetch(path, {
+        method, headers, credentials: "same-origin", signal: AbortSignal.timeout(REQUEST_TIMEOUT_MS),
+        body: body === undefined ? undefined : type === "application/json" ? JSON.stringify(body) : body,
+      });
+      break;
+    } catch (error) {
+      if (error.name !== "TimeoutError" || attempt >= 2) {
+        throw new Error(`${method} ${path}: ${error.name === "TimeoutError" ? "no answer from the daemon" : error.message}`);
+      }
+    }
+  }
   const text = await response.text();
   let data = null;
   try { data = text ? JSON.parse(text) : null; } catch { data = text; }
