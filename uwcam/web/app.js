@@ -621,11 +621,13 @@ function wireView() {
     $("cloud-pane").hidden = state.mode !== "cloud";
     $("opacity-box").hidden = state.mode !== "overlay";
     if (state.mode === "cloud" && !cloud) cloud = new PointCloudView($("cloud"));
-    $("range-pane").style.opacity = state.mode === "overlay" ? $("opacity").value : "";
+    $("range").style.opacity = state.mode === "overlay" ? $("opacity").value : "";
+    $("colour-pane").querySelector(".pane-label").hidden = state.mode === "overlay";
     repaint();
   };
   $("opacity-box").hidden = true;
-  $("opacity").oninput = () => { if (state.mode === "overlay") $("range-pane").style.opacity = $("opacity").value; };
+  // Only the range picture fades: pins, line and the stale notice stay legible.
+  $("opacity").oninput = () => { if (state.mode === "overlay") $("range").style.opacity = $("opacity").value; };
   $("show-sigma").onchange = () => { state.showSigma = $("show-sigma").checked; repaint(); };
   $("limits").onchange = () => {
     state.limits.auto = $("limits").value === "auto";

@@ -20,6 +20,11 @@ function pack(r, g, b, a = 255) {
 
 export const COLOUR_MAPS = ["turbo", "deep", "thermal"];
 
+// Near is drawn bright or warm (turbo and thermal reversed; deep already runs from pale to dark):
+// what is closest, and most in the way, stands out. The reason colours below are greys and
+// purples that none of the maps uses.
+const REVERSED = { turbo: true, thermal: true, deep: false };
+
 export function lut(name) {
   const table = new Uint32Array(256);
   if (name in CMOCEAN) {
@@ -31,12 +36,12 @@ export function lut(name) {
   } else {
     for (let i = 0; i < 256; i++) table[i] = pack(...turbo(i / 255));
   }
-  return table;
+  return REVERSED[name] ? table.reverse() : table;
 }
 
 // Invalid pixels, drawn by reason (codes as in uwcam.optics.validity.Reason).
 export const REASON_COLOURS = {
-  1: [40, 40, 48],     // below noise floor: near black
+  1: [96, 96, 96],     // below noise floor: mid grey
   2: [255, 255, 255],  // saturated: white
   3: [70, 110, 140],   // backscatter only (water): murky blue-grey
   4: [120, 60, 130],   // too few channels: purple
