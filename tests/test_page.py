@@ -328,7 +328,7 @@ def proxy(server, tmp_path):
     port = free_port()
     (tmp_path / "www").mkdir()
     (tmp_path / "www" / "host.html").write_text(
-        '<!doctype html><title>vehicle</title>'
+        '<!doctype html><title>vehicle</title><link rel="icon" href="data:,">'
         '<iframe id="page" src="/extensionv2/uwcam/" width="1200" height="800"></iframe>'
         '<iframe id="widget" src="/extensionv2/uwcam/widget" width="300" height="200"></iframe>')
     conf = tmp_path / "nginx.conf"
