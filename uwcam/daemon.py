@@ -21,6 +21,7 @@ from uwcam.drivers.base import CameraSettings
 from uwcam.drivers.sim import SimulatedRig
 from uwcam.drivers.supervisor import SupervisedCamera
 from uwcam.fileio import UserInputError
+from uwcam.outputs.mavlink import MavlinkOutput
 from uwcam.pipeline import FramePipeline
 from uwcam.profile import CalibrationProfile, load_profile, save_profile
 from uwcam.simulation import Lamp, water_preset
@@ -58,6 +59,7 @@ class Daemon:
         self.lamp = None
         self.rangefinder = None
         self.pipeline: FramePipeline | None = None
+        self.mavlink: MavlinkOutput | None = None
         self.profile_name = ""
         self.profiles: dict[str, CalibrationProfile] = {}
         """Calibration profiles known to the daemon by name; the active one is ``profile_name``."""
@@ -112,12 +114,18 @@ class Daemon:
                 self.rangefinder.start()
             self.pipeline = FramePipeline(self.camera, profile, processing, self.rangefinder, self.lamp)
             self.pipeline.start()
+            if cfg.mavlink is not None:
+                self.mavlink = MavlinkOutput(cfg.mavlink, self.pipeline)
+                self.mavlink.start()
         except BaseException:
             self.stop()
             raise
 
     def stop(self) -> None:
-        """Stop the loop, switch the lamp off, release every device. Safe to call twice."""
+        """Stop the outputs and the loop, switch the lamp off, release every device. Safe to call twice."""
+        if self.mavlink is not None:
+            self.mavlink.stop()
+            self.mavlink = None
         if self.pipeline is not None:
             self.pipeline.stop()
         if self.camera is not None:
@@ -190,4 +198,5 @@ class Daemon:
                             "reflectance": stats.get("reflectance")},
             "rangefinder": rf,
             "lamp": lamp,
+            "mavlink": self.mavlink.status() if self.mavlink is not None else None,
         }
