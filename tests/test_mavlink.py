@@ -342,3 +342,34 @@ def test_mavlink_configuration_is_checked(tmp_path):
             load_config(path)
     path.write_text("mavlink: {orientation: mav_sensor_rotation_none, connection: /dev/ttyACM0}\n")
     assert load_config(path).mavlink.orientation_value == 0
+
+
+class _NoFrames:
+    """Stands in for the frame loop: the output subscribes, no frame ever comes."""
+
+    processing = None
+    profile = None
+
+    def subscribe(self, fn) -> None:
+        pass
+
+    def unsubscribe(self, fn) -> None:
+        pass
+
+
+def test_udp_peer_that_is_not_listening_is_reported():
+    from uwcam.outputs.mavlink import MavlinkOutput
+
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()  # nothing listens there now: the kernel answers with "port unreachable"
+    out = MavlinkOutput(MavlinkConfig(connection=f"udpout:127.0.0.1:{port}", rate_hz=20), _NoFrames())
+    out.start()
+    try:
+        assert wait_for(lambda: out.status()["state"] == "disconnected", 10.0), out.status()
+        assert out.status()["reason"] == f"nothing listens at udp 127.0.0.1:{port} (connection refused)"
+        assert out.status()["send_errors"] >= 1 and not out.status()["connected"]
+    finally:
+        out.stop()
+    assert out.status()["state"] == "stopped"

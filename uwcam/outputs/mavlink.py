@@ -294,8 +294,9 @@ class _Socket:
                 if len(data) > 1 << 20:
                     break
         except ConnectionRefusedError:
-            if self.scheme == "tcp":
-                raise LinkDown(f"tcp {self.host}:{self.port} refused the connection") from None
+            # UDP: the kernel's report of an ICMP "port unreachable" for an earlier datagram.
+            raise LinkDown(f"nothing listens at udp {self.host}:{self.port} (connection refused)" if self.scheme == "udpout"
+                           else f"tcp {self.host}:{self.port} refused the connection") from None
         except OSError as exc:
             raise LinkDown(f"receiving from {self.scheme}:{self.host}:{self.port} failed: {exc}") from None
         return data
