@@ -247,6 +247,7 @@ def test_no_distance_when_no_pixel_is_valid_and_sectors_unknown():
         finally:
             d.stop()
     msg = ear.of("OBSTACLE_DISTANCE")[-1]
+    assert status["obstacle_distance"] == "sending"
     assert ear.of("DISTANCE_SENSOR") == []
     assert status["state"] == "invalid" and status["reason"].startswith("0.0 % of the region's pixels have a range")
     assert list(msg.distances) == [65535] * 72  # UINT16_MAX: unknown

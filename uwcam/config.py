@@ -203,8 +203,8 @@ class MavlinkConfig(Strict):
     sensor_id: Annotated[int, Field(ge=0, le=255)] = 0
     """DISTANCE_SENSOR ``id``, distinct from the vehicle's other rangefinders."""
     obstacle_distance: bool = False
-    """Also send OBSTACLE_DISTANCE: 72 sectors across the camera's horizontal field of view, for
-    a camera looking horizontally (orientation NONE or YAW_*)."""
+    """Also send OBSTACLE_DISTANCE: 72 sectors across the camera's whole horizontal field of view
+    (over the rows of ``region``), for a camera looking horizontally (orientation NONE or YAW_*)."""
 
     @model_validator(mode="after")
     def _check(self) -> "MavlinkConfig":

@@ -568,4 +568,8 @@ class MavlinkOutput:
             "distance_m": None if m is None or m.distance_m is None else round(m.distance_m, 4),
             "valid_fraction": None if m is None else round(m.valid_fraction, 4),
             "autopilot_heartbeat_age_s": None if beat is None else round(time.monotonic() - beat, 3),
+            "obstacle_distance": None if not self.config.obstacle_distance else (
+                "sending" if m is not None and m.sectors_cm is not None else
+                "no frame yet" if m is None else
+                "not sent: the calibration profile has no camera intrinsics (fx, fy, cx, cy)"),
         }
