@@ -374,3 +374,15 @@ def test_udp_peer_that_is_not_listening_is_reported():
     finally:
         out.stop()
     assert out.status()["state"] == "stopped"
+
+
+@pytest.mark.slow
+def test_mavlink_benchmark_runs():
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "bench" / "bench_mavlink.py"
+    out = subprocess.run([sys.executable, str(script), "--size", "160x120", "--repeat", "2"],
+                         check=True, capture_output=True, text=True, timeout=300).stdout
+    assert "× memcopy" in out and "obstacle sectors" in out
