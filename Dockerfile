@@ -30,9 +30,12 @@ RUN set -eu; \
     pip wheel --no-deps --wheel-dir /wheels .
 
 FROM ${PYTHON_IMAGE}
-ENV PIP_DISABLE_PIP_VERSION_CHECK=1 PIP_NO_CACHE_DIR=1 PYTHONUNBUFFERED=1
+# numba's parallel kernels run in more than one thread (frame loop, simulated camera): its only
+# thread-safe layer available here is OpenMP (libgomp1). Without it numba falls back to its
+# workqueue layer, which aborts the process on concurrent use; "threadsafe" makes that an error.
+ENV PIP_DISABLE_PIP_VERSION_CHECK=1 PIP_NO_CACHE_DIR=1 PYTHONUNBUFFERED=1 NUMBA_THREADING_LAYER=threadsafe
 RUN apt-get update \
- && apt-get install -y --no-install-recommends gir1.2-aravis-0.8 libgirepository-1.0-1 libcairo2 \
+ && apt-get install -y --no-install-recommends gir1.2-aravis-0.8 libgirepository-1.0-1 libcairo2 libgomp1 \
  && rm -rf /var/lib/apt/lists/*
 # Every wheel was resolved in the build stage: install them as they are, without an index.
 RUN --mount=type=bind,from=build,source=/wheels,target=/wheels pip install --no-deps /wheels/*.whl

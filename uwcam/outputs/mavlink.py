@@ -106,7 +106,7 @@ def tile_medians(values: NDArray, variance: NDArray, rows: int, cols: int) -> tu
     such tile."""
     h, w = values.shape
     hb, wb = -(-h // rows), -(-w // cols)
-    padded = np.full((hb * rows, wb * cols), np.nan, dtype=np.float32)
+    padded = np.full((hb * rows, wb * cols), np.nan, dtype=np.float64)
     padded[:h, :w] = values
     pvar = np.full_like(padded, np.nan)
     pvar[:h, :w] = variance
@@ -118,7 +118,7 @@ def tile_medians(values: NDArray, variance: NDArray, rows: int, cols: int) -> tu
         return np.empty(0), np.empty(0)
     tvar = pvar.reshape(hb, rows, wb, cols).transpose(0, 2, 1, 3).reshape(hb * wb, rows * cols)[good]
     tvar = np.where(np.isfinite(tiles[good]), tvar, np.nan)  # the variances of the valid pixels only
-    return medians[good].astype(np.float64), _row_medians(tvar)[0].astype(np.float64)
+    return medians[good], _row_medians(tvar)[0]
 
 
 def region_statistic(distance: NDArray, variance: NDArray, statistic: str, block: int) -> tuple[float | None, float | None, float]:
