@@ -3,7 +3,8 @@
 * ``ascii``: NMEA depth sentences ($--DPT, $--DBT, checksums verified) and the ``R####``
   millimetre lines of common ultrasonic rangers.
 * ``ping1d``: the Blue Robotics Ping1D sonar, binary ping protocol (message encoding and
-  parsing from ``bluerobotics-ping``; uwcam drives the port itself with blocking reads).
+  parsing from ``bluerobotics-ping``; uwcam drives the port itself with blocking reads), on a
+  serial port or bridged over UDP (``udp:HOST:PORT``, e.g. by BlueOS's ping service).
 
 Every reading carries range (m), confidence (0–1 from the device's own figure, None where
 the device gives none), monotonic and wall timestamps. Speed of sound is configurable
@@ -25,6 +26,7 @@ from pydantic import Field
 from uwcam.drivers.options import DriverOptions, Real, Whole
 from uwcam.drivers.base import ConfigurationError, DeviceLost, Health, HealthState
 from uwcam.drivers.serial_link import SerialLink
+from uwcam.drivers.udp_link import SCHEME as UDP_SCHEME, UdpLink
 
 FRESH_WATER = 1435.0
 SALT_WATER = 1500.0
@@ -58,6 +60,8 @@ class RangefinderConfig:
     max_range_m: float = 100.0
     min_confidence: float = 0.0
     stale_after_s: float = 2.0
+    lost_after_s: float = 10.0
+    """Without a valid reading for this long the rangefinder counts as lost, not recovering."""
 
     def __post_init__(self) -> None:
         if not 1300 <= self.speed_of_sound <= 1700:
@@ -66,6 +70,8 @@ class RangefinderConfig:
             raise ConfigurationError(f"need 0 ≤ min_range_m < max_range_m, got {self.min_range_m}, {self.max_range_m}")
         if not 0 <= self.min_confidence <= 1:
             raise ConfigurationError(f"min_confidence must be 0–1, got {self.min_confidence}")
+        if not (0 < self.stale_after_s < self.lost_after_s < float("inf")):
+            raise ConfigurationError(f"need 0 < stale_after_s < lost_after_s, got {self.stale_after_s}, {self.lost_after_s}")
 
 
 class SerialRangefinder:
@@ -73,9 +79,10 @@ class SerialRangefinder:
 
     kind = ""
 
-    def __init__(self, port: str, baud: int, config: RangefinderConfig | None = None, timeout_s: float = 0.5) -> None:
+    def __init__(self, port: str, baud: int, config: RangefinderConfig | None = None, timeout_s: float = 0.5,
+                 link: SerialLink | UdpLink | None = None) -> None:
         self.config = config or RangefinderConfig()
-        self.link = SerialLink(port, baud, timeout_s)
+        self.link = link or SerialLink(port, baud, timeout_s)
         self.stats = RangefinderStats()
         self._latest: RangeReading | None = None
         self._lock = threading.Lock()
@@ -87,8 +94,12 @@ class SerialRangefinder:
     def health(self) -> Health:
         h = self.link.health.current
         latest = self.latest()
+        silent_s = time.monotonic() - self._last_good
+        if h.state in (HealthState.OK, HealthState.RECOVERING) and silent_s > self.config.lost_after_s:
+            why = "no valid range" if h.state == HealthState.OK else h.reason
+            return Health(HealthState.LOST, f"{why}; nothing valid for {silent_s:.1f} s")
         if h.state == HealthState.OK and (latest is None or latest.age_s > self.config.stale_after_s):
-            return Health(HealthState.RECOVERING, f"no valid range for {time.monotonic() - self._last_good:.1f} s")
+            return Health(HealthState.RECOVERING, f"no valid range for {silent_s:.1f} s")
         return h
 
     def latest(self) -> RangeReading | None:
@@ -227,7 +238,12 @@ class AsciiRangefinder(SerialRangefinder):
 
 
 class Ping1DRangefinder(SerialRangefinder):
-    """Blue Robotics Ping1D: requests a distance message per poll."""
+    """Blue Robotics Ping1D: requests a distance message per poll.
+
+    ``port``: a serial device, or ``udp:HOST:PORT`` for a Ping bridged over UDP (BlueOS's ping
+    service serves its first Ping1D at udp:127.0.0.1:9090 on the vehicle). Through a bridge other
+    clients' requests are answered to every client, so any message carrying a distance counts.
+    """
 
     kind = "ping1d"
 
@@ -238,7 +254,8 @@ class Ping1DRangefinder(SerialRangefinder):
         """Distance requests per second."""
 
     def __init__(self, port: str, baud: int = 115200, rate_hz: float = 10.0, **config) -> None:
-        super().__init__(port, baud, RangefinderConfig(**config))
+        link = UdpLink(port) if port.startswith(UDP_SCHEME) else None
+        super().__init__(port, baud, RangefinderConfig(**config), link=link)
         from brping import PingParser
 
         if not 0 < rate_hz <= 50:
@@ -282,6 +299,7 @@ class Ping1DRangefinder(SerialRangefinder):
         with self.link.lock:
             self.link.write(self._message(definitions.COMMON_GENERAL_REQUEST, requested_id=definitions.PING1D_DISTANCE))
             msg = self._read_message()
-        if msg is not None and msg.message_id == definitions.PING1D_DISTANCE:
+        if msg is not None and msg.message_id in (definitions.PING1D_DISTANCE, definitions.PING1D_DISTANCE_SIMPLE,
+                                                  definitions.PING1D_PROFILE):
             self._accept(msg.distance / 1000.0, msg.confidence / 100.0)
         self._stop.wait(self.period_s)

@@ -150,7 +150,7 @@ def test_config_patch_is_validated_before_it_applies(server):
 
 def test_metrics_in_prometheus_text(server):
     text = server.http.get("/metrics").text
-    assert "uwcam_frames_processed_total" in text and 'uwcam_latency_ms{quantile="0.99"}' in text
+    assert "uwcam_frames_processed_total" in text and 'uwcam_frame_latency_seconds_bucket{le="+Inf"}' in text
 
 
 def test_camera_lost_mid_dive_is_reported_and_recovered(server):

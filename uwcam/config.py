@@ -7,6 +7,7 @@ on one simulated vehicle surveying a varied seabed, with a calibration patch in 
 from __future__ import annotations
 
 import os
+import re
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -196,6 +197,93 @@ class FoxgloveConfig(Strict):
     """Every this many pixels in x and y becomes a point of the point cloud."""
 
 
+# MAV_SENSOR_ORIENTATION names (MAVLink common.xml) the MAVLink output accepts, by value. CUSTOM
+# (100) is left out: it needs a quaternion, which uwcam does not know.
+SENSOR_ORIENTATIONS = {
+    "NONE": 0, "YAW_45": 1, "YAW_90": 2, "YAW_135": 3, "YAW_180": 4, "YAW_225": 5, "YAW_270": 6, "YAW_315": 7,
+    "ROLL_180": 8, "ROLL_180_YAW_45": 9, "ROLL_180_YAW_90": 10, "ROLL_180_YAW_135": 11, "PITCH_180": 12,
+    "ROLL_180_YAW_225": 13, "ROLL_180_YAW_270": 14, "ROLL_180_YAW_315": 15, "ROLL_90": 16, "ROLL_90_YAW_45": 17,
+    "ROLL_90_YAW_90": 18, "ROLL_90_YAW_135": 19, "ROLL_270": 20, "ROLL_270_YAW_45": 21, "ROLL_270_YAW_90": 22,
+    "ROLL_270_YAW_135": 23, "PITCH_90": 24, "PITCH_270": 25, "PITCH_180_YAW_90": 26, "PITCH_180_YAW_270": 27,
+    "ROLL_90_PITCH_90": 28, "ROLL_180_PITCH_90": 29, "ROLL_270_PITCH_90": 30, "ROLL_90_PITCH_180": 31,
+    "ROLL_270_PITCH_180": 32, "ROLL_90_PITCH_270": 33, "ROLL_180_PITCH_270": 34, "ROLL_270_PITCH_270": 35,
+    "ROLL_90_PITCH_180_YAW_90": 36, "ROLL_90_YAW_270": 37, "ROLL_90_PITCH_68_YAW_293": 38, "PITCH_315": 39,
+    "ROLL_90_PITCH_315": 40,
+}
+_CONNECTION = re.compile(r"^(?:(?P<scheme>udpout|tcp):(?P<host>\[[0-9A-Fa-f:.]+\]|[^:\s\[\]]+):(?P<port>\d{1,5})"
+                         r"|(?P<device>/\S+))$")
+
+
+def parse_mavlink_connection(text: str) -> tuple[str, str, int]:
+    """``udpout:HOST:PORT`` → ("udpout", host, port); ``tcp:HOST:PORT`` → ("tcp", host, port);
+    a serial device path → ("serial", path, 0). ValueError says which forms are accepted."""
+    m = _CONNECTION.match(text)
+    if m is None:
+        raise ValueError(f"connection '{text}' is not udpout:HOST:PORT, tcp:HOST:PORT or a serial device path "
+                         "such as /dev/ttyACM0")
+    if m["device"]:
+        return "serial", m["device"], 0
+    port = int(m["port"])
+    if not 1 <= port <= 65535:
+        raise ValueError(f"connection '{text}': port {port} is not 1–65535")
+    return m["scheme"], m["host"].strip("[]"), port
+
+
+class MavlinkConfig(Strict):
+    """Range to an autopilot (ArduSub, PX4) as MAVLink DISTANCE_SENSOR, and optionally
+    OBSTACLE_DISTANCE, with a HEARTBEAT at 1 Hz (see docs/mavlink.md)."""
+
+    connection: Annotated[str, Field(min_length=1)] = "udpout:127.0.0.1:14550"
+    """udpout:HOST:PORT, tcp:HOST:PORT or a serial device path (/dev/ttyACM0)."""
+    baud: Annotated[int, Field(ge=1200, le=4_000_000)] = 115200
+    """Baud rate when ``connection`` is a serial device."""
+    source_system: Annotated[int, Field(ge=1, le=255)] = 1
+    """MAVLink system id to send as: the vehicle's (ArduSub's SYSID_THISMAV, 1 by default)."""
+    source_component: Annotated[int, Field(ge=1, le=255)] = 158
+    """MAVLink component id to send as; 158 is MAV_COMP_ID_PERIPHERAL."""
+    rate_hz: Annotated[float, Field(gt=0, le=50, allow_inf_nan=False)] = 10.0
+    """DISTANCE_SENSOR (and OBSTACLE_DISTANCE) messages per second; ArduPilot drops a MAVLink
+    rangefinder after 500 ms without one."""
+    region: tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0)], Annotated[int, Field(gt=0)],
+                  Annotated[int, Field(gt=0)]] | None = None
+    """x, y, width, height in pixels whose valid ranges make the distance; None: the whole image."""
+    statistic: Literal["median", "minimum"] = "median"
+    """median (altitude over a seabed) or minimum (nearest obstacle, forward-looking)."""
+    minimum_block: Annotated[int, Field(ge=1, le=64)] = 8
+    """The "minimum" is the smallest median over square tiles of this many pixels a side (at
+    least half of them valid), so that single noisy pixels do not set it; 1 takes the smallest
+    pixel."""
+    min_valid_fraction: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = 0.05
+    """Below this fraction of valid pixels in the region nothing is sent."""
+    max_age_s: Annotated[float, Field(gt=0, le=10, allow_inf_nan=False)] = 0.5
+    """Nothing is sent while the newest processed frame is older than this (seconds)."""
+    orientation: str = "PITCH_270"
+    """MAV_SENSOR_ORIENTATION name (with or without MAV_SENSOR_ROTATION_): PITCH_270 looks down,
+    NONE forward; it must equal the autopilot's RNGFNDx_ORIENT."""
+    sensor_id: Annotated[int, Field(ge=0, le=255)] = 0
+    """DISTANCE_SENSOR ``id``, distinct from the vehicle's other rangefinders."""
+    obstacle_distance: bool = False
+    """Also send OBSTACLE_DISTANCE: 72 sectors across the camera's whole horizontal field of view
+    (over the rows of ``region``), for a camera looking horizontally (orientation NONE or YAW_*)."""
+
+    @model_validator(mode="after")
+    def _check(self) -> "MavlinkConfig":
+        parse_mavlink_connection(self.connection)
+        name = self.orientation.upper().removeprefix("MAV_SENSOR_ROTATION_")
+        if name not in SENSOR_ORIENTATIONS:
+            raise ValueError(f"unknown orientation '{self.orientation}'; e.g. PITCH_270 (down), NONE (forward), "
+                             "YAW_90 (right), PITCH_90 (up)")
+        self.orientation = name
+        if self.obstacle_distance and SENSOR_ORIENTATIONS[name] > 7:
+            raise ValueError(f"obstacle_distance needs a camera looking horizontally (orientation NONE or YAW_*), "
+                             f"not {name}")
+        return self
+
+    @property
+    def orientation_value(self) -> int:
+        return SENSOR_ORIENTATIONS[self.orientation]
+
+
 class DaemonConfig(Strict):
     version: Literal[1] = CONFIG_VERSION
     camera: CameraConfig = CameraConfig()
@@ -213,6 +301,8 @@ class DaemonConfig(Strict):
     altitude...) when devices are simulated; see uwcam.simulation.options."""
     processing: ProcessingConfig = ProcessingConfig()
     api: ApiConfig = ApiConfig()
+    mavlink: MavlinkConfig | None = None
+    """Send range to an autopilot over MAVLink; None: no MAVLink output."""
     recording: RecordingConfig = RecordingConfig()
     foxglove: FoxgloveConfig = FoxgloveConfig()
 

@@ -22,6 +22,7 @@ from uwcam.drivers import registry
 from uwcam.drivers.base import CameraSettings, ConfigurationError, DriverError
 from uwcam.drivers.supervisor import SupervisedCamera
 from uwcam.fileio import UserInputError
+from uwcam.outputs.mavlink import MavlinkOutput
 from uwcam.pipeline import FramePipeline
 from uwcam.profile import CalibrationProfile, load_profile, save_profile
 from uwcam.state import SavedState, load_state, remove_stale_temporaries, save_state
@@ -96,6 +97,7 @@ class Daemon:
         self.pipeline: FramePipeline | None = None
         self.recorder = None
         self.foxglove = None
+        self.mavlink: MavlinkOutput | None = None
         self.profile_name = ""
         self.profiles: dict[str, CalibrationProfile] = {}
         """Calibration profiles known to the daemon by name; the active one is ``profile_name``."""
@@ -180,6 +182,9 @@ class Daemon:
                 self.rangefinder.start()
             self._start_outputs()
             self.pipeline.start()
+            if cfg.mavlink is not None:
+                self.mavlink = MavlinkOutput(cfg.mavlink, self.pipeline)
+                self.mavlink.start()
         except BaseException:
             self.stop()
             raise
@@ -242,7 +247,10 @@ class Daemon:
             self.foxglove.start()
 
     def stop(self) -> None:
-        """Stop the loop, switch the lamp off, release every device. Safe to call twice."""
+        """Stop the outputs and the loop, switch the lamp off, release every device. Safe to call twice."""
+        if self.mavlink is not None:
+            self.mavlink.stop()
+            self.mavlink = None
         if self.pipeline is not None:
             self.pipeline.stop()
         for output in (self.recorder, self.foxglove):
@@ -345,4 +353,5 @@ class Daemon:
             "lamp": lamp,
             "recording": self.recorder.status() if self.recorder else None,
             "foxglove": self.foxglove.status() if self.foxglove else None,
+            "mavlink": self.mavlink.status() if self.mavlink is not None else None,
         }

@@ -67,9 +67,11 @@ def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
         app.state.broadcaster = Broadcaster(asyncio.get_running_loop())
         app.state.view_encoder = ViewEncoder()
         d.pipeline.subscribe(app.state.broadcaster.publish)
+        app.state.metrics = metrics.Metrics(d, app.state)
         try:
             yield
         finally:
+            app.state.metrics.close()
             d.pipeline.unsubscribe(app.state.broadcaster.publish)
             await asyncio.to_thread(d.stop)
 

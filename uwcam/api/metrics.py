@@ -1,28 +1,154 @@
-"""GET /metrics: Prometheus text."""
+"""GET /metrics: Prometheus text, from ``prometheus_client``.
 
-from fastapi import APIRouter, Depends
-from fastapi.responses import PlainTextResponse
+Everything but the latency histogram is read from the daemon at scrape time by one custom
+collector, so the frame loop never updates a metric. The latency histogram is observed per
+published frame by a subscriber: one bucket increment under prometheus_client's lock, as cheap
+as the stream's hand-off. The registry is the app's own (not the process-global one), with
+prometheus_client's process collector (CPU, memory, open files) beside uwcam's metrics.
+
+What an operator alerts on: ``uwcam_device_up`` (and ``uwcam_device_state``) per device,
+``uwcam_frames_dropped_total`` rising, ``uwcam_rangefinder_reading_age_seconds`` growing,
+``uwcam_patch_drift_per_metre`` beyond the water's usual change, ``uwcam_valid_pixel_fraction``
+falling, ``uwcam_lamp_temperature_celsius`` climbing, ``uwcam_mavlink_sending`` at 0.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+from fastapi import APIRouter, Depends, Request
+from fastapi.responses import Response
+from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Histogram, ProcessCollector, generate_latest
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.registry import Collector
 
 from uwcam.api.common import get_daemon
 from uwcam.daemon import Daemon
+from uwcam.optics.validity import Reason
+from uwcam.pipeline import Published
 
 router = APIRouter(tags=["metrics"])
+STATES = ("ok", "recovering", "lost", "stopped")
+LATENCY_BUCKETS_S = (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0)
 
 
-@router.get("/metrics", response_class=PlainTextResponse)
-def metrics(d: Daemon = Depends(get_daemon)) -> str:
-    """Prometheus text format."""
-    s = d.status()
-    lines = [
-        "# TYPE uwcam_frames_captured_total counter", f"uwcam_frames_captured_total {s['frames']['captured']}",
-        "# TYPE uwcam_frames_processed_total counter", f"uwcam_frames_processed_total {s['frames']['processed']}",
-        "# TYPE uwcam_frames_dropped_total counter", f"uwcam_frames_dropped_total {s['frames']['dropped']}",
-        "# TYPE uwcam_fps gauge", f"uwcam_fps {s['frames']['fps']}",
-    ]
-    if s["latency_ms"]:
-        lines += ["# TYPE uwcam_latency_ms gauge",
-                  f'uwcam_latency_ms{{quantile="0.5"}} {s["latency_ms"]["p50"]}',
-                  f'uwcam_latency_ms{{quantile="0.99"}} {s["latency_ms"]["p99"]}']
-    camera = s["camera"]["health"]["state"] if s["camera"] else "none"
-    lines += ["# TYPE uwcam_camera_ok gauge", f"uwcam_camera_ok {int(camera == 'ok')}"]
-    return "\n".join(lines) + "\n"
+class DaemonCollector(Collector):
+    """uwcam's state as Prometheus metrics, read when scraped."""
+
+    def __init__(self, daemon: Daemon, app_state) -> None:
+        self.daemon = daemon
+        self.app_state = app_state
+
+    def collect(self) -> Iterator[Metric]:
+        s = self.daemon.status()
+        frames = s["frames"]
+        for name, doc in (("captured", "Frames delivered by the camera."),
+                          ("processed", "Frames ranged and published by the frame loop."),
+                          ("dropped", "Frames dropped: camera queue full, or skipped for a newer one.")):
+            yield CounterMetricFamily(f"uwcam_frames_{name}", doc, value=frames[name])
+        yield GaugeMetricFamily("uwcam_fps", "Processed frames per second, recent.", value=frames["fps"])
+        yield GaugeMetricFamily("uwcam_uptime_seconds", "Seconds since the daemon started.", value=s["uptime_s"])
+
+        health = {"camera": s["camera"]["health"]["state"] if s["camera"] else None,
+                  "lamp": s["lamp"]["health"]["state"] if s["lamp"] else None,
+                  "rangefinder": s["rangefinder"]["health"]["state"] if s["rangefinder"] else None}
+        state = GaugeMetricFamily("uwcam_device_state", "1 for the device's present health state, 0 for the others.",
+                                  labels=["device", "state"])
+        up = GaugeMetricFamily("uwcam_device_up", "1 while the device is healthy (state ok).", labels=["device"])
+        for device, current in health.items():
+            if current is None:
+                continue  # not configured
+            for name in STATES:
+                state.add_metric([device, name], float(current == name))
+            up.add_metric([device], float(current == "ok"))
+        yield state
+        yield up
+
+        lamp = s["lamp"]
+        if lamp is not None:
+            if lamp["on"] is not None:
+                yield GaugeMetricFamily("uwcam_lamp_on", "1 while the lamp is on, as last reported.", value=float(lamp["on"]))
+            if lamp["percent"] is not None:
+                yield GaugeMetricFamily("uwcam_lamp_intensity_percent", "Lamp intensity, %.", value=lamp["percent"])
+            last = getattr(self.daemon.lamp, "last_status", None)
+            if last is not None and last.temperature_c is not None:
+                yield GaugeMetricFamily("uwcam_lamp_temperature_celsius", "Lamp temperature as last reported, °C.",
+                                        value=last.temperature_c)
+
+        rf = s["rangefinder"]
+        if rf is not None and rf["age_s"] is not None:
+            yield GaugeMetricFamily("uwcam_rangefinder_reading_age_seconds", "Age of the newest valid reading, s.",
+                                    value=rf["age_s"])
+            yield GaugeMetricFamily("uwcam_rangefinder_range_metres", "Newest valid range, m.", value=rf["range_m"])
+
+        tracking = s["calibration"]["tracking"]
+        if tracking is not None:
+            drift = GaugeMetricFamily("uwcam_patch_drift_per_metre",
+                                      "Tracked minus calibrated attenuation difference per channel, 1/m.", labels=["channel"])
+            for channel, value in tracking["drift"].items():
+                drift.add_metric([channel], value)
+            yield drift
+            yield CounterMetricFamily("uwcam_patch_frames_accepted", "Frames whose patch updated the tracking.",
+                                      value=tracking["accepted"])
+            yield CounterMetricFamily("uwcam_patch_frames_rejected", "Frames whose patch was rejected (saturated, "
+                                      "dark, not found, outlier).", value=tracking["rejected"])
+
+        published: Published | None = self.daemon.pipeline.latest if self.daemon.pipeline else None
+        if published is not None:
+            counts = np.bincount(published.result.reasons.ravel(), minlength=len(Reason))
+            total = max(1, int(counts.sum()))
+            yield GaugeMetricFamily("uwcam_valid_pixel_fraction", "Fraction of the newest range map's pixels with a range.",
+                                    value=counts[Reason.VALID] / total)
+            reasons = GaugeMetricFamily("uwcam_pixel_reason_fraction",
+                                        "Fraction of the newest range map's pixels per validity reason.", labels=["reason"])
+            for reason in Reason:
+                reasons.add_metric([reason.name.lower()], counts[reason] / total)
+            yield reasons
+
+        yield GaugeMetricFamily("uwcam_websocket_clients", "WebSocket stream clients connected now.",
+                                value=getattr(self.app_state, "stream_clients", 0))
+
+        mav = s.get("mavlink")
+        if mav is not None:
+            sent = CounterMetricFamily("uwcam_mavlink_messages_sent", "MAVLink messages sent, by message.",
+                                       labels=["message"])
+            for message, n in mav["sent"].items():
+                sent.add_metric([message], n)
+            yield sent
+            yield CounterMetricFamily("uwcam_mavlink_send_errors", "MAVLink link failures (each followed by a reconnect).",
+                                      value=mav["send_errors"])
+            yield GaugeMetricFamily("uwcam_mavlink_sending", "1 while distances are being sent to the autopilot.",
+                                    value=float(mav["sending"]))
+
+
+class Metrics:
+    """The app's registry: uwcam's collector, the process collector and the latency histogram.
+
+    ``observe`` is the frame loop subscriber; ``close`` unsubscribes it.
+    """
+
+    def __init__(self, daemon: Daemon, app_state) -> None:
+        self.daemon = daemon
+        self.registry = CollectorRegistry(auto_describe=True)
+        self.registry.register(DaemonCollector(daemon, app_state))
+        ProcessCollector(registry=self.registry)
+        self.latency = Histogram("uwcam_frame_latency_seconds", "Capture to publication of each processed frame, s.",
+                                 buckets=LATENCY_BUCKETS_S, registry=self.registry)
+        daemon.pipeline.subscribe(self.observe)
+
+    def observe(self, published: Published) -> None:  # in the frame loop's thread: one increment
+        self.latency.observe(published.latency_s)
+
+    def close(self) -> None:
+        if self.daemon.pipeline is not None:
+            self.daemon.pipeline.unsubscribe(self.observe)
+
+    def text(self) -> bytes:
+        return generate_latest(self.registry)
+
+
+@router.get("/metrics", response_class=Response, responses={200: {"content": {CONTENT_TYPE_LATEST: {}}}})
+def metrics(request: Request, d: Daemon = Depends(get_daemon)) -> Response:
+    """Prometheus text format (HELP and TYPE lines, counters, gauges, the latency histogram, process metrics)."""
+    return Response(request.app.state.metrics.text(), media_type=CONTENT_TYPE_LATEST)

@@ -70,6 +70,15 @@ async def stream(ws: WebSocket, rate: float = 30.0, encoding: Literal["float16",
     never queued (:mod:`uwcam.api.backpressure`).
     """
     await ws.accept()
+    # Clients connected now, for /metrics; changed only on the event loop, so no lock.
+    ws.app.state.stream_clients = getattr(ws.app.state, "stream_clients", 0) + 1
+    try:
+        await _serve(ws, rate, encoding)
+    finally:
+        ws.app.state.stream_clients -= 1
+
+
+async def _serve(ws: WebSocket, rate: float, encoding: str) -> None:
     rate = min(max(rate, 0.1), ws.app.state.config.api.stream_rate_hz)
     b: Broadcaster = ws.app.state.broadcaster
     d: Daemon = ws.app.state.daemon

@@ -1,0 +1,477 @@
+"""MAVLink output: range to an autopilot as DISTANCE_SENSOR, OBSTACLE_DISTANCE and HEARTBEAT.
+
+A subscriber of the frame loop. The loop's callback only stores the newest published frame
+(one slot, newest wins); this output's own thread, at the configured rate, takes the newest
+frame, reduces its range map to what the autopilot needs and sends it over UDP, TCP or a
+serial line.
+
+Field semantics follow MAVLink's common.xml:
+
+* DISTANCE_SENSOR ``current_distance``: a robust statistic (median, or the smallest median
+  over small tiles as the "minimum") of the valid pixels' distance along the optical axis in the configured
+  region, cm. ``min_distance``/``max_distance``: the processing path-length bounds turned
+  into camera range on the axis (ArduPilot keeps them in int16 cm, so at most 32767).
+  ``covariance``: the per-pixel variance of those pixels (median), cm²; UINT8_MAX when
+  unknown or too large for a byte. ``signal_quality``: the valid fraction of the region in
+  percent, never below 2 for a reading that is sent (0 means unknown, 1 invalid).
+  ``horizontal_fov``/``vertical_fov``: the region's angular size from the intrinsics, rad (0
+  unknown). Nothing is sent while the newest frame is stale or the region holds too few
+  valid pixels: ArduPilot then times the rangefinder out (500 ms) instead of trusting it.
+* OBSTACLE_DISTANCE: 72 sectors spanning the camera's horizontal field of view (body frame
+  FRD, clockwise positive, ``angle_offset`` the centre of sector 0), each the robust minimum
+  horizontal distance of its valid pixels in cm; UINT16_MAX where unknown, ``max_distance +
+  1`` where the sector's pixels saw only lit water (no obstacle within range).
+* HEARTBEAT at 1 Hz as an onboard controller, so the autopilot and ground station see the
+  component; ``system_status`` ACTIVE while distances are sent, STANDBY otherwise.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from uwcam.config import MavlinkConfig
+from uwcam.optics.geometry import Intrinsics, camera_range_from_path_length, pixel_rays
+from uwcam.optics.validity import Reason
+from uwcam.outputs.mavlink_links import LinkDown, open_transport
+from uwcam.pipeline import Published
+
+log = logging.getLogger(__name__)
+
+UINT8_MAX = 255
+UINT16_MAX = 65535
+MAX_DISTANCE_CM = 32767
+"""ArduPilot holds rangefinder limits as int16 centimetres."""
+SECTORS = 72
+HEARTBEAT_PERIOD_S = 1.0
+# MAVLink enum values used here (common.xml), named so the code reads like the spec.
+MAV_DISTANCE_SENSOR_UNKNOWN = 4
+MAV_FRAME_BODY_FRD = 12
+MAV_TYPE_ONBOARD_CONTROLLER = 18
+MAV_AUTOPILOT_INVALID = 8
+MAV_STATE_STANDBY, MAV_STATE_ACTIVE = 3, 4
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """What one processed frame says to the autopilot. Distances in metres, angles in degrees."""
+
+    frame_number: int
+    capture_monotonic_ns: int
+    wall_time: float
+    distance_m: float | None
+    """None when the frame gives no trustworthy distance (``reason`` says why)."""
+    variance_m2: float | None
+    valid_fraction: float
+    reason: str
+    min_distance_m: float
+    max_distance_m: float
+    horizontal_fov_rad: float = 0.0
+    vertical_fov_rad: float = 0.0
+    sectors_cm: NDArray[np.uint16] | None = None
+    """(72,) OBSTACLE_DISTANCE distances, or None when not computed."""
+    sector_increment_deg: float = 0.0
+    sector_offset_deg: float = 0.0
+
+
+def distance_bounds(path_length_bounds: tuple[float, float], lamp_position_m) -> tuple[float, float]:
+    """Camera range on the optical axis (m) at the processing path-length bounds; a bound too
+    short to reach past the lamp gives 0."""
+    near, far = camera_range_from_path_length(np.array(path_length_bounds, dtype=np.float64), lamp_position_m)
+    return (0.0 if not np.isfinite(near) else max(0.0, float(near))), (0.0 if not np.isfinite(far) else float(far))
+
+
+def _row_medians(values: NDArray) -> tuple[NDArray, NDArray]:
+    """Median of the finite entries of each row of (n, k) ``values`` and their count, without
+    numpy's nanmedian (which falls back to a Python loop per row when NaNs are present)."""
+    ordered = np.sort(np.where(np.isfinite(values), values, np.inf), axis=1)
+    count = np.isfinite(values).sum(axis=1)
+    rows = np.arange(values.shape[0])
+    lo = ordered[rows, np.maximum(count - 1, 0) // 2]
+    hi = ordered[rows, np.maximum(count, 1) // 2 - (count == 0)]
+    with np.errstate(invalid="ignore"):  # rows without a finite entry: NaN, on purpose
+        return np.where(count > 0, 0.5 * (lo + hi), np.nan), count
+
+
+def tile_medians(values: NDArray, variance: NDArray, rows: int, cols: int) -> tuple[NDArray, NDArray]:
+    """Median value and median variance of each rows×cols tile with at least half its pixels
+    valid (finite); tiles at the edges may be smaller. Returns two 1-D arrays, one entry per
+    such tile."""
+    h, w = values.shape
+    hb, wb = -(-h // rows), -(-w // cols)
+    padded = np.full((hb * rows, wb * cols), np.nan, dtype=np.float64)
+    padded[:h, :w] = values
+    pvar = np.full_like(padded, np.nan)
+    pvar[:h, :w] = variance
+    tiles = padded.reshape(hb, rows, wb, cols).transpose(0, 2, 1, 3).reshape(hb * wb, rows * cols)
+    sizes = np.minimum(rows, h - np.arange(hb) * rows)[:, None] * np.minimum(cols, w - np.arange(wb) * cols)[None, :]
+    medians, count = _row_medians(tiles)
+    good = count * 2 >= sizes.ravel()
+    if not good.any():
+        return np.empty(0), np.empty(0)
+    tvar = pvar.reshape(hb, rows, wb, cols).transpose(0, 2, 1, 3).reshape(hb * wb, rows * cols)[good]
+    tvar = np.where(np.isfinite(tiles[good]), tvar, np.nan)  # the variances of the valid pixels only
+    return medians[good], _row_medians(tvar)[0]
+
+
+def region_statistic(distance: NDArray, variance: NDArray, statistic: str, block: int) -> tuple[float | None, float | None, float]:
+    """(distance, its per-pixel variance, valid fraction) over one region.
+
+    distance, variance: (h, w) metres and m², NaN where invalid. median: the median of the
+    valid pixels, with their median variance. minimum: the smallest median over block×block
+    tiles (so that no single noisy pixel sets it), with that tile's median variance.
+    """
+    ok = np.isfinite(distance)
+    n = int(ok.sum())
+    fraction = n / distance.size if distance.size else 0.0
+    if n == 0:
+        return None, None, fraction
+    if statistic == "median":
+        v = variance[ok][::4]  # a describing figure: every 4th valid pixel's variance is plenty
+        v = v[np.isfinite(v)]
+        return float(np.median(distance[ok])), (float(np.median(v)) if v.size else None), fraction
+    medians, variances = tile_medians(distance, variance, block, block)
+    if medians.size == 0:
+        return None, None, fraction
+    i = int(np.argmin(medians))
+    return float(medians[i]), (float(variances[i]) if np.isfinite(variances[i]) else None), fraction
+
+
+def covariance_cm2(variance_m2: float | None) -> int:
+    """DISTANCE_SENSOR covariance: cm², rounded up; UINT8_MAX when unknown or above 254 cm²."""
+    if variance_m2 is None or not np.isfinite(variance_m2) or variance_m2 < 0:
+        return UINT8_MAX
+    cm2 = math.ceil(variance_m2 * 1e4)
+    return cm2 if cm2 < UINT8_MAX else UINT8_MAX
+
+
+def signal_quality(valid_fraction: float) -> int:
+    """Valid fraction as MAVLink's signal quality: percent, 2–100 for a reading that is sent
+    (0 would mean unknown and 1 invalid)."""
+    return int(min(100, max(2, round(100 * valid_fraction))))
+
+
+def sector_layout(intrinsics: Intrinsics, width: int, yaw_deg: float = 0.0) -> tuple[NDArray[np.int64], float, float]:
+    """Which of the 72 sectors each image column falls in, the sector width and sector 0's centre.
+
+    Returns (sector index per column (width,), increment in degrees, angle of sector 0's centre
+    in degrees, clockwise positive from the vehicle's front, with the camera's yaw added).
+    """
+    left = math.degrees(math.atan2(-0.5 - intrinsics.cx, intrinsics.fx))
+    right = math.degrees(math.atan2(width - 0.5 - intrinsics.cx, intrinsics.fx))
+    increment = (right - left) / SECTORS
+    columns = np.degrees(np.arctan2(np.arange(width) - intrinsics.cx, intrinsics.fx))
+    index = np.clip(((columns - left) / increment).astype(np.int64), 0, SECTORS - 1)
+    centre = left + increment / 2 + yaw_deg
+    return index, increment, (centre + 180.0) % 360.0 - 180.0
+
+
+def sector_distances(horizontal: NDArray, reasons: NDArray, column_sector: NDArray, min_cm: int, max_cm: int,
+                     block: int) -> NDArray[np.uint16]:
+    """OBSTACLE_DISTANCE ``distances``: per sector the robust minimum horizontal distance (cm).
+
+    horizontal: (h, w) metres, NaN where invalid; reasons: (h, w) :class:`Reason` codes;
+    column_sector: (w,) sector of each column. A sector's distance is the smallest median over
+    tiles of ``block`` rows × the sector's columns. A sector without such a tile is
+    ``max_cm + 1`` (no obstacle) when most of its pixels saw only lit water, else UINT16_MAX
+    (unknown).
+    """
+    out = np.full(SECTORS, UINT16_MAX, dtype=np.uint16)
+    for s in np.unique(column_sector):
+        cols = column_sector == s
+        d = horizontal[:, cols]
+        medians, _ = tile_medians(d, np.zeros_like(d), block, d.shape[1])
+        if medians.size:
+            out[s] = int(np.clip(round(float(medians.min()) * 100), min_cm, max_cm))
+        elif np.mean(reasons[:, cols] == Reason.BACKSCATTER_ONLY) >= 0.5:
+            out[s] = max_cm + 1
+    return out
+
+
+class _Rays:
+    """Unit rays for the current intrinsics and image size, recomputed only when they change."""
+
+    def __init__(self) -> None:
+        self.key = None
+        self.rays: NDArray | None = None
+
+    def get(self, intrinsics: Intrinsics | None, height: int, width: int) -> NDArray | None:
+        key = (intrinsics, height, width)
+        if key != self.key:
+            self.key = key
+            self.rays = None if intrinsics is None else pixel_rays(intrinsics, height, width).astype(np.float32)
+        return self.rays
+
+
+def measure(published: Published, config: MavlinkConfig, profile, path_length_bounds: tuple[float, float],
+            rays_cache: _Rays | None = None) -> Measurement:
+    """Reduce one published frame to a :class:`Measurement` (runs in the output's thread)."""
+    result, frame = published.result, published.frame
+    h, w = result.range.shape
+    intrinsics = profile.camera_intrinsics()
+    rays = (rays_cache or _Rays()).get(intrinsics, h, w)
+    near, far = distance_bounds(path_length_bounds, profile.lamp_position_m)
+    base = dict(frame_number=published.number, capture_monotonic_ns=frame.host_monotonic_ns,
+                wall_time=frame.wall_time, min_distance_m=near, max_distance_m=far)
+    x, y, rw, rh = config.region if config.region is not None else (0, 0, w, h)
+    x1, y1 = min(x + rw, w), min(y + rh, h)
+    if x >= w or y >= h:
+        return Measurement(distance_m=None, variance_m2=None, valid_fraction=0.0,
+                           reason=f"region {config.region} lies outside the {w}×{h} image", **base)
+    r = result.range[y:y1, x:x1]
+    var = result.variance[y:y1, x:x1]
+    hfov = vfov = 0.0
+    if rays is not None:
+        # Distance along the optical axis: what a rangefinder looking along it reports for a
+        # surface square to it, and the altitude over a flat seabed whatever the pixel.
+        uz = rays[y:y1, x:x1, 2]
+        r, var = r * uz, var * uz * uz
+        hfov = math.atan2(x1 - 0.5 - intrinsics.cx, intrinsics.fx) - math.atan2(x - 0.5 - intrinsics.cx, intrinsics.fx)
+        vfov = math.atan2(y1 - 0.5 - intrinsics.cy, intrinsics.fy) - math.atan2(y - 0.5 - intrinsics.cy, intrinsics.fy)
+    distance, variance, fraction = region_statistic(r, var, config.statistic, config.minimum_block)
+    reason = ""
+    if fraction < config.min_valid_fraction:
+        reason = f"{100 * fraction:.1f} % of the region's pixels have a range (needs {100 * config.min_valid_fraction:g} %)"
+        distance = None
+    sectors = None
+    increment = offset = 0.0
+    if config.obstacle_distance and rays is not None:
+        yaw = 45.0 * config.orientation_value  # NONE = 0, YAW_45 = 1, … YAW_315 = 7
+        column_sector, increment, offset = sector_layout(intrinsics, w, yaw)
+        band = rays[y:y1, :]
+        horizontal = result.range[y:y1, :] * np.sqrt(band[..., 0] ** 2 + band[..., 2] ** 2)
+        min_cm, max_cm = distance_limits_cm(near, far)
+        sectors = sector_distances(horizontal, result.reasons[y:y1, :], column_sector, min_cm, max_cm,
+                                   config.minimum_block)
+    return Measurement(distance_m=distance, variance_m2=variance, valid_fraction=fraction, reason=reason,
+                       horizontal_fov_rad=hfov, vertical_fov_rad=vfov, sectors_cm=sectors,
+                       sector_increment_deg=increment, sector_offset_deg=offset, **base)
+
+
+def distance_limits_cm(near_m: float, far_m: float) -> tuple[int, int]:
+    """min_distance and max_distance in cm: rounded outward, the far one at most MAX_DISTANCE_CM."""
+    return int(math.floor(near_m * 100)), int(min(MAX_DISTANCE_CM, math.ceil(far_m * 100)))
+
+
+# -- the output -----------------------------------------------------------------------------------
+@dataclass
+class MavlinkStats:
+    sent: dict[str, int] = field(default_factory=lambda: {"HEARTBEAT": 0, "DISTANCE_SENSOR": 0, "OBSTACLE_DISTANCE": 0})
+    send_errors: int = 0
+    reconnects: int = 0
+    frames_measured: int = 0
+    frames_skipped_for_newer: int = 0
+    """Frames replaced by a newer one before a message was due: never measured (newest wins)."""
+
+
+class MavlinkOutput:
+    """Sends the newest frame's distance to an autopilot; start/stop it with the frame loop.
+
+    ``pipeline``: the :class:`uwcam.pipeline.FramePipeline` (its ``profile`` and ``processing``
+    are read for intrinsics, lamp position and path-length bounds at every frame).
+    """
+
+    def __init__(self, config: MavlinkConfig, pipeline) -> None:
+        from pymavlink.dialects.v20 import common as mavlink2
+
+        self.config = config
+        self.pipeline = pipeline
+        self.stats = MavlinkStats()
+        self._mavlink2 = mavlink2
+        # MAVLink 2 framing: OBSTACLE_DISTANCE (id 330) and DISTANCE_SENSOR's extension fields need it.
+        self._mav = mavlink2.MAVLink(self, srcSystem=config.source_system, srcComponent=config.source_component)
+        self._mav.robust_parsing = True
+        self._parser = mavlink2.MAVLink(None)
+        self._parser.robust_parsing = True
+        self._slot: Published | None = None  # newest frame not yet measured (one slot, newest wins)
+        self._slot_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._transport = None
+        self._retry_at = 0.0
+        self._retry_delay = 0.2
+        self._rays = _Rays()
+        self.measurement: Measurement | None = None
+        self.autopilot_heartbeat_monotonic: float | None = None
+        self._state_lock = threading.Lock()
+        self._state = ("stopped", "not started", time.time())
+        self.connected = False
+
+    # -- frame loop side: hand-off only ------------------------------------------------------
+    def offer(self, published: Published) -> None:
+        """Called by the frame loop for every published frame: keep the newest, nothing more."""
+        with self._slot_lock:
+            if self._slot is not None:
+                self.stats.frames_skipped_for_newer += 1
+            self._slot = published
+
+    # -- lifecycle ---------------------------------------------------------------------------
+    def start(self) -> None:
+        self._set_state("connecting", f"opening {self.config.connection}")
+        self._thread = threading.Thread(target=self._run, name="output-mavlink", daemon=True)
+        self._thread.start()
+        self.pipeline.subscribe(self.offer)
+
+    def stop(self) -> None:
+        self.pipeline.unsubscribe(self.offer)
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+        self._close()
+        self._set_state("stopped", "stopped")
+
+    # -- the output's thread -------------------------------------------------------------------
+    def write(self, data: bytes) -> None:
+        """pymavlink's file interface: every message goes out through the transport."""
+        self._transport.send(data)
+
+    def _set_state(self, state: str, reason: str) -> None:
+        with self._state_lock:
+            if self._state[:2] != (state, reason):
+                self._state = (state, reason, time.time())
+
+    def _close(self) -> None:
+        if self._transport is not None:
+            self._transport.close()
+            self._transport = None
+        self.connected = False
+
+    def _connect(self, now: float) -> bool:
+        if self._transport is not None:
+            return True
+        if now < self._retry_at:
+            return False
+        transport = open_transport(self.config)
+        try:
+            transport.open()
+        except LinkDown as exc:
+            self._link_down(str(exc), now)
+            return False
+        self._transport = transport
+        self.connected = True
+        self._retry_delay = 0.2
+        return True
+
+    def _link_down(self, reason: str, now: float) -> None:
+        self.stats.send_errors += 1
+        self._close()
+        self._retry_at = now + self._retry_delay
+        self._retry_delay = min(self._retry_delay * 2, 5.0)
+        self.stats.reconnects += 1
+        self._set_state("disconnected", reason)
+
+    def _run(self) -> None:
+        period = 1.0 / self.config.rate_hz
+        next_send = next_heartbeat = time.monotonic()
+        while not self._stop.wait(max(0.0, min(next_send, next_heartbeat) - time.monotonic())):
+            now = time.monotonic()
+            if now >= next_send:
+                # Only the newest frame, and only when a message is due: the work is bounded by
+                # rate_hz whatever the camera's frame rate.
+                self._take_newest()
+            if not self._connect(now):
+                next_send = next_heartbeat = max(now + period, self._retry_at)
+                continue
+            try:
+                self._receive()
+                if now >= next_heartbeat:
+                    next_heartbeat = max(next_heartbeat + HEARTBEAT_PERIOD_S, now)
+                    self._send_heartbeat()
+                if now >= next_send:
+                    next_send = max(next_send + period, now)
+                    self._send_distance(now)
+            except LinkDown as exc:
+                self._link_down(str(exc), now)
+            except Exception as exc:  # never let the output die: report and go on
+                log.exception("MAVLink output failed")
+                self._link_down(f"{type(exc).__name__}: {exc}", now)
+
+    def _take_newest(self) -> None:
+        with self._slot_lock:
+            published, self._slot = self._slot, None
+        if published is None:
+            return
+        processing = self.pipeline.processing
+        self.measurement = measure(published, self.config, self.pipeline.profile, processing.path_length_bounds,
+                                   self._rays)
+        self.stats.frames_measured += 1
+
+    def _receive(self) -> None:
+        data = self._transport.receive()
+        if not data:
+            return
+        try:
+            messages = self._parser.parse_buffer(data) or []
+        except Exception:  # robust parsing: garbage on the link is not our problem
+            return
+        for msg in messages:
+            if msg.get_type() == "HEARTBEAT" and msg.autopilot != MAV_AUTOPILOT_INVALID:
+                self.autopilot_heartbeat_monotonic = time.monotonic()
+
+    def _send_heartbeat(self) -> None:
+        status = MAV_STATE_ACTIVE if self.sending else MAV_STATE_STANDBY
+        self._mav.heartbeat_send(MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0, status)
+        self.stats.sent["HEARTBEAT"] += 1
+
+    def _send_distance(self, now: float) -> None:
+        m = self.measurement
+        if m is None:
+            self._set_state("stale", "no frame processed yet")
+            return
+        age = now - m.capture_monotonic_ns / 1e9
+        if age > self.config.max_age_s:
+            self._set_state("stale", f"newest frame is {age:.2f} s old (limit {self.config.max_age_s:g} s)")
+            return
+        min_cm, max_cm = distance_limits_cm(m.min_distance_m, m.max_distance_m)
+        if m.distance_m is not None:
+            cm = int(round(m.distance_m * 100))
+            if not min_cm <= cm <= max_cm:
+                self._set_state("invalid", f"distance {cm} cm outside {min_cm}–{max_cm} cm")
+            else:
+                self._mav.distance_sensor_send(
+                    (m.capture_monotonic_ns // 1_000_000) % (1 << 32), min_cm, max_cm, cm, MAV_DISTANCE_SENSOR_UNKNOWN,
+                    self.config.sensor_id, self.config.orientation_value, covariance_cm2(m.variance_m2),
+                    m.horizontal_fov_rad, m.vertical_fov_rad, [0.0, 0.0, 0.0, 0.0], signal_quality(m.valid_fraction))
+                self.stats.sent["DISTANCE_SENSOR"] += 1
+                self._set_state("sending", f"DISTANCE_SENSOR at {self.config.rate_hz:g} Hz")
+        else:
+            self._set_state("invalid", m.reason)
+        if m.sectors_cm is not None:
+            self._mav.obstacle_distance_send(
+                int(m.wall_time * 1e6), MAV_DISTANCE_SENSOR_UNKNOWN, [int(v) for v in m.sectors_cm],
+                max(1, min(255, int(round(m.sector_increment_deg)))), min_cm, max_cm, m.sector_increment_deg,
+                m.sector_offset_deg, MAV_FRAME_BODY_FRD)
+            self.stats.sent["OBSTACLE_DISTANCE"] += 1
+
+    # -- health --------------------------------------------------------------------------------
+    @property
+    def sending(self) -> bool:
+        with self._state_lock:
+            return self._state[0] == "sending"
+
+    def status(self) -> dict:
+        with self._state_lock:
+            state, reason, since = self._state
+        m = self.measurement
+        beat = self.autopilot_heartbeat_monotonic
+        return {
+            "connection": self.config.connection,
+            "state": state, "reason": reason, "since": since,
+            "connected": self.connected, "sending": state == "sending",
+            "sent": dict(self.stats.sent), "send_errors": self.stats.send_errors,
+            "frames_measured": self.stats.frames_measured,
+            "frames_skipped_for_newer": self.stats.frames_skipped_for_newer,
+            "distance_m": None if m is None or m.distance_m is None else round(m.distance_m, 4),
+            "valid_fraction": None if m is None else round(m.valid_fraction, 4),
+            "autopilot_heartbeat_age_s": None if beat is None else round(time.monotonic() - beat, 3),
+            "obstacle_distance": None if not self.config.obstacle_distance else (
+                "sending" if m is not None and m.sectors_cm is not None else
+                "no frame yet" if m is None else
+                "not sent: the calibration profile has no camera intrinsics (fx, fy, cx, cy)"),
+        }
