@@ -494,7 +494,8 @@ def survey_config(speed: float):
     from uwcam.config import default_config
 
     config = default_config()
-    config.simulation.update(size=[320, 180], speed=speed)
+    # An hour-long altitude cycle: over the test's seconds the altitude holds, only the track moves.
+    config.simulation.update(size=[320, 180], speed=speed, altitude_period=3600.0)
     config.camera.options["fps"] = 15.0
     config.api.port = 0
     return config
@@ -512,11 +513,10 @@ def range_blocks(page) -> np.ndarray:
     return image[: hb * b, : wb * b].reshape(hb, b, wb, b, 3).mean(axis=(1, 3))
 
 
-@pytest.mark.parametrize("speed", [1.0, 0.0])
+@pytest.mark.parametrize("speed", [2.0, 0.0])
 def test_range_view_changes_as_the_vehicle_moves(browser, speed):
     """On the default survey, the range picture changes as the vehicle moves; held in place
-    (speed 0) only its slow altitude cycle and noise change it, which the block means mostly
-    average away."""
+    (speed 0) only noise changes it, which the block means average away."""
     with Server(survey_config(speed)) as s:
         assert wait_for(lambda: s.daemon.pipeline.latest is not None, 120.0)
         page = open_page(browser, s.url + "/", s.url)
@@ -532,12 +532,12 @@ def test_range_view_changes_as_the_vehicle_moves(browser, speed):
             after, n1 = range_blocks(page), page.evaluate("uwcam.stats.lastDisplayed")
             assert n1 > n0  # new frames were painted in both cases
             change = np.abs(after - before).mean()
-            # Measured: 18–19 colour levels with the vehicle moving 4 m, 7.6–8 held in place (the slow
-            # altitude cycle and noise only).
+            print(f"mean change of the 16×16-pixel block colours at {speed} m/s: {change:.1f}")
+            # Measured here: about 11 at 1 m/s, 2.1–2.3 held in place.
             if speed:
-                assert change > 13.0, change
+                assert change > 7.0, change
             else:
-                assert change < 12.0, change
+                assert change < 5.0, change
             assert page.errors == [] and page.outside == []
         finally:
             page.close()
