@@ -33,19 +33,43 @@ def status(url: str) -> dict:
     return json.load(urllib.request.urlopen(f"{url}/api/v1/status", timeout=5))
 
 
-def daemon_phase(url: str, seconds: float) -> dict:
-    """Frames processed and dropped over ``seconds``, with the latency the daemon reports at the end."""
+def cpu_seconds(match) -> float:
+    """CPU seconds used so far by the processes whose command line satisfies ``match``."""
+    total = 0.0
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            with open(f"/proc/{pid}/cmdline", "rb") as fh:
+                cmdline = fh.read().replace(b"\0", b" ").decode(errors="replace")
+            if not match(pid, cmdline):
+                continue
+            with open(f"/proc/{pid}/stat") as fh:
+                fields = fh.read().rsplit(")", 1)[1].split()
+            total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+        except OSError:
+            continue
+    return total
+
+
+def daemon_phase(url: str, seconds: float, daemon_pid: int) -> dict:
+    """Frames processed and dropped over ``seconds``, the latency the daemon reports at the end,
+    and the share of a core used by the daemon and by the browser meanwhile."""
+    daemon = lambda pid, _: int(pid) == daemon_pid  # noqa: E731
+    browser = lambda _, cmd: "chromium" in cmd or "chrome" in cmd  # noqa: E731
     a = status(url)
+    cpu0 = cpu_seconds(daemon), cpu_seconds(browser)
     t0 = time.monotonic()
     time.sleep(seconds)
     b = status(url)
     elapsed = time.monotonic() - t0
+    cpu1 = cpu_seconds(daemon), cpu_seconds(browser)
     return {
         "fps": (b["frames"]["processed"] - a["frames"]["processed"]) / elapsed,
         "dropped": b["frames"]["dropped"] - a["frames"]["dropped"],
         "captured": b["frames"]["captured"] - a["frames"]["captured"],
         "latency_ms": b["latency_ms"],
         "processed": b["frames"]["processed"] - a["frames"]["processed"],
+        "daemon_cores": (cpu1[0] - cpu0[0]) / elapsed,
+        "browser_cores": (cpu1[1] - cpu0[1]) / elapsed,
     }
 
 
@@ -72,14 +96,18 @@ def main() -> int:
                 raise SystemExit("uwcam run did not start")
             time.sleep(0.5)
         size = status(url)["camera"]
-        alone = daemon_phase(url, args.seconds)
+        alone = daemon_phase(url, args.seconds, proc.pid)
         with sync_playwright() as p:
             browser = p.chromium.launch(executable_path=args.chromium, args=["--headless", "--no-sandbox"])
             page = browser.new_page(viewport={"width": 1600, "height": 1000})
             page.goto(url + "/")
-            page.wait_for_function("window.uwcam && window.uwcam.stats.displayed > 30", timeout=60_000)
+            deadline = time.monotonic() + 60
+            while page.evaluate("window.uwcam ? window.uwcam.stats.displayed : 0") <= 30:
+                if time.monotonic() > deadline:
+                    raise SystemExit("the page painted no frames")
+                page.wait_for_timeout(200)
             first = page.evaluate("({n: uwcam.stats.displayed, ages: uwcam.stats.ages.length})")
-            with_page = daemon_phase(url, args.seconds)
+            with_page = daemon_phase(url, args.seconds, proc.pid)
             last = page.evaluate("({n: uwcam.stats.displayed, ages: uwcam.stats.ages.slice(-(uwcam.stats.displayed - %d))})"
                                  % first["n"])
             browser.close()
@@ -90,11 +118,13 @@ def main() -> int:
         for name, phase in (("daemon alone", alone), ("page open", with_page)):
             lat = phase["latency_ms"] or {}
             print(f"  {name:13s}: {phase['fps']:5.1f} fps processed, {phase['dropped']} of {phase['captured']} captured "
-                  f"frames dropped, capture→publish p50 {lat.get('p50', float('nan')):.1f} ms, p99 {lat.get('p99', float('nan')):.1f} ms")
+                  f"frames dropped, capture→publish p50 {lat.get('p50', float('nan')):.1f} ms, p99 {lat.get('p99', float('nan')):.1f} ms; "
+                  f"CPU: daemon {phase['daemon_cores']:.2f} cores (simulated camera included), browser {phase['browser_cores']:.2f}")
         share = painted / max(with_page["processed"], 1)
         print(f"  page         : {painted / args.seconds:5.1f} frames painted/s ({100 * share:.0f} % of the frames processed), "
               f"age capture→painted p50 {np.percentile(ages, 50):.0f} ms, p99 {np.percentile(ages, 99):.0f} ms")
-        print(f"  ratio        : daemon fps with the page / alone = {with_page['fps'] / max(alone['fps'], 1e-9):.2f}")
+        print(f"  ratio        : daemon fps with the page / alone = {with_page['fps'] / max(alone['fps'], 1e-9):.2f} "
+              f"on {os.cpu_count()} cores shared by the daemon, its simulated camera and the browser")
     finally:
         proc.terminate()
         proc.wait(timeout=30)
