@@ -541,3 +541,28 @@ def test_range_view_changes_as_the_vehicle_moves(browser, speed):
             assert page.errors == [] and page.outside == []
         finally:
             page.close()
+
+
+def test_recording_started_and_stopped_from_the_page(browser, tmp_path):
+    from mcap.reader import make_reader
+
+    config = small_config()
+    config.recording.folder = str(tmp_path / "dives")
+    with Server(config) as s:
+        assert wait_for(lambda: s.daemon.pipeline.latest is not None, 60.0)
+        page = open_page(browser, s.url + "/", s.url)
+        try:
+            assert wait_for(lambda: page.locator("#record-start").is_enabled() and "idle" in page.inner_text("#record-state"), 15.0)
+            page.click("#record-start")
+            assert wait_for(lambda: page.inner_text("#record-state").startswith("recording"), 15.0), page.inner_text("#message")
+            assert wait_for(lambda: s.daemon.recorder.status()["frames_written"] > 5, 30.0)
+            page.click("#record-stop")
+            assert wait_for(lambda: page.inner_text("#record-state").startswith("idle"), 15.0)
+            files = list((tmp_path / "dives").glob("*.mcap"))
+            assert len(files) == 1
+            with open(files[0], "rb") as fh:  # the stock MCAP reader reads it to the end
+                topics = {channel.topic for _schema, channel, _message in make_reader(fh).iter_messages()}
+            assert len(topics) > 3
+            assert page.errors == [], page.errors
+        finally:
+            page.close()

@@ -512,9 +512,24 @@ function renderHealth(s) {
     }
   }
   $("figures").replaceChildren(...figures);
+  renderRecording(s.recording);
 }
 
-async function pollStatus() {
+function renderRecording(r) {
+  const el = $("record-state");
+  if (!r) { el.textContent = "no recorder"; return; }
+  if (r.state === "recording") {
+    const mb = (r.bytes / 1e6).toFixed(1);
+    el.textContent = `recording ${r.file ?? ""} · ${ago(r.duration_s)} · ${mb} MB · ${r.frames_written} frames` +
+      (r.frames_dropped ? ` · ${r.frames_dropped} dropped` : "");
+    el.className = "state-recovering";
+  } else {
+    el.textContent = r.last_stop_reason ? `idle — last recording: ${r.last_stop_reason}` : "idle";
+    el.className = "muted";
+  }
+}
+
+async function pollStatusNow() {
   try {
     state.status = await api("api/v1/status");
     state.statusAt = Date.now();
@@ -522,6 +537,10 @@ async function pollStatus() {
   } catch (error) {
     // the age shown in the health box says how long the daemon has not answered
   }
+}
+
+async function pollStatus() {
+  await pollStatusNow();
   setTimeout(pollStatus, 1000);
 }
 
@@ -576,6 +595,14 @@ async function loadProfiles() {
 }
 
 function wireControls() {
+  $("record-start").onclick = async () => {
+    const r = await change("Start recording", "api/v1/recordings/start", { method: "POST" });
+    if (r) pollStatusNow();
+  };
+  $("record-stop").onclick = async () => {
+    const r = await change("Stop recording", "api/v1/recordings/stop", { method: "POST" });
+    if (r) pollStatusNow();
+  };
   $("lamp-on").onclick = () => change("Lamp on", "api/v1/lamp", { method: "PUT", body: { on: true } });
   $("lamp-off").onclick = () => change("Lamp off", "api/v1/lamp", { method: "PUT", body: { on: false } });
   $("lamp-intensity").oninput = () => { $("lamp-intensity-value").textContent = $("lamp-intensity").value; };
