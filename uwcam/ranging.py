@@ -190,8 +190,9 @@ class RangeEstimator:
 def smooth_range_map(result: RangeResult, kind: str = "mean") -> RangeResult:
     """3×3 smoothing of a range map over valid neighbours only (DESIGN.md §7).
 
-    kind "mean": average of the valid pixels in each 3×3 window, variance divided by their
-    count (neighbouring noise is independent); "median": their median, variance kept.
+    kind "mean": average of the n valid pixels in each 3×3 window, with the variance of that
+    average for independent neighbours, Σσ_k²/n² (σ²/n when all are equal); "median": their
+    median, variance kept.
     Invalid pixels stay invalid with their reasons, and never leak into valid ones.
     """
     if kind not in ("mean", "median"):
@@ -205,7 +206,8 @@ def smooth_range_map(result: RangeResult, kind: str = "mean") -> RangeResult:
     with np.errstate(invalid="ignore", divide="ignore"):
         if kind == "mean":
             smoothed = np.nansum(windows, axis=0) / count
-            variance = result.variance / np.maximum(count, 1)
+            v = np.pad(np.where(valid, result.variance.astype(np.float64), 0.0), 1)
+            variance = sum(v[dy : dy + h, dx : dx + w] for dy in range(3) for dx in range(3)) / np.maximum(count, 1) ** 2
         else:
             import warnings
 

@@ -1,0 +1,246 @@
+"""Mutation testing of the modules whose bugs the tests must catch; prints kill rates and survivors.
+
+Uses cosmic-ray (works on Python 3.11, mutates one module file at a time, and the set of mutants
+can be scoped to the functions that matter). Runs in a copy of the source tree, never in the
+working tree: cosmic-ray edits the file under test in place. The copy is put first on
+``PYTHONPATH`` (``uwcam/drivers`` becomes a link to ``drivers/``, as the installed package
+maps it), so the tests import the mutated copy and not the editable install.
+
+Each module is tested with a fast subset of the suite (the tests that exercise it), ``-x`` and
+``-p no:randomly``. Operators are a mutmut-like subset of cosmic-ray's (one natural replacement
+per operator: + → −, < → ≤, == → !=, and → or, numbers ±1, ``not`` added or removed, …) rather
+than every operator into every other one, which would multiply the run time by ten for mutants
+that say nothing new.
+
+Usage (slow: minutes per module on a small machine; not part of the CI gate):
+
+    .venv/bin/python bench/mutation_test.py                 # every module
+    .venv/bin/python bench/mutation_test.py rangefinder lamp # some of them
+    .venv/bin/python bench/mutation_test.py --list
+
+Results: bench/mutation/<name>.sqlite (cosmic-ray session), a summary printed per module and
+written to bench/mutation/results.json. Survivors judged equivalent are explained in
+bench/mutation/SURVIVORS.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+OUT = ROOT / "bench" / "mutation"
+COSMIC_RAY = str(Path(sys.executable).with_name("cosmic-ray"))
+PYTEST = f"{sys.executable} -m pytest -x -q -p no:randomly -p no:cacheprovider"
+
+# One natural replacement per operator, as mutmut does.
+OPERATORS = re.compile(
+    r"core/(ReplaceBinaryOperator_(Add_Sub|Sub_Add|Mul_Div|Div_Mul|Pow_Mul|FloorDiv_Div|Mod_FloorDiv"
+    r"|BitOr_BitAnd|BitAnd_BitOr|BitXor_BitOr|LShift_RShift|RShift_LShift)"
+    r"|ReplaceComparisonOperator_(Eq_NotEq|NotEq_Eq|Lt_LtE|LtE_Lt|Gt_GtE|GtE_Gt|Is_IsNot|IsNot_Is)"
+    r"|ReplaceUnaryOperator_(USub_UAdd|Delete_Not|Delete_Invert|Delete_USub)"
+    r"|AddNot|ReplaceTrueWithFalse|ReplaceFalseWithTrue|ReplaceAndWithOr|ReplaceOrWithAnd"
+    r"|ReplaceBreakWithContinue|ReplaceContinueWithBreak|NumberReplacer|ZeroIterationForLoop)$"
+)
+
+
+@dataclass
+class Target:
+    path: str
+    """Module file, relative to the repository root."""
+    tests: str
+    """pytest arguments: the fast subset that exercises the module."""
+    only: tuple[str, ...] = ()
+    """Qualified names of the functions/classes to mutate (all of the module when empty)."""
+    env: dict[str, str] = field(default_factory=dict)
+    timeout_s: float = 120.0
+
+
+TARGETS: dict[str, Target] = {
+    "optics.noise": Target("uwcam/optics/noise.py", "tests/test_independent_noise.py tests/test_statistics.py"),
+    "optics.transform": Target("uwcam/optics/transform.py", "tests/test_independent_estimator.py tests/test_estimator.py"),
+    "optics.fusion": Target("uwcam/optics/fusion.py", "tests/test_independent_estimator.py tests/test_estimator.py"),
+    "optics.geometry": Target("uwcam/optics/geometry.py", "tests/test_independent_geometry.py tests/test_optics_inverse.py"),
+    "optics.reflectance": Target("uwcam/optics/reflectance.py", "tests/test_independent_estimator.py tests/test_optics_inverse.py"),
+    "optics.validity": Target("uwcam/optics/validity.py", "tests/test_validity.py tests/test_independent_estimator.py"),
+    # The compiled kernels run as plain Python here (NUMBA_DISABLE_JIT): each mutant would
+    # otherwise need a fresh compilation, and the arithmetic being mutated is the same.
+    "optics.kernels": Target("uwcam/optics/kernels.py", "tests/test_independent_estimator.py tests/test_independent_geometry.py",
+                             env={"NUMBA_DISABLE_JIT": "1"}),
+    "ranging": Target("uwcam/ranging.py", "tests/test_independent_estimator.py tests/test_smoothing.py tests/test_validity.py"),
+    "calibration": Target("uwcam/calibration.py", "tests/test_independent_calibration.py tests/test_calibration.py -m 'not slow'"),
+    "api.security": Target("uwcam/api/security.py", "tests/test_auth.py"),
+    "api.models": Target("uwcam/api/settings.py", "tests/test_auth.py tests/test_api_validation.py",
+                         only=("ProcessingPatch", "patch_config")),
+    "api.lamp": Target("uwcam/api/lamp.py", "tests/test_auth.py tests/test_api_validation.py", only=("LampCommand", "put_lamp")),
+    "api.session": Target("uwcam/api/session.py", "tests/test_auth.py"),
+    "rangefinder": Target("drivers/rangefinder.py", "tests/test_nmea.py",
+                          only=("nmea_checksum_ok", "_finite", "parse_ascii_range", "AsciiRangefinder._poll")),
+    "lamp": Target("drivers/lamp.py", "tests/test_serial_devices.py -k lamp",
+                   only=("LampReplies", "load_protocol", "SerialLamp._transaction", "SerialLamp.status",
+                         "SerialLamp.set_intensity", "SerialLamp._remember", "SerialLamp.on", "SerialLamp.off")),
+}
+
+
+def _spans(source: str, names: tuple[str, ...]) -> list[tuple[int, int]]:
+    """Line ranges (first, last) of the named top-level functions/classes or Class.method."""
+    tree = ast.parse(source)
+    spans = []
+
+    def visit(body, prefix):
+        for node in body:
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                name = f"{prefix}{node.name}"
+                first = min([node.lineno] + [d.lineno for d in node.decorator_list])
+                if name in names:
+                    spans.append((first, node.end_lineno))
+                if isinstance(node, ast.ClassDef):
+                    visit(node.body, f"{name}.")
+
+    visit(tree.body, "")
+    if len(spans) < len(names):
+        raise SystemExit(f"some of {names} are not in the module any more; update TARGETS")
+    return spans
+
+
+def _docstring_lines(source: str) -> set[int]:
+    """Lines of docstrings and of ``raise ...(message)`` f-strings: numbers there are prose."""
+    lines: set[int] = set()
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Expr) and isinstance(node.value, ast.Constant) and isinstance(node.value.value, str):
+            lines.update(range(node.lineno, node.end_lineno + 1))
+    return lines
+
+
+def _copy_tree(dest: Path) -> None:
+    files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard"], cwd=ROOT, check=True,
+                           capture_output=True, text=True).stdout.split("\n")
+    for name in filter(None, files):
+        src = ROOT / name
+        if src.is_file():
+            (dest / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(src, dest / name)
+    (dest / "uwcam" / "drivers").symlink_to("../drivers")  # the package-dir mapping of pyproject.toml
+    (dest / "uwcam" / "calibration_rigs").symlink_to("../calibration_rigs")
+
+
+def run_target(name: str, target: Target, tree: Path, env: dict[str, str]) -> dict:
+    import cosmic_ray.work_db as wdb
+    from cosmic_ray.work_item import WorkerOutcome, WorkResult
+
+    OUT.mkdir(parents=True, exist_ok=True)
+    session = OUT / f"{name}.sqlite"
+    session.unlink(missing_ok=True)
+    module = tree / target.path
+    source = module.read_text()
+    cmd_env = {**env, **target.env}
+    config = tree / f"cr-{name}.toml"
+    test_command = f"{PYTEST} {target.tests}"
+    config.write_text(
+        "[cosmic-ray]\n"
+        f"module-path = {json.dumps(target.path)}\n"
+        f"timeout = {target.timeout_s}\n"
+        "excluded-modules = []\n"
+        f"test-command = {json.dumps(test_command)}\n"
+        "[cosmic-ray.distributor]\nname = \"local\"\n"
+    )
+    t0 = time.monotonic()
+    base = subprocess.run(test_command, shell=True, cwd=tree, env=cmd_env, capture_output=True, text=True)
+    if base.returncode != 0:
+        print(f"{name}: the unmutated tests fail; fix them first\n{base.stdout[-2000:]}{base.stderr[-2000:]}")
+        return {"module": target.path, "error": "baseline failed"}
+    baseline_s = time.monotonic() - t0
+    subprocess.run([COSMIC_RAY, "init", str(config), str(session)], cwd=tree, env=cmd_env,
+                   check=True, capture_output=True)
+    spans = _spans(source, target.only) if target.only else None
+    prose = _docstring_lines(source)
+    skipped = 0
+    with wdb.use_db(str(session), wdb.WorkDB.Mode.open) as db:
+        for item in list(db.pending_work_items):
+            spec = item.mutations[0]
+            line = spec.start_pos[0]
+            keep = OPERATORS.match(spec.operator_name) and line not in prose
+            if keep and spans is not None:
+                keep = any(a <= line <= b for a, b in spans)
+            if not keep:
+                db.set_result(item.job_id, WorkResult(worker_outcome=WorkerOutcome.SKIPPED))
+                skipped += 1
+        total = db.num_work_items - skipped
+    print(f"{name}: {total} mutants ({skipped} out of scope), tests take {baseline_s:.1f} s unmutated", flush=True)
+    subprocess.run([COSMIC_RAY, "exec", str(config), str(session)], cwd=tree, env=cmd_env,
+                   check=True, capture_output=True)
+    survivors, killed, incompetent = [], 0, 0
+    lines = source.splitlines()
+    with wdb.use_db(str(session), wdb.WorkDB.Mode.open) as db:
+        for item, result in db.completed_work_items:
+            if result.worker_outcome == WorkerOutcome.SKIPPED:
+                continue
+            if result.test_outcome is not None and result.test_outcome.value == "survived":
+                spec = item.mutations[0]
+                line = spec.start_pos[0]
+                survivors.append({"line": line, "operator": spec.operator_name.removeprefix("core/"),
+                                  "occurrence": spec.occurrence, "code": lines[line - 1].strip(), "diff": result.diff})
+            elif result.test_outcome is not None and result.test_outcome.value == "incompetent":
+                incompetent += 1  # the mutant does not even import or run: counted as killed
+                killed += 1
+            else:
+                killed += 1
+    survivors.sort(key=lambda s: (s["line"], s["operator"]))
+    rate = killed / total if total else 1.0
+    summary = {"module": target.path, "mutants": total, "killed": killed, "incompetent": incompetent,
+               "survived": len(survivors), "kill_rate": round(rate, 4), "tests": target.tests,
+               "minutes": round((time.monotonic() - t0) / 60, 1), "survivors": survivors}
+    print(f"{name}: {killed}/{total} killed ({100 * rate:.1f} %), {len(survivors)} survived, "
+          f"{summary['minutes']} min", flush=True)
+    for s in survivors:
+        print(f"    line {s['line']:4d} {s['operator']:<40s} #{s['occurrence']}: {s['code'][:90]}")
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("modules", nargs="*", help=f"subset of: {', '.join(TARGETS)}")
+    p.add_argument("--list", action="store_true", help="list the modules and their test subsets")
+    args = p.parse_args(argv)
+    if args.list:
+        for name, t in TARGETS.items():
+            print(f"{name:20s} {t.path:28s} {t.tests}")
+        return 0
+    unknown = [m for m in args.modules if m not in TARGETS]
+    if unknown:
+        p.error(f"unknown module(s) {', '.join(unknown)}; known: {', '.join(TARGETS)}")
+    names = args.modules or list(TARGETS)
+    results_file = OUT / "results.json"
+    results = json.loads(results_file.read_text()) if results_file.exists() else {}
+    with tempfile.TemporaryDirectory(prefix="uwcam-mutation-") as tmp:
+        tree = Path(tmp)
+        _copy_tree(tree)
+        # No .pyc files: a mutant of the same size written within the same second as the
+        # original would otherwise be shadowed by the original's cached bytecode.
+        env = {**os.environ, "PYTHONPATH": str(tree), "PYTHONDONTWRITEBYTECODE": "1"}
+        for name in names:
+            results[name] = run_target(name, TARGETS[name], tree, env)
+            OUT.mkdir(parents=True, exist_ok=True)
+            results_file.write_text(json.dumps(results, indent=1) + "\n")
+    print("\nmodule               mutants  killed  survived  kill rate")
+    for name in names:
+        r = results[name]
+        if "error" in r:
+            print(f"{name:20s} {r['error']}")
+        else:
+            print(f"{name:20s} {r['mutants']:7d} {r['killed']:7d} {r['survived']:9d}  {100 * r['kill_rate']:6.1f} %")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
