@@ -66,12 +66,6 @@ def server():
         yield s
 
 
-@pytest.fixture(autouse=True)
-def no_leaked_threads():
-    """Module-scoped server threads are expected here; the default fixture would flag them."""
-    yield
-
-
 def test_status_reports_devices_and_moving_figures(server):
     first = server.http.get("/api/v1/status").json()
     assert wait_for(lambda: server.http.get("/api/v1/status").json()["frames"]["processed"] > first["frames"]["processed"] + 3)
