@@ -64,6 +64,8 @@ class Target:
     """Qualified names of the functions/classes to mutate (all of the module when empty)."""
     env: dict[str, str] = field(default_factory=dict)
     timeout_s: float = 120.0
+    annotations_inert: bool = True
+    """False where FastAPI reads handler signatures (request models, dependencies)."""
 
 
 TARGETS: dict[str, Target] = {
@@ -79,11 +81,12 @@ TARGETS: dict[str, Target] = {
                              env={"NUMBA_DISABLE_JIT": "1"}),
     "ranging": Target("uwcam/ranging.py", "tests/test_independent_estimator.py tests/test_smoothing.py tests/test_validity.py"),
     "calibration": Target("uwcam/calibration.py", "tests/test_independent_calibration.py tests/test_calibration.py -m 'not slow'"),
-    "api.security": Target("uwcam/api/security.py", "tests/test_auth.py"),
+    "api.security": Target("uwcam/api/security.py", "tests/test_auth.py", annotations_inert=False),
     "api.models": Target("uwcam/api/settings.py", "tests/test_auth.py tests/test_api_validation.py",
-                         only=("ProcessingPatch", "patch_config")),
-    "api.lamp": Target("uwcam/api/lamp.py", "tests/test_auth.py tests/test_api_validation.py", only=("LampCommand", "put_lamp")),
-    "api.session": Target("uwcam/api/session.py", "tests/test_auth.py"),
+                         only=("ProcessingPatch", "patch_config"), annotations_inert=False),
+    "api.lamp": Target("uwcam/api/lamp.py", "tests/test_auth.py tests/test_api_validation.py", only=("LampCommand", "put_lamp"),
+                       annotations_inert=False),
+    "api.session": Target("uwcam/api/session.py", "tests/test_auth.py", annotations_inert=False),
     "rangefinder": Target("drivers/rangefinder.py", "tests/test_nmea.py",
                           only=("nmea_checksum_ok", "_finite", "parse_ascii_range", "AsciiRangefinder._poll")),
     "lamp": Target("drivers/lamp.py", "tests/test_serial_devices.py -k lamp",
@@ -113,13 +116,22 @@ def _spans(source: str, names: tuple[str, ...]) -> list[tuple[int, int]]:
     return spans
 
 
-def _docstring_lines(source: str) -> set[int]:
-    """Lines of docstrings and of ``raise ...(message)`` f-strings: numbers there are prose."""
+def _inert(source: str) -> tuple[set[int], list[tuple[tuple[int, int], tuple[int, int]]]]:
+    """Where a mutant cannot change behaviour: docstring lines, and function annotations (never
+    evaluated under ``from __future__ import annotations``) as ((line, col), (end_line, end_col)).
+    Annotations of fields are kept: pydantic evaluates them, bounds and all."""
     lines: set[int] = set()
+    spans = []
     for node in ast.walk(ast.parse(source)):
         if isinstance(node, ast.Expr) and isinstance(node.value, ast.Constant) and isinstance(node.value.value, str):
             lines.update(range(node.lineno, node.end_lineno + 1))
-    return lines
+        annotations = []
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.returns is not None:
+            annotations.append(node.returns)
+        if isinstance(node, ast.arg) and node.annotation is not None:
+            annotations.append(node.annotation)
+        spans += [((a.lineno, a.col_offset), (a.end_lineno, a.end_col_offset)) for a in annotations]
+    return lines, spans
 
 
 def _copy_tree(dest: Path) -> None:
@@ -163,13 +175,15 @@ def run_target(name: str, target: Target, tree: Path, env: dict[str, str]) -> di
     subprocess.run([COSMIC_RAY, "init", str(config), str(session)], cwd=tree, env=cmd_env,
                    check=True, capture_output=True)
     spans = _spans(source, target.only) if target.only else None
-    prose = _docstring_lines(source)
+    prose, annotations = _inert(source)
     skipped = 0
     with wdb.use_db(str(session), wdb.WorkDB.Mode.open) as db:
         for item in list(db.pending_work_items):
             spec = item.mutations[0]
             line = spec.start_pos[0]
             keep = OPERATORS.match(spec.operator_name) and line not in prose
+            if target.annotations_inert:
+                keep = keep and not any(a <= tuple(spec.start_pos) < b for a, b in annotations)
             if keep and spans is not None:
                 keep = any(a <= line <= b for a, b in spans)
             if not keep:

@@ -39,3 +39,26 @@ def no_leaked_threads():
     yield
     leaked = _leaked(before, POOL_WORKERS, 5.0)
     assert not leaked, f"test left threads running: {[t.name for t in leaked]}"
+
+
+@pytest.fixture(scope="session")
+def warm_kernels():
+    """Compile (or load from numba's cache) the simulator's and the estimator's kernels once, before
+    any test waits on a clock: on a fresh checkout compiling takes longer than a frame timeout."""
+    import numpy as np
+
+    from tests.synthetic import make_profile
+    from uwcam.drivers.sim import SimulatedCamera, SimulatedRig
+    from uwcam.ranging import RangeEstimator
+
+    camera = SimulatedCamera(SimulatedRig(size=(16, 12), distance=2.0), fps=1000.0, serial_number="SIM-WARM-UP")
+    camera.open()
+    camera.start()
+    try:
+        camera.read(timeout_s=600.0)  # rendering and digitising compile here
+    finally:
+        camera.stop()
+        camera.close()
+    estimator = RangeEstimator(make_profile([0.46, 0.11, 0.06], [0.0, 0.0, 0.0]))
+    estimator(np.full((2, 2, 3), 1000, np.uint16))
+    estimator(np.full((2, 2, 3), 1000.0, np.float32))

@@ -44,10 +44,12 @@ def test_the_reference_checksum_matches_published_sentences():
 
 GOOD = [
     (sentence("SDDPT,12.5,0.0"), 12.5),
-    (sentence("SDDPT,3.25,0.5,100.0"), 3.25),  # NMEA 3.0 adds the maximum range field
+    (sentence("SDDPT,3.25,0.5,100.0"), 3.25),
+    (sentence("SDDPT,4.5"), 4.5),  # a simple sounder that leaves out the offset  # NMEA 3.0 adds the maximum range field
     (sentence("IIDPT,0.75,-0.2"), 0.75),  # integrated-instrumentation talker, keel offset
     (sentence("SDDBT,41.0,f,12.50,M,6.8,F"), 12.5),
     (sentence("YXDBT,8.2,f,2.50,M,1.4,F"), 2.5),  # transducer talker
+    (sentence("SDDBT,41.0,f,12.50,M"), 12.5),  # fathoms left out
     (sentence("SDDPT,12.5,0.0").lower().replace("$sddpt", "$SDDPT"), 12.5),  # lower-case hex digits
     ("R1234", 1.234),
     ("R0100", 0.1),
@@ -114,6 +116,9 @@ TRUNCATED = [
     "R-123",
     "r1234",
     "R\u0661\u0662\u0663",  # Arabic-Indic digits are digits to Python, not to a ranger
+    "R\u06612",
+    "RA123",
+    "R 123",
 ]
 
 
@@ -184,10 +189,11 @@ def test_the_driver_counts_bad_lines_as_garbage_over_a_real_pty():
         garbage, first = rf.stats.garbage, len(rf.values)
         bad = _bad_checksums() + MISSING + FOREIGN[:4]
         payload = "".join(f"{line}\r\n" for line in bad).encode("ascii")
-        os.write(master, payload + sentence("SDDPT,7.25,0.0").encode() + b"\r\n")
+        # A lone CR also ends a line: garbage and a reading may share one read.
+        os.write(master, payload + b"garbage\r" + sentence("SDDPT,7.25,0.0").encode() + b"\r\n")
         assert wait_for(lambda: seen(7.25), 10.0)
         assert rf.values[first:] == [pytest.approx(7.25 * scale, abs=1e-9)]
-        assert rf.stats.garbage == garbage + len(bad)
+        assert rf.stats.garbage == garbage + len(bad) + 1
     finally:
         rf.stop()
         os.close(master)
