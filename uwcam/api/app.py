@@ -10,10 +10,16 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 from contextlib import asynccontextmanager
+from typing import Any
 
 from fastapi import Depends, FastAPI, Request
+from fastapi.encoders import jsonable_encoder
+from fastapi.exception_handlers import http_exception_handler
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from uwcam import __version__
 from uwcam.api import lamp, metrics, profiles, session, settings, snapshots, status, stream
@@ -25,6 +31,18 @@ from uwcam.fileio import UserInputError
 
 ROUTERS = (status.router, snapshots.router, settings.router, profiles.router, lamp.router, session.router,
            stream.router, metrics.router)
+
+
+def json_safe(value: Any) -> Any:
+    """``value`` with every NaN or infinity replaced by its name: an error message quoting a
+    user's ``NaN`` must still be valid JSON (strict JSON has no such numbers)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    return value
 
 
 def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
@@ -51,6 +69,15 @@ def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
     @app.exception_handler(UserInputError)
     async def _user_error(request: Request, exc: UserInputError):
         return JSONResponse(status_code=400, content={"error": str(exc)})
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid_request(request: Request, exc: RequestValidationError):
+        return JSONResponse(status_code=422, content={"detail": json_safe(jsonable_encoder(exc.errors()))})
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http_error(request: Request, exc: StarletteHTTPException):
+        exc.detail = json_safe(exc.detail)
+        return await http_exception_handler(request, exc)
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception):
