@@ -89,7 +89,7 @@ TARGETS: dict[str, Target] = {
     "api.session": Target("uwcam/api/session.py", "tests/test_auth.py", annotations_inert=False),
     "rangefinder": Target("drivers/rangefinder.py", "tests/test_nmea.py",
                           only=("nmea_checksum_ok", "_finite", "parse_ascii_range", "AsciiRangefinder._poll")),
-    "lamp": Target("drivers/lamp.py", "tests/test_serial_devices.py -k lamp",
+    "lamp": Target("drivers/lamp.py", "tests/test_lamp_protocol.py tests/test_serial_devices.py -k lamp",
                    only=("LampReplies", "load_protocol", "SerialLamp._transaction", "SerialLamp.status",
                          "SerialLamp.set_intensity", "SerialLamp._remember", "SerialLamp.on", "SerialLamp.off")),
 }
