@@ -69,29 +69,30 @@ class Target:
 
 
 TARGETS: dict[str, Target] = {
-    "optics.noise": Target("uwcam/optics/noise.py", "tests/test_independent_noise.py tests/test_statistics.py"),
-    "optics.transform": Target("uwcam/optics/transform.py", "tests/test_independent_estimator.py tests/test_estimator.py"),
-    "optics.fusion": Target("uwcam/optics/fusion.py", "tests/test_independent_estimator.py tests/test_estimator.py"),
-    "optics.geometry": Target("uwcam/optics/geometry.py", "tests/test_independent_geometry.py tests/test_optics_inverse.py"),
-    "optics.reflectance": Target("uwcam/optics/reflectance.py", "tests/test_independent_estimator.py tests/test_optics_inverse.py"),
+    "optics.noise": Target("uwcam/optics/noise.py", "tests/test_independent_noise.py"),
+    "optics.transform": Target("uwcam/optics/transform.py", "tests/test_independent_estimator.py"),
+    "optics.fusion": Target("uwcam/optics/fusion.py", "tests/test_independent_estimator.py"),
+    "optics.reflectance": Target("uwcam/optics/reflectance.py", "tests/test_independent_estimator.py"),
+    "optics.geometry": Target("uwcam/optics/geometry.py", "tests/test_independent_geometry.py"),
     "optics.validity": Target("uwcam/optics/validity.py", "tests/test_validity.py tests/test_independent_estimator.py"),
-    # The compiled kernels run as plain Python here (NUMBA_DISABLE_JIT): each mutant would
-    # otherwise need a fresh compilation, and the arithmetic being mutated is the same.
-    "optics.kernels": Target("uwcam/optics/kernels.py", "tests/test_independent_estimator.py tests/test_independent_geometry.py",
-                             env={"NUMBA_DISABLE_JIT": "1"}),
-    "ranging": Target("uwcam/ranging.py", "tests/test_independent_estimator.py tests/test_smoothing.py tests/test_validity.py"),
-    "calibration": Target("uwcam/calibration.py", "tests/test_independent_calibration.py tests/test_calibration.py -m 'not slow'"),
+    "ranging": Target("uwcam/ranging.py", "tests/test_independent_estimator.py tests/test_independent_geometry.py "
+                                          "tests/test_smoothing.py tests/test_validity.py"),
+    "calibration": Target("uwcam/calibration.py", "tests/test_independent_calibration.py"),
     "api.security": Target("uwcam/api/security.py", "tests/test_auth.py", annotations_inert=False),
-    "api.models": Target("uwcam/api/settings.py", "tests/test_auth.py tests/test_api_validation.py",
-                         only=("ProcessingPatch", "patch_config"), annotations_inert=False),
-    "api.lamp": Target("uwcam/api/lamp.py", "tests/test_auth.py tests/test_api_validation.py", only=("LampCommand", "put_lamp"),
-                       annotations_inert=False),
     "api.session": Target("uwcam/api/session.py", "tests/test_auth.py", annotations_inert=False),
+    "api.models": Target("uwcam/api/settings.py", "tests/test_api_validation.py",
+                         only=("ProcessingPatch", "patch_config"), annotations_inert=False),
+    "api.lamp": Target("uwcam/api/lamp.py", "tests/test_api_validation.py", only=("LampCommand", "put_lamp"),
+                       annotations_inert=False),
     "rangefinder": Target("drivers/rangefinder.py", "tests/test_nmea.py",
                           only=("nmea_checksum_ok", "_finite", "parse_ascii_range", "AsciiRangefinder._poll")),
-    "lamp": Target("drivers/lamp.py", "tests/test_lamp_protocol.py tests/test_serial_devices.py -k lamp",
+    "lamp": Target("drivers/lamp.py", "tests/test_lamp_protocol.py",
                    only=("LampReplies", "load_protocol", "SerialLamp._transaction", "SerialLamp.status",
                          "SerialLamp.set_intensity", "SerialLamp._remember", "SerialLamp.on", "SerialLamp.off")),
+    # The compiled kernels run as plain Python here (NUMBA_DISABLE_JIT): each mutant would
+    # otherwise need a fresh compilation, and the arithmetic being mutated is the same.
+    "optics.kernels": Target("uwcam/optics/kernels.py", "tests/test_independent_estimator.py tests/test_independent_geometry.py "
+                                                        "tests/test_validity.py", env={"NUMBA_DISABLE_JIT": "1"}),
 }
 
 
