@@ -74,9 +74,9 @@ TARGETS: dict[str, Target] = {
     "optics.fusion": Target("uwcam/optics/fusion.py", "tests/test_independent_estimator.py"),
     "optics.reflectance": Target("uwcam/optics/reflectance.py", "tests/test_independent_estimator.py"),
     "optics.geometry": Target("uwcam/optics/geometry.py", "tests/test_independent_geometry.py"),
-    "optics.validity": Target("uwcam/optics/validity.py", "tests/test_validity.py tests/test_independent_estimator.py"),
+    "optics.validity": Target("uwcam/optics/validity.py", "tests/test_independent_validity.py tests/test_validity.py"),
     "ranging": Target("uwcam/ranging.py", "tests/test_independent_estimator.py tests/test_independent_geometry.py "
-                                          "tests/test_smoothing.py tests/test_validity.py"),
+                                          "tests/test_smoothing.py tests/test_independent_validity.py"),
     "calibration": Target("uwcam/calibration.py", "tests/test_independent_calibration.py"),
     "api.security": Target("uwcam/api/security.py", "tests/test_auth.py", annotations_inert=False),
     "api.session": Target("uwcam/api/session.py", "tests/test_auth.py", annotations_inert=False),
@@ -92,7 +92,7 @@ TARGETS: dict[str, Target] = {
     # The compiled kernels run as plain Python here (NUMBA_DISABLE_JIT): each mutant would
     # otherwise need a fresh compilation, and the arithmetic being mutated is the same.
     "optics.kernels": Target("uwcam/optics/kernels.py", "tests/test_independent_estimator.py tests/test_independent_geometry.py "
-                                                        "tests/test_validity.py", env={"NUMBA_DISABLE_JIT": "1"}),
+                                                        "tests/test_independent_validity.py", env={"NUMBA_DISABLE_JIT": "1"}),
 }
 
 
