@@ -194,12 +194,30 @@ def run_target(name: str, target: Target, tree: Path, env: dict[str, str]) -> di
     print(f"{name}: {total} mutants ({skipped} out of scope), tests take {baseline_s:.1f} s unmutated", flush=True)
     subprocess.run([COSMIC_RAY, "exec", str(config), str(session)], cwd=tree, env=cmd_env,
                    check=True, capture_output=True)
-    survivors, killed, incompetent = [], 0, 0
+    summary = summarise(name, target, source)
+    summary["minutes"] = round((time.monotonic() - t0) / 60, 1)
+    print(f"{name}: {summary['killed']}/{summary['mutants']} killed ({100 * summary['kill_rate']:.1f} %), "
+          f"{summary['survived']} survived, {summary['minutes']} min", flush=True)
+    for s in summary["survivors"]:
+        print(f"    line {s['line']:4d} {s['operator']:<40s} #{s['occurrence']}: {s['code'][:90]}")
+    return summary
+
+
+def summarise(name: str, target: Target, source: str) -> dict:
+    """Kill rate and survivors of a finished session (bench/mutation/<name>.sqlite)."""
+    import cosmic_ray.work_db as wdb
+    from cosmic_ray.work_item import WorkerOutcome
+
+    session = OUT / f"{name}.sqlite"
+    survivors, killed, incompetent, total, pending = [], 0, 0, 0, 0
     lines = source.splitlines()
     with wdb.use_db(str(session), wdb.WorkDB.Mode.open) as db:
+        done = {item.job_id for item, _ in db.completed_work_items}
+        pending = sum(1 for item in db.work_items if item.job_id not in done)
         for item, result in db.completed_work_items:
             if result.worker_outcome == WorkerOutcome.SKIPPED:
                 continue
+            total += 1
             if result.test_outcome is not None and result.test_outcome.value == "survived":
                 spec = item.mutations[0]
                 line = spec.start_pos[0]
@@ -212,20 +230,24 @@ def run_target(name: str, target: Target, tree: Path, env: dict[str, str]) -> di
                 killed += 1
     survivors.sort(key=lambda s: (s["line"], s["operator"]))
     rate = killed / total if total else 1.0
-    summary = {"module": target.path, "mutants": total, "killed": killed, "incompetent": incompetent,
-               "survived": len(survivors), "kill_rate": round(rate, 4), "tests": target.tests,
-               "minutes": round((time.monotonic() - t0) / 60, 1), "survivors": survivors}
-    print(f"{name}: {killed}/{total} killed ({100 * rate:.1f} %), {len(survivors)} survived, "
-          f"{summary['minutes']} min", flush=True)
-    for s in survivors:
-        print(f"    line {s['line']:4d} {s['operator']:<40s} #{s['occurrence']}: {s['code'][:90]}")
-    return summary
+    return {"module": target.path, "mutants": total, "killed": killed, "incompetent": incompetent,
+            "survived": len(survivors), "kill_rate": round(rate, 4), "tests": target.tests, "not_run": pending,
+            "survivors": survivors}
+
+
+def _save(name: str, summary: dict) -> None:
+    """Merge one module's summary into results.json (runs of different modules may overlap)."""
+    results_file = OUT / "results.json"
+    results = json.loads(results_file.read_text()) if results_file.exists() else {}
+    results[name] = summary
+    results_file.write_text(json.dumps(results, indent=1) + "\n")
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("modules", nargs="*", help=f"subset of: {', '.join(TARGETS)}")
     p.add_argument("--list", action="store_true", help="list the modules and their test subsets")
+    p.add_argument("--report", action="store_true", help="only summarise the sessions already in bench/mutation/")
     args = p.parse_args(argv)
     if args.list:
         for name, t in TARGETS.items():
@@ -235,8 +257,25 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         p.error(f"unknown module(s) {', '.join(unknown)}; known: {', '.join(TARGETS)}")
     names = args.modules or list(TARGETS)
-    results_file = OUT / "results.json"
-    results = json.loads(results_file.read_text()) if results_file.exists() else {}
+    if args.report:
+        names = [n for n in names if (OUT / f"{n}.sqlite").exists()]
+        for name in names:
+            _save(name, summarise(name, TARGETS[name], (ROOT / TARGETS[name].path).read_text()))
+    else:
+        run(names)
+    results = json.loads((OUT / "results.json").read_text())
+    print("\nmodule               mutants  killed  survived  kill rate")
+    for name in names:
+        r = results[name]
+        if "error" in r:
+            print(f"{name:20s} {r['error']}")
+        else:
+            print(f"{name:20s} {r['mutants']:7d} {r['killed']:7d} {r['survived']:9d}  {100 * r['kill_rate']:6.1f} %"
+                  + (f"  ({r['not_run']} not run)" if r.get("not_run") else ""))
+    return 0
+
+
+def run(names: list[str]) -> None:
     with tempfile.TemporaryDirectory(prefix="uwcam-mutation-") as tmp:
         tree = Path(tmp)
         _copy_tree(tree)
@@ -244,17 +283,7 @@ def main(argv: list[str] | None = None) -> int:
         # original would otherwise be shadowed by the original's cached bytecode.
         env = {**os.environ, "PYTHONPATH": str(tree), "PYTHONDONTWRITEBYTECODE": "1"}
         for name in names:
-            results[name] = run_target(name, TARGETS[name], tree, env)
-            OUT.mkdir(parents=True, exist_ok=True)
-            results_file.write_text(json.dumps(results, indent=1) + "\n")
-    print("\nmodule               mutants  killed  survived  kill rate")
-    for name in names:
-        r = results[name]
-        if "error" in r:
-            print(f"{name:20s} {r['error']}")
-        else:
-            print(f"{name:20s} {r['mutants']:7d} {r['killed']:7d} {r['survived']:9d}  {100 * r['kill_rate']:6.1f} %")
-    return 0
+            _save(name, run_target(name, TARGETS[name], tree, env))
 
 
 if __name__ == "__main__":
