@@ -264,3 +264,16 @@ def test_a_token_is_required_beyond_loopback(monkeypatch):
     monkeypatch.setenv("UWCAM_TOKEN", "from-env")
     assert required_token(config(None, host="0.0.0.0")) == "from-env"
     assert required_token(config("abc", host="0.0.0.0")) == "abc"  # the configuration wins
+
+
+def test_a_path_ending_like_the_session_route_gets_no_exemption(server):
+    """The token exchange is exempt from the token check; no other route may become so by a path
+    parameter that ends in /api/v1/session (slashes encoded)."""
+    for method, path in routes(server):
+        if "auth-probe" not in path:
+            continue
+        probe = path.replace("auth-probe", "x%2Fapi%2Fv1%2Fsession")
+        r = request(server, method, probe)
+        assert r.status_code in (401, 404), (method, probe, r.status_code)
+        r = request(server, method, path.replace("auth-probe", "session"))
+        assert r.status_code == 401, (method, path, r.status_code)
