@@ -192,8 +192,7 @@ def run_target(name: str, target: Target, tree: Path, env: dict[str, str]) -> di
                 skipped += 1
         total = db.num_work_items - skipped
     print(f"{name}: {total} mutants ({skipped} out of scope), tests take {baseline_s:.1f} s unmutated", flush=True)
-    subprocess.run([COSMIC_RAY, "exec", str(config), str(session)], cwd=tree, env=cmd_env,
-                   check=True, capture_output=True)
+    execute(session, tree, target)
     summary = summarise(name, target, source)
     summary["minutes"] = round((time.monotonic() - t0) / 60, 1)
     print(f"{name}: {summary['killed']}/{summary['mutants']} killed ({100 * summary['kill_rate']:.1f} %), "
@@ -201,6 +200,92 @@ def run_target(name: str, target: Target, tree: Path, env: dict[str, str]) -> di
     for s in summary["survivors"]:
         print(f"    line {s['line']:4d} {s['operator']:<40s} #{s['occurrence']}: {s['code'][:90]}")
     return summary
+
+
+# Imported once by the parent so that every forked test run starts with them loaded; uwcam itself
+# is never imported by the parent, so each child imports the mutated module afresh.
+PRELOAD = ("numpy", "numba", "cv2", "pydantic", "fastapi", "starlette", "uvicorn", "httpx", "websockets", "yaml",
+           "tifffile", "serial", "jerlov", "brping", "genicam", "harvesters", "pytest", "hypothesis",
+           "_hypothesis_pytestplugin", "schemathesis", "schemathesis.pytest.plugin")
+
+
+def _run_forked(tree: Path, args: list[str], env: dict[str, str], timeout_s: float) -> str:
+    """Run pytest with ``args`` in a forked child of this (pre-loaded) process: 'survived' when it
+    passes, 'killed' when it fails or runs past ``timeout_s``, 'incompetent' when it cannot run."""
+    pid = os.fork()
+    if pid == 0:  # child: never returns
+        code = 4
+        saved_stderr = os.dup(2)
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, 1)
+            os.dup2(devnull, 2)
+            os.chdir(tree)
+            os.environ.update(env)
+            sys.dont_write_bytecode = True
+            sys.path.insert(0, str(tree))
+            import numba
+
+            numba.config.reload_config()  # NUMBA_DISABLE_JIT may be set for this module
+            import pytest
+
+            code = int(pytest.main(args))
+        except BaseException:  # report why the run could not start, on the parent's stderr
+            import traceback
+
+            os.write(saved_stderr, traceback.format_exc().encode())
+        finally:
+            os._exit(code)
+    deadline = time.monotonic() + timeout_s
+    while True:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            code = os.waitstatus_to_exitcode(status)
+            break
+        if time.monotonic() > deadline:
+            os.kill(pid, 9)
+            os.waitpid(pid, 0)
+            return "killed"
+        time.sleep(0.05)
+    # pytest: 0 passed, 1 tests failed; 2 interrupted, 3 internal error, 4 usage error, 5 none collected.
+    return {0: "survived", 1: "killed"}.get(code, "incompetent")
+
+
+def execute(session: Path, tree: Path, target: Target) -> None:
+    """Apply each pending mutant in the copy, run the module's tests in a forked child, record the outcome."""
+    import shlex
+
+    import cosmic_ray.plugins
+    import cosmic_ray.work_db as wdb
+    from cosmic_ray.mutating import use_mutation
+    from cosmic_ray.work_item import TestOutcome, WorkerOutcome, WorkResult
+
+    for module in PRELOAD:
+        try:
+            __import__(module)
+        except ImportError:
+            pass
+    # Pre-loaded pytest plugins (anyio, hypothesis, schemathesis) cannot have their own asserts
+    # rewritten: harmless, and not a failure of the tests.
+    args = shlex.split(target.tests) + ["-x", "-q", "-p", "no:randomly", "-p", "no:cacheprovider",
+                                        "-W", "ignore::pytest.PytestAssertRewriteWarning"]
+    unmutated = _run_forked(tree, args, target.env, target.timeout_s)
+    if unmutated != "survived":
+        raise SystemExit(f"{target.path}: the unmutated tests do not pass in a forked run ({unmutated}); cannot judge mutants")
+    with wdb.use_db(str(session), wdb.WorkDB.Mode.open) as db:
+        for item in list(db.pending_work_items):
+            spec = item.mutations[0]
+            operator = cosmic_ray.plugins.get_operator(spec.operator_name)(**(spec.operator_args or {}))
+            with use_mutation(tree / spec.module_path, operator, spec.occurrence) as (original, mutated):
+                if mutated is None:
+                    db.set_result(item.job_id, WorkResult(worker_outcome=WorkerOutcome.NO_TEST))
+                    continue
+                outcome = _run_forked(tree, args, target.env, target.timeout_s)
+            import difflib
+
+            diff = "".join(difflib.unified_diff(original.splitlines(True), mutated.splitlines(True), n=0))
+            db.set_result(item.job_id, WorkResult(worker_outcome=WorkerOutcome.NORMAL, test_outcome=TestOutcome(outcome),
+                                                  diff=diff))
 
 
 def summarise(name: str, target: Target, source: str) -> dict:
