@@ -37,3 +37,12 @@ def test_per_channel_parameters_broadcast_on_the_last_axis():
         for k in range(3):
             assert got[i, k] == pytest.approx(read[k] ** 2 + gain[k] * max(e[i, k], 0.0) + step[k] ** 2 / 12.0)
     assert got.dtype == np.float64
+
+
+def test_noise_model_is_an_immutable_value():
+    import dataclasses
+
+    model = NoiseModel(2.0, 0.5)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        model.read_noise = 3.0  # shared between channels and threads: never changed in place
+    assert model == NoiseModel(2.0, 0.5, 1.0) and hash(model) == hash(NoiseModel(2.0, 0.5, 1.0))
