@@ -128,6 +128,12 @@ def test_pair_transform_refuses_meaningless_constants():
     with pytest.raises(ValueError, match="constant_ratio must be positive"):
         pair_path_length(1.0, 2.0, 0.3, 0.0)
     assert np.isnan(pair_path_length(0.0, 2.0, 0.3, 1.0)) and np.isnan(pair_path_length(2.0, -1.0, 0.3, 1.0))
+    # Only signals that are not positive are refused: a zero denominator too, small ones are fine.
+    e = np.array([0.0, 2.0, 0.5, 2.0, -0.5])
+    f = np.array([2.0, 0.0, 2.0, 0.5, 2.0])
+    got = pair_path_length(e, f, 0.3, 1.5)
+    assert np.isnan(got[[0, 1, 4]]).all()
+    np.testing.assert_allclose(got[[2, 3]], np.log([0.5 / 2.0 * 1.5, 2.0 / 0.5 * 1.5]) / 0.3, rtol=1e-12)
 
 
 def test_surface_reflectance_shifts_the_log_constants_by_the_hue_ratio():
