@@ -29,6 +29,7 @@ import argparse
 import ast
 import json
 import os
+import random
 import re
 import shutil
 import subprocess
@@ -273,7 +274,10 @@ def execute(session: Path, tree: Path, target: Target) -> None:
     if unmutated != "survived":
         raise SystemExit(f"{target.path}: the unmutated tests do not pass in a forked run ({unmutated}); cannot judge mutants")
     with wdb.use_db(str(session), wdb.WorkDB.Mode.open) as db:
-        for item in list(db.pending_work_items):
+        # In a random (seeded) order: a run stopped early has then judged a fair sample of the module.
+        pending = sorted(db.pending_work_items, key=lambda item: item.job_id)
+        random.Random(0).shuffle(pending)
+        for item in pending:
             spec = item.mutations[0]
             operator = cosmic_ray.plugins.get_operator(spec.operator_name)(**(spec.operator_args or {}))
             with use_mutation(tree / spec.module_path, operator, spec.occurrence) as (original, mutated):
