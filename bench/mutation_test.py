@@ -337,6 +337,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("modules", nargs="*", help=f"subset of: {', '.join(TARGETS)}")
     p.add_argument("--list", action="store_true", help="list the modules and their test subsets")
     p.add_argument("--report", action="store_true", help="only summarise the sessions already in bench/mutation/")
+    p.add_argument("--rerun-survivors", action="store_true",
+                   help="run the current tests against the survivors (and unrun mutants) of the existing sessions only")
     args = p.parse_args(argv)
     if args.list:
         for name, t in TARGETS.items():
@@ -346,8 +348,10 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         p.error(f"unknown module(s) {', '.join(unknown)}; known: {', '.join(TARGETS)}")
     names = args.modules or list(TARGETS)
-    if args.report:
+    if args.report or args.rerun_survivors:
         names = [n for n in names if (OUT / f"{n}.sqlite").exists()]
+        if args.rerun_survivors:
+            rerun(names)
         for name in names:
             _save(name, summarise(name, TARGETS[name], (ROOT / TARGETS[name].path).read_text()))
     else:
@@ -362,6 +366,20 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{name:20s} {r['mutants']:7d} {r['killed']:7d} {r['survived']:9d}  {100 * r['kill_rate']:6.1f} %"
                   + (f"  ({r['not_run']} not run)" if r.get("not_run") else ""))
     return 0
+
+
+def rerun(names: list[str]) -> None:
+    """Forget the survivors of each session and run them again with the tests as they are now."""
+    import sqlite3
+
+    with tempfile.TemporaryDirectory(prefix="uwcam-mutation-") as tmp:
+        tree = Path(tmp)
+        _copy_tree(tree)
+        for name in names:
+            with sqlite3.connect(OUT / f"{name}.sqlite") as db:
+                n = db.execute("DELETE FROM work_results WHERE test_outcome = 'SURVIVED'").rowcount
+            print(f"{name}: running {n} survivors again", flush=True)
+            execute(OUT / f"{name}.sqlite", tree, TARGETS[name])
 
 
 def run(names: list[str]) -> None:

@@ -169,3 +169,27 @@ def test_surface_log_constant_inverts_a_known_range():
         surface_log_constant(np.zeros((2, 3)), d[:2], c)
     with pytest.raises(ValueError, match="need signal"):
         surface_log_constant(e, d[:2], c)
+
+
+def test_fusion_of_two_channels_is_the_pair_transform():
+    e = np.array([[300.0, 900.0], [0.5, 2.0]])  # small signals are as good as large ones
+    c, b = np.array([0.46, 0.11]), np.array([9.0, 9.6])
+    var = np.array([[40.0, 60.0], [0.01, 0.02]])
+    d, v = fused_path_length(e, c, b, var)
+    u = np.exp(b[1] - b[0])
+    np.testing.assert_allclose(d, pair_path_length(e[:, 0], e[:, 1], c[1] - c[0], u), rtol=1e-12)
+    np.testing.assert_allclose(v, pair_path_variance(e[:, 0], e[:, 1], var[:, 0], var[:, 1], c[1] - c[0]), rtol=1e-12)
+
+
+def test_fusion_ignores_unusable_and_weightless_channels():
+    c, b = np.array([0.46, 0.11, 0.06]), np.zeros(3)
+    # A zero signal is left out; the other two still give a range.
+    d, v = fused_path_length(np.array([0.0, 50.0, 30.0]), c, b, np.ones(3))
+    assert d == pytest.approx(np.log(30.0 / 50.0) / (0.11 - 0.06)) and np.isfinite(v)
+    # Usable channels whose weights vanish (infinite variance) leave one channel: no range, no variance.
+    d, v = fused_path_length(np.array([100.0, 50.0, 30.0]), c, b, np.array([1.0, np.inf, np.inf]))
+    assert np.isnan(d) and np.isnan(v)
+    with pytest.raises(ValueError, match="must have shape"):
+        fused_path_length(np.ones((2, 3)), [0.1, 0.2, 0.3], [0.0, 0.0], [1.0])
+    with pytest.raises(ValueError, match="must have shape"):
+        fused_path_length(np.ones((2, 3)), [0.1, 0.2], [0.0, 0.0, 0.0], [1.0])
