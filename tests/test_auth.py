@@ -168,6 +168,8 @@ def test_browser_session_with_csrf_header_is_accepted_and_without_it_refused(ser
     cookie, csrf = sign_in(server)
     other_cookie, other_csrf = sign_in(server)
     assert cookie != other_cookie and csrf != other_csrf
+    for secret in (cookie, csrf):  # at least 32 random bytes each, URL-safe base64
+        assert len(secret) >= 43 and re.fullmatch(r"[A-Za-z0-9_-]+", secret)
     for method, path in routes(server):
         ok = request(server, method, path, headers={"Cookie": f"uwcam_session={cookie}", "X-CSRF-Token": csrf})
         assert ok.status_code not in (401, 403), (method, path, ok.status_code, ok.text)

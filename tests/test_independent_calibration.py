@@ -131,7 +131,7 @@ def test_absolute_attenuation_is_the_two_distance_formula():
 
 def test_noise_model_recovers_read_noise_and_gain():
     means = np.array([[100.0, 50.0], [400.0, 200.0], [1600.0, 800.0]])
-    read, gain, step = np.array([4.0, 9.0]), np.array([0.5, 0.0]), 2.0
+    read, gain, step = np.array([4.0, 9.0]), np.array([0.5, 0.0]), 3.0
     var = read**2 + gain * means + step**2 / 12
     got_read, got_gain = fit_noise_model(means, var, step)
     np.testing.assert_allclose(got_read, read, rtol=1e-9)
@@ -170,13 +170,17 @@ def test_region_statistics_against_a_naive_loop():
     np.testing.assert_allclose(stats.noise_variance, np.var(diffs, axis=0) / 2, rtol=1e-12)
     with pytest.raises(UserInputError, match="no usable pixels"):
         region_statistics(frame, np.zeros((12, 15), bool))
+    column = np.zeros((12, 15), bool)
+    column[:, 4] = True  # no horizontal neighbours: no noise estimate, one NaN per channel
+    lonely = region_statistics(frame, column)
+    assert lonely.noise_variance.shape == (2,) and np.isnan(lonely.noise_variance).all() and lonely.count == 12
 
 
 def test_boxes_project_with_non_square_pixels():
-    box = project_plate_box((0.1, -0.05), (0.2, 0.1), 2.0, INTR)
+    box = project_plate_box((0.15, -0.08), (0.2, 0.1), 2.5, INTR)
     # Corners of the rectangle by the pinhole model: u = cx + fx·X/Z, v = cy + fy·Y/Z.
-    u0, u1 = INTR.cx + INTR.fx * 0.0 / 2.0, INTR.cx + INTR.fx * 0.2 / 2.0
-    v0, v1 = INTR.cy + INTR.fy * -0.1 / 2.0, INTR.cy + INTR.fy * 0.0 / 2.0
+    u0, u1 = INTR.cx + INTR.fx * 0.05 / 2.5, INTR.cx + INTR.fx * 0.25 / 2.5
+    v0, v1 = INTR.cy + INTR.fy * -0.13 / 2.5, INTR.cy + INTR.fy * -0.03 / 2.5
     x, y = math.ceil(u0), math.ceil(v0)
     assert box == (x, y, math.floor(u1) - x + 1, math.floor(v1) - y + 1)
     assert surrounding_box((10, 10, 8, 4), (30, 40)) == (6, 8, 16, 8)
@@ -252,3 +256,42 @@ def test_calibration_refuses_bad_inputs_with_clear_messages():
     dark[..., 1] = 0.0
     with pytest.raises(UserInputError, match="no signal in channel G"):
         calibrate([frame, dark], [1.0, 2.0], inputs)
+
+
+def test_calibration_without_intrinsics_uses_the_optical_axis_and_close_distances():
+    distances = [2.0, 2.4]  # 40 cm apart is enough
+    rng = np.random.default_rng(4)
+    flat = [np.exp(LOG_K - C * (d + math.dist((0, 0, d), LAMP))) * (1 + 1e-9 * rng.standard_normal((16, 16, 3)))
+            for d in distances]  # all but noise-free
+    inputs = CalibrationInputs(channel_names=["R", "G", "B"], wavelengths_nm=[None] * 3, target_reflectance=np.ones(3),
+                               lamp_position_m=LAMP, saturation_level=1e12)
+    profile = calibrate(flat, distances, inputs)
+    np.testing.assert_allclose(profile.provenance.path_lengths_m, [d + math.dist((0, 0, d), LAMP) for d in distances],
+                               rtol=1e-12)
+    np.testing.assert_allclose(profile.array("attenuation_difference"), C - C[0], atol=1e-6)
+    assert profile.intrinsics is None
+
+
+def test_black_patch_gives_backscatter_per_image_and_the_noise_floor():
+    rng = np.random.default_rng(5)
+    rho_p, rho_b = 0.8, 0.05
+    distances, lit, bs = [1.0, 2.0, 3.0], [4000.0, 1500.0, 600.0], [np.array([30.0, 40.0, 50.0]) * k for k in (1, 2, 3)]
+    black_boxes = [(4, 6, 12, 10), (5, 7, 10, 8), (6, 8, 8, 8)]
+    frames = []
+    for d, x, b, (bx, by, bw, bh) in zip(distances, lit, bs, black_boxes):
+        signal = np.exp(LOG_K - C * 2 * d)
+        level = np.full((32, 28, 3), 0.0) + b + rho_p * x * signal / signal[0]
+        level[by:by + bh, bx:bx + bw] = b + rho_b * x * signal / signal[0]
+        frames.append(level + rng.normal(0.0, 2.0, level.shape))
+    inputs = CalibrationInputs(channel_names=["R", "G", "B"], wavelengths_nm=[None] * 3, target_reflectance=np.full(3, rho_p),
+                               black_reflectance=np.full(3, rho_b), black_boxes=black_boxes, saturation_level=1e12)
+    profile = calibrate(frames, distances, inputs)
+    samples = profile.backscatter
+    for k, name in enumerate("RGB"):
+        np.testing.assert_allclose(samples.levels[name], [b[k] for b in bs], atol=3.0)
+        assert samples.noise_sigma[name] == pytest.approx(2.0, rel=0.25)
+    assert samples.distances_m == distances
+    assert samples.patch_pixels == [(x + w / 2 - 0.5, y + h / 2 - 0.5) for x, y, w, h in black_boxes]
+    # Floor: the largest backscatter plus 3σ of the patch's pixel noise.
+    floors = profile.array("noise_floor")
+    np.testing.assert_allclose(floors, bs[2] + 3 * 2.0, atol=5.0)
