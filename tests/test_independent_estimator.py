@@ -172,9 +172,9 @@ def test_surface_log_constant_inverts_a_known_range():
 
 
 def test_fusion_of_two_channels_is_the_pair_transform():
-    e = np.array([[300.0, 900.0], [0.5, 2.0]])  # small signals are as good as large ones
+    e = np.array([[300.0, 900.0], [0.5, 2.0], [300.0, 900.0]])  # small signals are as good as large ones
     c, b = np.array([0.46, 0.11]), np.array([9.0, 9.6])
-    var = np.array([[40.0, 60.0], [0.01, 0.02]])
+    var = np.array([[40.0, 60.0], [0.01, 0.02], [1e6, 1e7]])  # and very noisy ones, with a large variance
     d, v = fused_path_length(e, c, b, var)
     u = np.exp(b[1] - b[0])
     np.testing.assert_allclose(d, pair_path_length(e[:, 0], e[:, 1], c[1] - c[0], u), rtol=1e-12)
