@@ -279,3 +279,18 @@ def test_a_path_ending_like_the_session_route_gets_no_exemption(server):
         assert r.status_code in (401, 404), (method, probe, r.status_code)
         r = request(server, method, path.replace("auth-probe", "session"))
         assert r.status_code == 401, (method, path, r.status_code)
+
+
+def test_the_oldest_browser_session_is_forgotten_beyond_256(server):
+    first, first_csrf = sign_in(server)
+    second, second_csrf = sign_in(server)
+    for _ in range(254):  # 256 sessions open now: all valid
+        sign_in(server)
+    for cookie, csrf in ((first, first_csrf), (second, second_csrf)):
+        assert server.http.put("/api/v1/lamp", json={}, headers={"Cookie": f"uwcam_session={cookie}",
+                                                                 "X-CSRF-Token": csrf}).status_code == 200
+    sign_in(server)  # the 257th pushes out the oldest
+    assert server.http.put("/api/v1/lamp", json={}, headers={"Cookie": f"uwcam_session={first}",
+                                                             "X-CSRF-Token": first_csrf}).status_code == 401
+    assert server.http.put("/api/v1/lamp", json={}, headers={"Cookie": f"uwcam_session={second}",
+                                                             "X-CSRF-Token": second_csrf}).status_code == 200

@@ -80,6 +80,11 @@ def test_fit_lines_scales_uncertainty_by_reduced_chi2_when_the_scatter_is_larger
     assert plain.slope[0] == pytest.approx(slope) and plain.intercept[0] == pytest.approx(intercept)
     s2 = ((y[:, 0] - intercept - slope * x) ** 2).sum() / 3
     assert plain.slope_std[0] == pytest.approx(math.sqrt(s2 / ((x - x.mean()) ** 2).sum()), rel=1e-10)
+    # Three points, one degree of freedom: scaled too.
+    three = fit_lines(x[:3], y[:3], var[:3])
+    (a3, s3), cov3 = weighted_fit(x[:3], y[:3, 0], var[:3, 0])
+    chi2_3 = ((y[:3, 0] - a3 - s3 * x[:3]) ** 2 / var[:3, 0]).sum() / 1
+    assert chi2_3 > 1 and three.slope_std[0] == pytest.approx(math.sqrt(cov3[1, 1] * chi2_3), rel=1e-10)
     # Two points: an exact fit, and no uncertainty without stated variances.
     two = fit_lines(x[:2], y[:2])
     assert np.isnan(two.slope_std[0]) and two.slope[0] == pytest.approx((y[1, 0] - y[0, 0]) / (x[1] - x[0]))
@@ -115,6 +120,10 @@ def test_several_distances_are_fitted_by_weighted_least_squares():
         fit_attenuation_differences(ln_e[:2], [2.0, 2.0])
     with pytest.raises(ValueError, match="n ≥ 2"):
         fit_attenuation_differences(ln_e[:1], d[:1])
+    with pytest.raises(ValueError, match="need log_signal"):
+        fit_attenuation_differences(ln_e[:, 0], d)
+    with pytest.raises(ValueError, match="need log_signal"):
+        fit_attenuation_differences(ln_e, d[:4])
 
 
 def test_absolute_attenuation_is_the_two_distance_formula():
@@ -142,8 +151,14 @@ def test_noise_model_recovers_read_noise_and_gain():
     assert g[0] == 0.0 and r[0] == pytest.approx(5.0)
     # Pure shot noise measured with a small negative intercept: gain through the origin.
     m = np.array([[100.0], [300.0]])
-    r, g = fit_noise_model(m, np.array([[49.0], [151.0]]), quantisation_step=0.0)
-    assert r[0] == 0.0 and g[0] == pytest.approx((100 * 49 + 300 * 151) / (100**2 + 300**2))
+    r, g = fit_noise_model(m, np.array([[49.7], [150.7]]), quantisation_step=0.0)
+    assert r[0] == 0.0 and g[0] == pytest.approx((100 * 49.7 + 300 * 150.7) / (100**2 + 300**2))
+    # One image: all of the variance is put down to shot noise.
+    r, g = fit_noise_model(np.array([[400.0]]), np.array([[100.0 + 1 / 12]]))
+    assert r[0] == 0.0 and g[0] == pytest.approx(0.25)  # the default step is one code
+    # Two images of equal brightness: no slope to fit, the variance is read noise.
+    r, g = fit_noise_model(np.array([[400.0], [400.0]]), np.array([[9.0 + 1 / 12], [9.0 + 1 / 12]]))
+    assert r[0] == pytest.approx(3.0) and g[0] == 0.0
 
 
 def test_backscatter_and_noise_floor_from_the_black_patch():
@@ -261,15 +276,24 @@ def test_calibration_refuses_bad_inputs_with_clear_messages():
 def test_calibration_without_intrinsics_uses_the_optical_axis_and_close_distances():
     distances = [2.0, 2.4]  # 40 cm apart is enough
     rng = np.random.default_rng(4)
-    flat = [np.exp(LOG_K - C * (d + math.dist((0, 0, d), LAMP))) * (1 + 1e-9 * rng.standard_normal((16, 16, 3)))
-            for d in distances]  # all but noise-free
+    flat = [np.exp(LOG_K - C * (d + math.dist((0, 0, d), LAMP))) + 5.0 * rng.standard_normal((16, 16, 3))
+            for d in distances]
     inputs = CalibrationInputs(channel_names=["R", "G", "B"], wavelengths_nm=[None] * 3, target_reflectance=np.ones(3),
                                lamp_position_m=LAMP, saturation_level=1e12)
     profile = calibrate(flat, distances, inputs)
     np.testing.assert_allclose(profile.provenance.path_lengths_m, [d + math.dist((0, 0, d), LAMP) for d in distances],
                                rtol=1e-12)
-    np.testing.assert_allclose(profile.array("attenuation_difference"), C - C[0], atol=1e-6)
-    assert profile.intrinsics is None
+    np.testing.assert_allclose(profile.array("attenuation_difference"), C - C[0], atol=2e-3)
+    assert profile.intrinsics is None and profile.quantisation_step == 1.0
+    # Uncertainty of V_k from pixel noise, two images: Var = Σ over images of (σ²/(n·E²))_k + (…)_ref, / Δd_T².
+    lv = []
+    for f in flat:
+        mean = f.reshape(-1, 3).mean(axis=0)
+        diff = (f[:, 1:] - f[:, :-1]).reshape(-1, 3)
+        lv.append(diff.var(axis=0) / 2 / (f.shape[0] * f.shape[1] * mean**2))
+    paths = [d + math.dist((0, 0, d), LAMP) for d in distances]
+    expected = np.sqrt(lv[0] + lv[0][0] + lv[1] + lv[1][0]) / (paths[1] - paths[0])
+    np.testing.assert_allclose([ch.attenuation_difference_std for ch in profile.channels][1:], expected[1:], rtol=1e-9)
 
 
 def test_black_patch_gives_backscatter_per_image_and_the_noise_floor():
@@ -295,3 +319,14 @@ def test_black_patch_gives_backscatter_per_image_and_the_noise_floor():
     # Floor: the largest backscatter plus 3σ of the patch's pixel noise.
     floors = profile.array("noise_floor")
     np.testing.assert_allclose(floors, bs[2] + 3 * 2.0, atol=5.0)
+
+
+def test_black_patches_need_a_surround_and_a_reflectance_to_give_backscatter():
+    frames = [np.full((12, 12, 3), 1000.0) + np.random.default_rng(k).normal(0, 1, (12, 12, 3)) for k in range(2)]
+    for f in frames:
+        f[2:6, 2:6] = 100.0
+    base = dict(channel_names=["R", "G", "B"], wavelengths_nm=[None] * 3, target_reflectance=np.full(3, 0.8))
+    plain = calibrate(frames, [1.0, 2.0], CalibrationInputs(**base, black_boxes=[(2, 2, 4, 4)] * 2))
+    assert plain.backscatter is None and (plain.array("noise_floor") == 0).all()
+    with pytest.raises(UserInputError, match="black patch of image 1 is not surrounded by target pixels"):
+        calibrate(frames, [1.0, 2.0], CalibrationInputs(**base, target_box=(2, 2, 4, 4), black_boxes=[(2, 2, 4, 4)] * 2))

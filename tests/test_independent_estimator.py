@@ -163,8 +163,11 @@ def test_surface_log_constant_inverts_a_known_range():
     corrected = noisy * np.exp((c - c[0])[None, :] * d[:, None])
     expected = np.log(corrected.sum(axis=0) / corrected.sum(axis=0)[0])
     np.testing.assert_allclose(surface_log_constant(noisy, d, c), expected, rtol=1e-12)
-    target = np.array([0.0, 0.35, 0.2])
-    np.testing.assert_allclose(reflectance_ratio_from_range(e, d, c, target), np.exp((b_true - b_true[0]) - target), rtol=1e-12)
+    target = np.array([0.4, 0.75, 0.6])  # only differences to the reference channel count
+    np.testing.assert_allclose(reflectance_ratio_from_range(e, d, c, target), np.exp((b_true - b_true[0]) - (target - 0.4)),
+                               rtol=1e-12)
+    np.testing.assert_allclose(reflectance_ratio_from_range(e, d, c, target, reference=2),
+                               np.exp((b_true - b_true[2]) - (target - 0.6)), rtol=1e-12)
     with pytest.raises(ValueError, match="no pixel with a positive signal"):
         surface_log_constant(np.zeros((2, 3)), d[:2], c)
     with pytest.raises(ValueError, match="need signal"):

@@ -92,6 +92,7 @@ def test_lamp_on_the_optical_axis_and_beside_the_camera():
     # Lamp at the camera: half the path, derivative ½.
     assert camera_range_from_path_length(4.0) == pytest.approx(2.0)
     assert camera_range_derivative(4.0) == pytest.approx(0.5)
+    assert path_length_from_camera_range(1.5) == pytest.approx(3.0)
     np.testing.assert_allclose(camera_range_equidistant([1.0, 3.0]), [0.5, 1.5])
     # A path no longer than |S| cannot reach any surface.
     s = math.sqrt(sum(v * v for v in LAMP))
