@@ -63,6 +63,7 @@ def test_from_fov_gives_square_pixels_centred():
     intr = Intrinsics.from_fov(640, 480, 90.0)
     assert intr.fx == pytest.approx(320.0) and intr.fy == intr.fx
     assert (intr.cx, intr.cy) == (319.5, 239.5)
+    assert Intrinsics(0.5, 0.25, 0.0, 0.0).fx == 0.5  # tiny, but positive
     with pytest.raises(ValueError, match="focal lengths must be positive"):
         Intrinsics(0.0, 1.0, 0.0, 0.0)
     with pytest.raises(ValueError, match="focal lengths must be positive"):
