@@ -8,6 +8,7 @@ import json
 import pytest
 
 from tests.test_auth import TOKEN, Server, config
+from tests.waiting import wait_for
 
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 
@@ -131,3 +132,27 @@ def test_oversized_and_malformed_profiles_are_refused(server):
         r = server.http.put("/api/v1/calibration/profiles/junk", content=body, headers=AUTH)
         assert r.status_code == 422 and message in r.json()["detail"], (body, r.text)
     assert "junk" not in [p["name"] for p in server.http.get("/api/v1/calibration/profiles").json()]
+
+
+def test_a_lamp_that_stops_answering_is_a_502_and_errors_carry_no_links(server):
+    device = server.app.state.daemon.lamp.device
+    device.disconnect()
+    try:
+        r = put_lamp(server, {"on": True})
+        assert r.status_code == 502 and r.json()["detail"].startswith("lamp did not accept the command: ")
+    finally:
+        device.reconnect()
+    assert wait_for(lambda: put_lamp(server, {"on": True}).status_code == 200, 20.0)
+    bad = patch(server, {"path_length_bounds": [5.0, 1.0]})
+    assert bad.status_code == 422 and all("url" not in e for e in bad.json()["detail"])
+
+
+def test_without_a_lamp_its_routes_say_so():
+    cfg = config(TOKEN)
+    cfg.lamp = None
+    with Server(cfg) as s:
+        assert s.http.get("/api/v1/lamp").status_code == 404
+        r = s.http.put("/api/v1/lamp", json={"on": True}, headers=AUTH)
+        assert r.status_code == 404 and r.json()["detail"] == "no lamp configured"
+        r = s.http.patch("/api/v1/config", json={"lamp_off_interval": 4}, headers=AUTH)
+        assert r.status_code == 422 and "lamp" in r.json()["detail"]

@@ -160,6 +160,8 @@ def sign_in(s: Server) -> tuple[str, str]:
     cookie = r.cookies.get("uwcam_session")
     set_cookie = r.headers["set-cookie"].lower()
     assert cookie and "httponly" in set_cookie and "samesite=strict" in set_cookie and "path=/" in set_cookie
+    assert "secure" not in set_cookie  # plain http here: a Secure cookie would never come back
+    assert r.json()["token_required"] is True
     s.http.cookies.clear()  # each request below says exactly what it sends
     return cookie, r.json()["csrf_token"]
 
@@ -200,6 +202,8 @@ def test_signing_out_ends_the_session_and_wrong_tokens_get_none(server):
         r = server.http.post(SESSION_PATH, json={"token": token})
         assert r.status_code == 401 and "uwcam_session" not in r.cookies, token
     assert server.http.post(SESSION_PATH, json={}).status_code == 422
+    assert server.http.post(SESSION_PATH, json={"token": "x" * 4096}).status_code == 401  # long, but wrong
+    assert server.http.post(SESSION_PATH, json={"token": "x" * 4097}).status_code == 422  # too long to consider
     assert server.http.post(SESSION_PATH, json={"token": TOKEN, "extra": 1}).status_code == 422
 
 
