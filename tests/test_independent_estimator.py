@@ -196,3 +196,41 @@ def test_fusion_ignores_unusable_and_weightless_channels():
         fused_path_length(np.ones((2, 3)), [0.1, 0.2, 0.3], [0.0, 0.0], [1.0])
     with pytest.raises(ValueError, match="must have shape"):
         fused_path_length(np.ones((2, 3)), [0.1, 0.2], [0.0, 0.0, 0.0], [1.0])
+
+
+def test_estimator_checks_its_inputs():
+    from uwcam.fileio import UserInputError
+
+    profile = make_profile(C, B)
+    est = RangeEstimator(profile)
+    for bad in ([0.1, 0.2], [0.1, np.nan, 0.3]):
+        with pytest.raises(ValueError, match="finite log constants"):
+            est.set_log_constants(bad)
+        with pytest.raises(ValueError, match="finite attenuation differences"):
+            est.set_attenuation_differences(bad)
+    for pair in (("R", "R"), ("R", "X"), ("R", "G", "B")):
+        with pytest.raises(UserInputError, match="--pair needs two different channel names"):
+            RangeEstimator(profile, pair=pair)
+    for rho in ([0.5, 0.0, 0.5], [0.5, -0.1, 0.5], [0.5, 0.5]):
+        with pytest.raises(UserInputError, match="surface reflectance needs 3 positive values"):
+            RangeEstimator(profile, surface_reflectance=rho)
+
+
+def test_a_profile_without_any_noise_counts_one_code_of_noise():
+    profile = make_profile(C, B, quantisation_step=0.0)
+    e = np.array([[[300.0, 900.0, 700.0]]])
+    out = RangeEstimator(profile, pair=("R", "G"))(e)
+    v = C[1] - C[0]
+    assert out.range[0, 0] == pytest.approx(np.log(300.0 / 900.0 * np.exp(B[1] - B[0])) / v / 2, rel=1e-6)
+    assert out.variance[0, 0] == pytest.approx(0.25 * (1 / 300.0**2 + 1 / 900.0**2) / v**2, rel=1e-5)
+
+
+def test_a_known_background_is_taken_off_integer_frames_too():
+    profile = make_profile(C, B, read_noise=2.0, shot_gain=0.1)
+    est = RangeEstimator(profile)
+    raw = np.rint(np.stack([signals_at(p) for p in (2.0, 3.0)])[None] + 50.0)
+    background = np.full(raw.shape, 50.0)
+    as_int = est(raw.astype(np.uint16), background=background)
+    as_float = est(raw.astype(np.float64), background=background)
+    np.testing.assert_allclose(as_int.range, as_float.range, rtol=1e-6)
+    np.testing.assert_allclose(as_int.range, [[1.0, 1.5]], atol=0.01)  # the truth, without the 50 DN of background

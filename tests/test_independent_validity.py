@@ -81,3 +81,8 @@ def test_equal_attenuations_leave_too_few_channels():
     pair = RangeEstimator(profile, pair=("R", "G"))(np.array([[[2000, 6000, 0], [0, 6000, 9000]]], np.uint16))
     # With a pair chosen, the third channel neither helps nor counts.
     assert list(pair.reasons[0]) == [Reason.VALID, Reason.TOO_FEW_CHANNELS]
+
+
+def test_default_bounds_accept_every_positive_path_and_refuse_negative_ones():
+    two = np.zeros((3, 2), np.uint8)
+    assert list(pixel_reasons(two, np.array([0.5, 1e9, -0.5]))) == [Reason.VALID, Reason.VALID, Reason.PATH_OUT_OF_BOUNDS]
