@@ -252,7 +252,7 @@ def _run_forked(tree: Path, args: list[str], env: dict[str, str], timeout_s: flo
     return {0: "survived", 1: "killed"}.get(code, "incompetent")
 
 
-def execute(session: Path, tree: Path, target: Target) -> None:
+def execute(session: Path, tree: Path, target: Target, only: set[str] | None = None) -> None:
     """Apply each pending mutant in the copy, run the module's tests in a forked child, record the outcome."""
     import shlex
 
@@ -275,7 +275,7 @@ def execute(session: Path, tree: Path, target: Target) -> None:
         raise SystemExit(f"{target.path}: the unmutated tests do not pass in a forked run ({unmutated}); cannot judge mutants")
     with wdb.use_db(str(session), wdb.WorkDB.Mode.open) as db:
         # In a random (seeded) order: a run stopped early has then judged a fair sample of the module.
-        pending = sorted(db.pending_work_items, key=lambda item: item.job_id)
+        pending = sorted((i for i in db.pending_work_items if only is None or i.job_id in only), key=lambda item: item.job_id)
         random.Random(0).shuffle(pending)
         for item in pending:
             spec = item.mutations[0]
@@ -377,9 +377,10 @@ def rerun(names: list[str]) -> None:
         _copy_tree(tree)
         for name in names:
             with sqlite3.connect(OUT / f"{name}.sqlite") as db:
-                n = db.execute("DELETE FROM work_results WHERE test_outcome = 'SURVIVED'").rowcount
-            print(f"{name}: running {n} survivors again", flush=True)
-            execute(OUT / f"{name}.sqlite", tree, TARGETS[name])
+                jobs = {row[0] for row in db.execute("SELECT job_id FROM work_results WHERE test_outcome = 'SURVIVED'")}
+                db.execute("DELETE FROM work_results WHERE test_outcome = 'SURVIVED'")
+            print(f"{name}: running {len(jobs)} survivors again", flush=True)
+            execute(OUT / f"{name}.sqlite", tree, TARGETS[name], only=jobs)
 
 
 def run(names: list[str]) -> None:
