@@ -16,6 +16,8 @@ never fatal.
 
 from __future__ import annotations
 
+import math
+import re
 import threading
 import time
 from dataclasses import dataclass
@@ -167,34 +169,45 @@ class SerialRangefinder:
         self.stop()
 
 
+# An NMEA 0183 sentence: '$', a five-letter address (two-letter talker, three-letter type), the
+# fields, '*' and exactly two hexadecimal checksum digits, nothing after them.
+_NMEA = re.compile(r"\$(?P<body>(?P<talker>[A-Z]{2})(?P<type>[A-Z]{3})(?:,[^*$]*)?)\*(?P<checksum>[0-9A-Fa-f]{2})")
+
+
 def nmea_checksum_ok(sentence: str) -> bool:
-    body, _, given = sentence.partition("*")
-    if not body.startswith("$") or len(given) < 2:
+    """True for a well-formed sentence whose checksum (XOR of the characters between '$' and '*')
+    matches its two hex digits; sentences without a checksum are refused."""
+    m = _NMEA.fullmatch(sentence)
+    if m is None:
         return False
     calc = 0
-    for ch in body[1:]:
+    for ch in m["body"]:
         calc ^= ord(ch)
+    return calc == int(m["checksum"], 16)
+
+
+def _finite(text: str) -> float | None:
     try:
-        return calc == int(given[:2], 16)
+        value = float(text)
     except ValueError:
-        return False
+        return None
+    return value if math.isfinite(value) else None
 
 
 def parse_ascii_range(line: str) -> float | None:
-    """Range in metres at the device's own speed of sound, or None if the line is not a range."""
+    """Range in metres at the device's own speed of sound, or None if the line is not a range
+    (not a depth sentence, bad or missing checksum, empty or non-finite depth)."""
     line = line.strip()
-    if line.startswith("R") and line[1:].isdigit():
+    if line.startswith("R") and line[1:].isdigit() and line[1:].isascii():
         return int(line[1:]) / 1000.0
-    if line.startswith("$") and nmea_checksum_ok(line):
-        fields = line.split("*")[0].split(",")
-        kind = fields[0][-3:]
-        try:
-            if kind == "DPT" and fields[1]:
-                return float(fields[1])
-            if kind == "DBT" and len(fields) > 3 and fields[3] and fields[4] == "M":
-                return float(fields[3])
-        except (ValueError, IndexError):
-            return None
+    m = _NMEA.fullmatch(line)
+    if m is None or not nmea_checksum_ok(line):
+        return None
+    fields = m["body"].split(",")
+    if m["type"] == "DPT" and len(fields) > 1:
+        return _finite(fields[1])
+    if m["type"] == "DBT" and len(fields) > 4 and fields[4] == "M":
+        return _finite(fields[3])
     return None
 
 

@@ -1,9 +1,35 @@
-"""Shared test fixtures."""
+"""Shared test fixtures: no test and no test module may leave a thread of its own running."""
 
 import threading
 import time
 
 import pytest
+
+# Worker threads of the thread pool that a server's event loop keeps for sync handlers
+# (anyio names them so). A module-scoped server starts them on demand and keeps them idle for
+# a while after a request, so a single test cannot be blamed for them; they must be gone once
+# the module's server has stopped, which the module-scoped check below verifies.
+POOL_WORKERS = ("AnyIO worker thread",)
+
+
+def _leaked(before: set[threading.Thread], ignore: tuple[str, ...], timeout_s: float) -> list[threading.Thread]:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        leaked = [t for t in threading.enumerate() if t not in before and t.is_alive()
+                  and not t.name.startswith(("pydevd", *ignore))]
+        if not leaked or time.monotonic() > deadline:
+            return leaked
+        leaked[0].join(timeout=0.1)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def no_leaked_threads_in_module():
+    """Fail a module that leaves any thread running once its module-scoped fixtures are torn down
+    (practice 8 of STYLE.md); this fixture is set up before them and torn down after them."""
+    before = set(threading.enumerate())
+    yield
+    leaked = _leaked(before, (), 15.0)
+    assert not leaked, f"test module left threads running: {[t.name for t in leaked]}"
 
 
 @pytest.fixture(autouse=True)
@@ -11,10 +37,28 @@ def no_leaked_threads():
     """Fail any test that leaves a Python thread of its own running (practice 8 of STYLE.md)."""
     before = set(threading.enumerate())
     yield
-    deadline = time.monotonic() + 5.0
-    while True:
-        leaked = [t for t in threading.enumerate() if t not in before and t.is_alive() and not t.name.startswith("pydevd")]
-        if not leaked or time.monotonic() > deadline:
-            break
-        leaked[0].join(timeout=0.1)
+    leaked = _leaked(before, POOL_WORKERS, 5.0)
     assert not leaked, f"test left threads running: {[t.name for t in leaked]}"
+
+
+@pytest.fixture(scope="session")
+def warm_kernels():
+    """Compile (or load from numba's cache) the simulator's and the estimator's kernels once, before
+    any test waits on a clock: on a fresh checkout compiling takes longer than a frame timeout."""
+    import numpy as np
+
+    from tests.synthetic import make_profile
+    from uwcam.drivers.sim import SimulatedCamera, SimulatedRig
+    from uwcam.ranging import RangeEstimator
+
+    camera = SimulatedCamera(SimulatedRig(size=(16, 12), distance=2.0), fps=1000.0, serial_number="SIM-WARM-UP")
+    camera.open()
+    camera.start()
+    try:
+        camera.read(timeout_s=600.0)  # rendering and digitising compile here
+    finally:
+        camera.stop()
+        camera.close()
+    estimator = RangeEstimator(make_profile([0.46, 0.11, 0.06], [0.0, 0.0, 0.0]))
+    estimator(np.full((2, 2, 3), 1000, np.uint16))
+    estimator(np.full((2, 2, 3), 1000.0, np.float32))

@@ -19,6 +19,9 @@ from uwcam.drivers.sim import SimulatedCamera, SimulatedRig
 from uwcam.drivers.supervisor import SupervisedCamera
 from uwcam.drivers.v4l2 import V4L2Camera
 
+# Compile the simulator before any test waits for a frame against a clock.
+pytestmark = pytest.mark.usefixtures("warm_kernels")
+
 VIKY = os.path.join(os.path.dirname(genicam.__file__), "viky.cti")
 
 

@@ -13,6 +13,10 @@ from uwcam.drivers.sim import SimulatedRig
 from uwcam.drivers.sim_serial import SimulatedAsciiRanger, SimulatedLampDevice, SimulatedPing1D
 
 
+# Compile the simulator before any test waits for a frame against a clock.
+pytestmark = pytest.mark.usefixtures("warm_kernels")
+
+
 @pytest.fixture
 def rig():
     return SimulatedRig(size=(32, 24), distance=2.5)

@@ -296,8 +296,10 @@ class RangeEstimator:
 def smooth_range_map(result: RangeResult, kind: str = "mean") -> RangeResult:
     """3×3 smoothing of a range map over valid neighbours only (docs/physics.md §7).
 
-    kind "mean": average of the valid pixels in each 3×3 window, variance divided by their
-    count (neighbouring noise is independent); "median": their median, variance kept.
+    kind "mean": average of the n valid pixels in each 3×3 window, with the variance of that
+    average for independent neighbours, Σσ_k²/n² (σ²/n when all are equal), plus the
+    calibration's share of the variance, which neighbours have in common; "median": their
+    median, variance kept.
     Invalid pixels stay invalid with their reasons, and never leak into valid ones.
     """
     if kind not in ("mean", "median"):
@@ -313,7 +315,10 @@ def smooth_range_map(result: RangeResult, kind: str = "mean") -> RangeResult:
     with np.errstate(invalid="ignore", divide="ignore"):
         if kind == "mean":
             smoothed = np.nansum(windows, axis=0) / count
-            variance = (result.variance - cal) / np.maximum(count, 1) + cal
+            # The noise of independent neighbours averages as Σσ_k²/n²; the calibration's share does not.
+            noise = np.where(valid, result.variance.astype(np.float64) - cal, 0.0)
+            v = np.pad(noise, 1)
+            variance = sum(v[dy : dy + h, dx : dx + w] for dy in range(3) for dx in range(3)) / np.maximum(count, 1) ** 2 + cal
         else:
             import warnings
 

@@ -15,11 +15,14 @@ from contextlib import asynccontextmanager
 from typing import Any
 
 from fastapi import Depends, FastAPI, Request
+from fastapi.encoders import jsonable_encoder
+from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from uwcam import __version__
 from uwcam.api import (calibration_session, lamp, metrics, profiles, recordings, session, settings, snapshots, status,
@@ -52,6 +55,18 @@ def openapi_with_bearer(app: FastAPI) -> dict:
 
 ROUTERS = (status.router, snapshots.router, settings.router, profiles.router, lamp.router, session.router,
            stream.router, view.router, metrics.router, recordings.router, calibration_session.router, web.router)
+
+
+def json_safe(value: Any) -> Any:
+    """``value`` with every NaN or infinity replaced by its name: an error message quoting a
+    user's ``NaN`` must still be valid JSON (strict JSON has no such numbers)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    return value
 
 
 def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
@@ -94,6 +109,15 @@ def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
     @app.exception_handler(UserInputError)
     async def _user_error(request: Request, exc: UserInputError):
         return JSONResponse(status_code=400, content={"error": str(exc)})
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid_request(request: Request, exc: RequestValidationError):
+        return JSONResponse(status_code=422, content={"detail": json_safe(jsonable_encoder(exc.errors()))})
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http_error(request: Request, exc: StarletteHTTPException):
+        exc.detail = json_safe(exc.detail)
+        return await http_exception_handler(request, exc)
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception):

@@ -1,0 +1,158 @@
+"""Request validation of the state-changing routes: every number checked, bad input a 4xx that
+changes nothing, boundaries exactly where the documentation puts them."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from tests.test_auth import TOKEN, Server, config
+from tests.waiting import wait_for
+
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+
+
+@pytest.fixture(scope="module")
+def server():
+    with Server(config(TOKEN)) as s:
+        yield s
+
+
+def put_lamp(s: Server, body) -> "object":
+    return s.http.put("/api/v1/lamp", content=json.dumps(body), headers={**AUTH, "Content-Type": "application/json"})
+
+
+@pytest.mark.parametrize("intensity", [0, 0.0, 37.5, 100, 100.0])
+def test_lamp_intensity_accepted_from_0_to_100_percent(server, intensity):
+    r = put_lamp(server, {"intensity": intensity})
+    assert r.status_code == 200, r.text
+    assert r.json()["intensity"] == round(intensity)
+
+
+@pytest.mark.parametrize("body", [
+    {"intensity": -0.001}, {"intensity": 100.001}, {"intensity": 1e9}, {"intensity": float("nan")},
+    {"intensity": float("inf")}, {"intensity": float("-inf")}, {"intensity": [50]}, {"intensity": "lots"},
+    {"on": 2}, {"colour": "red"}, [], "on",
+])
+def test_bad_lamp_commands_are_refused_and_change_nothing(server, body):
+    before = server.http.get("/api/v1/lamp").json()
+    r = put_lamp(server, body)
+    assert r.status_code == 422, (body, r.status_code, r.text)
+    after = server.http.get("/api/v1/lamp").json()
+    assert (after["on"], after["intensity"]) == (before["on"], before["intensity"])
+
+
+def test_lamp_switches_and_reports_back(server):
+    try:
+        r = put_lamp(server, {"on": False})
+        assert r.status_code == 200 and r.json()["on"] is False
+        r = put_lamp(server, {"on": True, "intensity": 60})
+        assert r.status_code == 200 and r.json()["on"] is True and r.json()["intensity"] == 60
+        assert put_lamp(server, {}).json()["on"] is True  # nothing asked, nothing changed
+    finally:
+        put_lamp(server, {"on": True, "intensity": 100})
+
+
+def patch(s: Server, body):
+    return s.http.patch("/api/v1/config", content=json.dumps(body), headers={**AUTH, "Content-Type": "application/json"})
+
+
+@pytest.mark.parametrize("body, message", [
+    ({"smoothing": "gaussian"}, "smoothing"),
+    ({"smoothing_stage": "during"}, "smoothing_stage"),
+    ({"pair": ["R", "X"]}, "pair needs two different channels"),
+    ({"pair": ["G", "G"]}, "pair needs two different channels"),
+    ({"pair": ["R"]}, "pair"),
+    ({"pair": ["R", "G", "B"]}, "pair"),
+    ({"path_length_bounds": [5.0, 1.0]}, "min < max"),
+    ({"path_length_bounds": [2.0, 2.0]}, "min < max"),
+    ({"path_length_bounds": [-1.0, 5.0]}, "greater than or equal to 0"),
+    ({"path_length_bounds": [0.0, 0.0]}, "path_length_bounds"),
+    ({"path_length_bounds": [float("nan"), 5.0]}, "path_length_bounds"),
+    ({"path_length_bounds": [0.0, float("nan")]}, "path_length_bounds"),
+    ({"lamp_off_interval": -1}, "greater than or equal to 0"),
+    ({"lamp_off_interval": 1.5}, "lamp_off_interval"),
+    ({"fuse": "maybe"}, "fuse"),
+    ({"patch": {"region": [0, 0, 4, 4]}}, "path_length_m"),
+    ({"patch": {"region": [0, 0, 0, 4], "path_length_m": 1.0}}, "greater than 0"),
+    ({"patch": {"region": [0, 0, 4, 4], "path_length_m": -1.0}}, "greater than 0"),
+    ({"colour": 1}, "colour"),
+])
+def test_bad_processing_settings_are_refused_with_the_reason(server, body, message):
+    before = server.http.get("/api/v1/config").json()
+    r = patch(server, body)
+    assert r.status_code == 422, (body, r.status_code, r.text)
+    assert message in json.dumps(r.json()), r.text
+    assert server.http.get("/api/v1/config").json() == before
+
+
+def test_good_processing_settings_apply_and_restore(server):
+    before = server.http.get("/api/v1/config").json()
+    try:
+        r = patch(server, {"pair": ["R", "G"], "path_length_bounds": [0.5, 30.0], "smoothing": "median"})
+        assert r.status_code == 200, r.text
+        assert r.json()["pair"] == ["R", "G"] and r.json()["path_length_bounds"] == [0.5, 30.0]
+        assert server.http.get("/api/v1/config").json()["smoothing"] == "median"
+        r = patch(server, {"fuse": True})
+        assert r.status_code == 200 and r.json()["pair"] is None and r.json()["smoothing"] == "median"
+        r = patch(server, {"fuse": False, "lamp_off_interval": 0})
+        assert r.status_code == 200 and r.json()["pair"] is None
+        r = patch(server, {"path_length_bounds": [0.0, 1e-9]})
+        assert r.status_code == 200, r.text  # tiny but ordered and positive
+        restored = server.http.post("/api/v1/config/restore", headers=AUTH)
+        assert restored.status_code == 200 and restored.json()["path_length_bounds"] == [0.5, 30.0]  # before the last change
+    finally:
+        patch(server, {k: v for k, v in before.items() if k in ("smoothing", "smoothing_stage", "path_length_bounds",
+                                                                "lamp_off_interval")} | {"fuse": True})
+
+
+@pytest.mark.parametrize("name, status", [
+    ("ok-name_1.v2", 422),  # a valid name: refused only because the body is not a profile
+    ("a" * 64, 422),
+    ("a" * 65, 422),
+    ("bad name", 422),
+    ("bad%2Fname", 404),
+])
+def test_profile_names_are_checked_before_the_body(server, name, status):
+    r = server.http.put(f"/api/v1/calibration/profiles/{name}", content=b"{}", headers=AUTH)
+    assert r.status_code == status, (name, r.status_code, r.text)
+    if name in ("a" * 65, "bad name"):
+        assert "profile names use letters, digits" in r.json()["detail"]
+    names = [p["name"] for p in server.http.get("/api/v1/calibration/profiles").json()]
+    assert name not in names
+
+
+def test_oversized_and_malformed_profiles_are_refused(server):
+    big = b"x: " + b"1" * (1 << 20)
+    r = server.http.put("/api/v1/calibration/profiles/big", content=big, headers=AUTH)
+    assert r.status_code == 413 and "larger than 1048576 bytes" in r.json()["detail"]
+    for body, message in [(b"\xff\xfe", "not valid YAML or JSON"), (b"[1, 2]", "must be a mapping"),
+                          (b"a: [", "not valid YAML or JSON"), (b"{}", "profile")]:
+        r = server.http.put("/api/v1/calibration/profiles/junk", content=body, headers=AUTH)
+        assert r.status_code == 422 and message in r.json()["detail"], (body, r.text)
+    assert "junk" not in [p["name"] for p in server.http.get("/api/v1/calibration/profiles").json()]
+
+
+def test_a_lamp_that_stops_answering_is_a_502_and_errors_carry_no_links(server):
+    device = server.app.state.daemon.lamp.device
+    device.disconnect()
+    try:
+        r = put_lamp(server, {"on": True})
+        assert r.status_code == 502 and r.json()["detail"].startswith("lamp did not accept the command: ")
+    finally:
+        device.reconnect()
+    assert wait_for(lambda: put_lamp(server, {"on": True}).status_code == 200, 20.0)
+    bad = patch(server, {"path_length_bounds": [5.0, 1.0]})
+    assert bad.status_code == 422 and all("url" not in e for e in bad.json()["detail"])
+
+
+def test_without_a_lamp_its_routes_say_so():
+    cfg = config(TOKEN)
+    cfg.lamp = None
+    with Server(cfg) as s:
+        assert s.http.get("/api/v1/lamp").status_code == 404
+        r = s.http.put("/api/v1/lamp", json={"on": True}, headers=AUTH)
+        assert r.status_code == 404 and r.json()["detail"] == "no lamp configured"
+        r = s.http.patch("/api/v1/config", json={"lamp_off_interval": 4}, headers=AUTH)
+        assert r.status_code == 422 and "lamp" in r.json()["detail"]

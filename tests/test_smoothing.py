@@ -1,0 +1,126 @@
+"""3×3 smoothing of range maps: values, variances and invalid pixels against a naive reference.
+
+The reference below is a plain double loop over windows, written apart from
+``uwcam.ranging.smooth_range_map``: the mean of the valid neighbours, and the variance of that
+mean for independent neighbours, Var(Σ r_k / n) = Σ σ_k² / n² (σ² / n when all are equal).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from uwcam.fileio import UserInputError
+from uwcam.optics.validity import Reason
+from uwcam.ranging import RangeResult, smooth_range_map
+
+
+def naive(range_map: np.ndarray, variance: np.ndarray, kind: str) -> tuple[np.ndarray, np.ndarray]:
+    h, w = range_map.shape
+    out_r = np.full((h, w), np.nan)
+    out_v = np.full((h, w), np.nan)
+    for i in range(h):
+        for j in range(w):
+            if not np.isfinite(range_map[i, j]):
+                continue  # an invalid pixel stays invalid
+            values, variances = [], []
+            for di in (-1, 0, 1):
+                for dj in (-1, 0, 1):
+                    y, x = i + di, j + dj
+                    if 0 <= y < h and 0 <= x < w and np.isfinite(range_map[y, x]):
+                        values.append(float(range_map[y, x]))
+                        variances.append(float(variance[y, x]))
+            n = len(values)
+            if kind == "mean":
+                out_r[i, j] = sum(values) / n
+                out_v[i, j] = sum(variances) / n**2
+            else:
+                out_r[i, j] = sorted(values)[n // 2] if n % 2 else 0.5 * (sorted(values)[n // 2 - 1] + sorted(values)[n // 2])
+                out_v[i, j] = variance[i, j]
+    return out_r, out_v
+
+
+def result(range_map, variance, reasons=None) -> RangeResult:
+    r = np.asarray(range_map, np.float32)
+    if reasons is None:
+        reasons = np.where(np.isfinite(r), Reason.VALID, Reason.BELOW_NOISE_FLOOR).astype(np.uint8)
+    return RangeResult(r, np.where(np.isfinite(r), np.asarray(variance, np.float32), np.nan).astype(np.float32), reasons)
+
+
+def test_mean_of_a_constant_variance_map_divides_the_variance_by_the_window_count():
+    r = np.full((5, 6), 2.0)
+    out = smooth_range_map(result(r, np.full((5, 6), 0.09)), "mean")
+    np.testing.assert_allclose(out.range, 2.0)
+    # 9 neighbours inside, 6 on an edge, 4 in a corner.
+    assert out.variance[2, 2] == pytest.approx(0.01, rel=1e-6)
+    assert out.variance[0, 2] == pytest.approx(0.09 / 6, rel=1e-6)
+    assert out.variance[0, 0] == pytest.approx(0.09 / 4, rel=1e-6)
+
+
+def test_mean_matches_the_naive_reference_with_unequal_variances_and_holes():
+    rng = np.random.default_rng(7)
+    r = rng.uniform(1.0, 4.0, (9, 11))
+    var = rng.uniform(1e-4, 4e-2, (9, 11))
+    r[rng.random((9, 11)) < 0.25] = np.nan
+    r[4, :] = np.nan  # a whole invalid row
+    r[0:3, 0:3] = np.nan
+    r[1, 1] = 3.0  # a valid pixel ringed by invalid ones: nothing to average with
+    out = smooth_range_map(result(r, var), "mean")
+    ref_r, ref_v = naive(r.astype(np.float32), np.where(np.isfinite(r), var, np.nan).astype(np.float32), "mean")
+    np.testing.assert_allclose(out.range, ref_r, rtol=1e-6, equal_nan=True)
+    np.testing.assert_allclose(out.variance, ref_v, rtol=1e-5, equal_nan=True)
+    assert out.range[1, 1] == 3.0 and out.variance[1, 1] == pytest.approx(var[1, 1], rel=1e-6)
+
+
+def test_median_matches_the_naive_reference_and_keeps_the_variance():
+    rng = np.random.default_rng(8)
+    r = rng.uniform(1.0, 4.0, (8, 7))
+    var = rng.uniform(1e-4, 4e-2, (8, 7))
+    r[rng.random((8, 7)) < 0.3] = np.nan
+    out = smooth_range_map(result(r, var), "median")
+    ref_r, ref_v = naive(r.astype(np.float32), np.where(np.isfinite(r), var, np.nan).astype(np.float32), "median")
+    np.testing.assert_allclose(out.range, ref_r, rtol=1e-6, equal_nan=True)
+    np.testing.assert_allclose(out.variance, ref_v, rtol=1e-6, equal_nan=True)
+
+
+@pytest.mark.parametrize("kind", ["mean", "median"])
+def test_invalid_pixels_stay_invalid_with_their_reasons(kind):
+    r = np.full((5, 5), 2.0)
+    reasons = np.zeros((5, 5), np.uint8)
+    r[2, 2] = np.nan
+    reasons[2, 2] = Reason.SATURATED
+    r[0, 4] = np.nan
+    reasons[0, 4] = Reason.PATH_OUT_OF_BOUNDS
+    r[3, 1] = 1e6  # a wild but valid value: it may move its neighbours, never fill holes
+    before = result(r, np.full((5, 5), 0.01), reasons)
+    out = smooth_range_map(before, kind)
+    assert np.isnan(out.range[2, 2]) and np.isnan(out.variance[2, 2])
+    assert np.isnan(out.range[0, 4]) and np.isnan(out.variance[0, 4])
+    np.testing.assert_array_equal(out.reasons, reasons)
+    assert np.isfinite(out.range).sum() == 23 and np.isfinite(out.variance).sum() == 23
+    assert out.reasons is not before.reasons  # the published reasons are not shared with the input
+    # The input is left as it was.
+    assert np.isnan(before.range[2, 2]) and before.range[3, 1] == np.float32(1e6)
+
+
+def test_a_hole_next_to_a_pixel_does_not_count_in_its_mean():
+    r = np.array([[1.0, np.nan, 3.0]])
+    var = np.array([[0.04, 9.0, 0.16]])
+    out = smooth_range_map(result(r, var), "mean")
+    assert out.range[0, 0] == pytest.approx(1.0) and out.range[0, 2] == pytest.approx(3.0)
+    assert out.variance[0, 0] == pytest.approx(0.04) and np.isnan(out.range[0, 1])
+
+
+def test_two_pixels_average_and_their_variance_is_the_variance_of_the_mean():
+    r = np.array([[1.0, 3.0]])
+    var = np.array([[0.04, 0.16]])
+    out = smooth_range_map(result(r, var), "mean")
+    np.testing.assert_allclose(out.range, [[2.0, 2.0]])
+    np.testing.assert_allclose(out.variance, [[(0.04 + 0.16) / 4] * 2], rtol=1e-6)
+
+
+def test_outputs_are_float32_and_unknown_kinds_are_refused():
+    out = smooth_range_map(result(np.ones((3, 3)), np.ones((3, 3))), "mean")
+    assert out.range.dtype == np.float32 and out.variance.dtype == np.float32 and out.reasons.dtype == np.uint8
+    with pytest.raises(UserInputError, match="smoothing must be 'mean' or 'median', got 'gaussian'"):
+        smooth_range_map(result(np.ones((3, 3)), np.ones((3, 3))), "gaussian")
