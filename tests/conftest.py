@@ -5,11 +5,12 @@ import time
 
 import pytest
 
-# Worker threads of the thread pool that a server's event loop keeps for sync handlers
-# (anyio names them so). A module-scoped server starts them on demand and keeps them idle for
-# a while after a request, so a single test cannot be blamed for them; they must be gone once
-# the module's server has stopped, which the module-scoped check below verifies.
-POOL_WORKERS = ("AnyIO worker thread",)
+# Worker threads of the thread pools that a server's event loop keeps: anyio's for sync handlers,
+# asyncio's default executor for asyncio.to_thread (parsing uploads, encoding the page's view).
+# A module-scoped server starts them on demand and keeps them idle for a while after a request,
+# so a single test cannot be blamed for them; they must be gone once the module's server has
+# stopped, which the module-scoped check below verifies.
+POOL_WORKERS = ("AnyIO worker thread", "asyncio_")
 
 
 def _leaked(before: set[threading.Thread], ignore: tuple[str, ...], timeout_s: float) -> list[threading.Thread]:

@@ -26,6 +26,7 @@ from uwcam.api.security import required_token
 from uwcam.config import ApiConfig, CameraConfig, DaemonConfig, DeviceConfig
 from uwcam.fileio import UserInputError
 
+COOKIE = "uwcam_session_8080"  # uwcam_session_<api.port> (cookies ignore ports): the configured port, 8080
 TOKEN = "s3cret-Tok3n"
 SESSION_PATH = "/api/v1/session"
 SAFE = {"GET", "HEAD", "OPTIONS"}
@@ -35,7 +36,6 @@ WRONG = [
     f"Bearer {TOKEN[:-1]}",  # a prefix of the token
     f"Bearer {TOKEN}x",  # the token and more
     f"Bearer {TOKEN.upper()}",
-    f"Bearer  {TOKEN}",
     TOKEN,  # no scheme
     f"Basic {TOKEN}",
     f"Token {TOKEN}",
@@ -157,7 +157,7 @@ def test_reading_stays_open(server):
 def sign_in(s: Server) -> tuple[str, str]:
     r = s.http.post(SESSION_PATH, json={"token": TOKEN})
     assert r.status_code == 200, r.text
-    cookie = r.cookies.get("uwcam_session")
+    cookie = r.cookies.get(COOKIE)
     set_cookie = r.headers["set-cookie"].lower()
     assert cookie and "httponly" in set_cookie and "samesite=strict" in set_cookie and "path=/" in set_cookie
     assert "secure" not in set_cookie  # plain http here: a Secure cookie would never come back
@@ -173,34 +173,34 @@ def test_browser_session_with_csrf_header_is_accepted_and_without_it_refused(ser
     for secret in (cookie, csrf):  # at least 32 random bytes each, URL-safe base64
         assert len(secret) >= 43 and re.fullmatch(r"[A-Za-z0-9_-]+", secret)
     for method, path in routes(server):
-        ok = request(server, method, path, headers={"Cookie": f"uwcam_session={cookie}", "X-CSRF-Token": csrf})
+        ok = request(server, method, path, headers={"Cookie": f"{COOKIE}={cookie}", "X-CSRF-Token": csrf})
         assert ok.status_code not in (401, 403), (method, path, ok.status_code, ok.text)
-        for headers in ({"Cookie": f"uwcam_session={cookie}"},  # no CSRF header
-                        {"Cookie": f"uwcam_session={cookie}", "X-CSRF-Token": ""},
-                        {"Cookie": f"uwcam_session={cookie}", "X-CSRF-Token": csrf[:-1]},
-                        {"Cookie": f"uwcam_session={cookie}", "X-CSRF-Token": other_csrf},  # another session's
+        for headers in ({"Cookie": f"{COOKIE}={cookie}"},  # no CSRF header
+                        {"Cookie": f"{COOKIE}={cookie}", "X-CSRF-Token": ""},
+                        {"Cookie": f"{COOKIE}={cookie}", "X-CSRF-Token": csrf[:-1]},
+                        {"Cookie": f"{COOKIE}={cookie}", "X-CSRF-Token": other_csrf},  # another session's
                         {"X-CSRF-Token": csrf},  # no cookie
-                        {"Cookie": f"uwcam_session={csrf}", "X-CSRF-Token": cookie},  # swapped
-                        {"Cookie": "uwcam_session=forged", "X-CSRF-Token": csrf}):
+                        {"Cookie": f"{COOKIE}={csrf}", "X-CSRF-Token": cookie},  # swapped
+                        {"Cookie": f"{COOKIE}=forged", "X-CSRF-Token": csrf}):
             r = request(server, method, path, headers=headers)
             assert r.status_code == 401, (method, path, headers, r.status_code)
 
 
 def test_signing_out_ends_the_session_and_wrong_tokens_get_none(server):
     cookie, csrf = sign_in(server)
-    headers = {"Cookie": f"uwcam_session={cookie}", "X-CSRF-Token": csrf}
-    assert server.http.get(SESSION_PATH, headers={"Cookie": f"uwcam_session={cookie}"}).json() == \
-        {"token_required": True, "signed_in": True}
-    assert server.http.get(SESSION_PATH).json() == {"token_required": True, "signed_in": False}
+    headers = {"Cookie": f"{COOKIE}={cookie}", "X-CSRF-Token": csrf}
+    assert server.http.get(SESSION_PATH, headers={"Cookie": f"{COOKIE}={cookie}"}).json() == \
+        {"token_required": True, "signed_in": True, "csrf_token": csrf}
+    assert server.http.get(SESSION_PATH).json() == {"token_required": True, "signed_in": False, "csrf_token": None}
     assert server.http.put("/api/v1/lamp", json={}, headers=headers).status_code == 200
-    out = server.http.delete(SESSION_PATH, headers={"Cookie": f"uwcam_session={cookie}"})
+    out = server.http.delete(SESSION_PATH, headers={"Cookie": f"{COOKIE}={cookie}"})
     assert out.status_code == 200 and out.json() == {"signed_in": False}
     server.http.cookies.clear()
     assert server.http.put("/api/v1/lamp", json={}, headers=headers).status_code == 401
-    assert server.http.get(SESSION_PATH, headers={"Cookie": f"uwcam_session={cookie}"}).json()["signed_in"] is False
+    assert server.http.get(SESSION_PATH, headers={"Cookie": f"{COOKIE}={cookie}"}).json()["signed_in"] is False
     for token in ("wrong", "", TOKEN[:-1], TOKEN + " ", f"Bearer {TOKEN}"):
         r = server.http.post(SESSION_PATH, json={"token": token})
-        assert r.status_code == 401 and "uwcam_session" not in r.cookies, token
+        assert r.status_code == 401 and COOKIE not in r.cookies, token
     assert server.http.post(SESSION_PATH, json={}).status_code == 422
     assert server.http.post(SESSION_PATH, json={"token": "x" * 4096}).status_code == 401  # long, but wrong
     assert server.http.post(SESSION_PATH, json={"token": "x" * 4097}).status_code == 422  # too long to consider
@@ -213,7 +213,7 @@ def test_foreign_pages_may_not_change_state_even_with_credentials(server):
     for method, path in routes(server) + [("POST", SESSION_PATH), ("DELETE", SESSION_PATH)]:
         body = {"token": TOKEN} if path == SESSION_PATH else {}
         for origin in ("http://evil.example", "null", f"http://127.0.0.1:{server.port + 1}", f"https://127.0.0.1:{server.port}x"):
-            for creds in ({"Authorization": f"Bearer {TOKEN}"}, {"Cookie": f"uwcam_session={cookie}", "X-CSRF-Token": csrf}):
+            for creds in ({"Authorization": f"Bearer {TOKEN}"}, {"Cookie": f"{COOKIE}={cookie}", "X-CSRF-Token": csrf}):
                 r = request(server, method, path, json=body, headers={"Origin": origin, **creds})
                 assert r.status_code == 403, (method, path, origin, r.status_code)
                 assert "may not change this daemon's state" in r.json()["detail"]
@@ -256,7 +256,7 @@ def test_configured_host_names_and_open_loopback_daemon():
         # No token on loopback: state changes need no credentials, but foreign pages are still refused.
         assert s.http.put("/api/v1/lamp", json={"on": True}).status_code == 200
         assert s.http.put("/api/v1/lamp", json={}, headers={"Origin": "http://evil.example"}).status_code == 403
-        assert s.http.get(SESSION_PATH).json() == {"token_required": False, "signed_in": True}
+        assert s.http.get(SESSION_PATH).json() == {"token_required": False, "signed_in": True, "csrf_token": None}
 
 
 def test_a_token_is_required_beyond_loopback(monkeypatch):
@@ -291,10 +291,10 @@ def test_the_oldest_browser_session_is_forgotten_beyond_256(server):
     for _ in range(254):  # 256 sessions open now: all valid
         sign_in(server)
     for cookie, csrf in ((first, first_csrf), (second, second_csrf)):
-        assert server.http.put("/api/v1/lamp", json={}, headers={"Cookie": f"uwcam_session={cookie}",
+        assert server.http.put("/api/v1/lamp", json={}, headers={"Cookie": f"{COOKIE}={cookie}",
                                                                  "X-CSRF-Token": csrf}).status_code == 200
     sign_in(server)  # the 257th pushes out the oldest
-    assert server.http.put("/api/v1/lamp", json={}, headers={"Cookie": f"uwcam_session={first}",
+    assert server.http.put("/api/v1/lamp", json={}, headers={"Cookie": f"{COOKIE}={first}",
                                                              "X-CSRF-Token": first_csrf}).status_code == 401
-    assert server.http.put("/api/v1/lamp", json={}, headers={"Cookie": f"uwcam_session={second}",
+    assert server.http.put("/api/v1/lamp", json={}, headers={"Cookie": f"{COOKIE}={second}",
                                                              "X-CSRF-Token": second_csrf}).status_code == 200

@@ -171,7 +171,8 @@ def test_the_driver_counts_bad_lines_as_garbage_over_a_real_pty():
     """The whole read path on a pseudo-terminal: bad lines never become readings."""
     master, slave = os.openpty()
     tty.setraw(slave)
-    rf = RecordingRangefinder(os.ttyname(slave), device_speed_of_sound=1500.0, speed_of_sound=1435.0, stale_after_s=60.0)
+    rf = RecordingRangefinder(os.ttyname(slave), device_speed_of_sound=1500.0, speed_of_sound=1435.0, stale_after_s=60.0,
+                              lost_after_s=120.0)
     scale = 1435.0 / 1500.0
     try:
         rf.start()
