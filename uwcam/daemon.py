@@ -43,7 +43,8 @@ physics does not depend on the pixel count, and start-up stays short."""
 
 def simulated_calibration(rig: SimulatedRig) -> CalibrationProfile:
     """Calibrate in the rig's simulated water: grey plate with black patch at 1 m and 2 m, with
-    the rig's lamp; the profile's intrinsics are the rig camera's."""
+    the rig's lamp, four frames at each distance as a crew would take (their differences give the
+    temporal noise, so the reported σ is honest); the profile's intrinsics are the rig camera's."""
     from uwcam.simulation import Lamp, water_preset
     from uwcam.simulation.camera import CameraModel
     from uwcam.simulation.tank import calibrate_in_simulation
@@ -52,7 +53,7 @@ def simulated_calibration(rig: SimulatedRig) -> CalibrationProfile:
     w, h = rig.size
     factor = max(1, -(-w // CALIBRATION_WIDTH))
     profile = calibrate_in_simulation(water, Lamp(position=tuple(rig.lamp_offset)), (max(w // factor, 2), max(h // factor, 2)),
-                                      CameraModel(bits=rig.bits), seed_base=11)
+                                      CameraModel(bits=rig.bits), seed_base=11, frames_per_distance=4)
     intr = rig.world.intrinsics
     return profile.model_copy(update={"intrinsics": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy}})
 
