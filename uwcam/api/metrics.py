@@ -131,10 +131,12 @@ class Metrics:
     def __init__(self, daemon: Daemon, app_state) -> None:
         self.daemon = daemon
         self.registry = CollectorRegistry(auto_describe=True)
-        self.registry.register(DaemonCollector(daemon, app_state))
-        ProcessCollector(registry=self.registry)
+        # Registered (so read at a scrape) before the daemon's counters: a frame published during
+        # the scrape then never makes the histogram count more frames than frames processed.
         self.latency = Histogram("uwcam_frame_latency_seconds", "Capture to publication of each processed frame, s.",
                                  buckets=LATENCY_BUCKETS_S, registry=self.registry)
+        self.registry.register(DaemonCollector(daemon, app_state))
+        ProcessCollector(registry=self.registry)
         daemon.pipeline.subscribe(self.observe)
 
     def observe(self, published: Published) -> None:  # in the frame loop's thread: one increment
