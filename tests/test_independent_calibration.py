@@ -1,4 +1,4 @@
-"""Calibration against closed forms (DESIGN.md §4), textbook least squares and a naive renderer.
+"""Calibration against closed forms (docs/physics.md §4), textbook least squares and a naive renderer.
 
 Expected values come from numpy's lstsq/polyfit, the two-distance formulas written out here, and
 frames rendered pixel by pixel with non-square pixels, an off-centre principal point and a lamp
@@ -91,7 +91,7 @@ def test_two_distance_calibration_is_the_closed_form():
     ln_e = np.log(g[:, None]) + LOG_K[None, :] - C[None, :] * d[:, None]
     fit = fit_attenuation_differences(ln_e, d, reference=1)
     e1, e2 = np.exp(ln_e[0]), np.exp(ln_e[1])
-    v = np.log((e1[1] / e2[1]) / (e1 / e2)) / (d[0] - d[1])  # DESIGN.md §4 with i = ref
+    v = np.log((e1[1] / e2[1]) / (e1 / e2)) / (d[0] - d[1])  # docs/physics.md §4 with i = ref
     u = (e1 / e1[1]) * np.exp(v * d[0])  # E_k1/E_ref1 · exp(V·d_T1): exp(b_k)
     np.testing.assert_allclose(fit.attenuation_difference, C - C[1], atol=1e-12)
     np.testing.assert_allclose(fit.attenuation_difference, v, atol=1e-12)

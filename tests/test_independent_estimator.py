@@ -1,6 +1,6 @@
 """The frame estimator against closed forms written out here, not against uwcam's own helpers.
 
-Every expected value below is computed in this file from DESIGN.md's formulas with plain numpy:
+Every expected value below is computed in this file from docs/physics.md's formulas with plain numpy:
 the camera noise model σ² = read² + gain·E + step²/12, the two-channel transform and its
 variance, and the weighted least-squares fusion solved by ``numpy.linalg.lstsq`` (a different
 algorithm from the one under test). Nothing is taken from ``uwcam.optics``.

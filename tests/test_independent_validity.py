@@ -1,4 +1,4 @@
-"""Reasons for every combination of channel states, against the rule of DESIGN.md §7 written out.
+"""Reasons for every combination of channel states, against the rule of docs/physics.md §7 written out.
 
 Three channels, each usable, below the noise floor, saturated or backscatter only: all 64
 combinations, through the pure ``pixel_reasons`` and through the estimator's compiled kernels

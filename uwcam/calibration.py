@@ -1,4 +1,4 @@
-"""In-situ calibration from a target imaged at known distances (DESIGN.md §4).
+"""In-situ calibration from a target imaged at known distances (docs/physics.md §4).
 
 The fitting functions are pure and work on per-image region statistics; :func:`calibrate`
 measures those statistics on frames and assembles a :class:`CalibrationProfile`.
@@ -299,7 +299,7 @@ def fit_attenuation_differences(
     log_signal: (n, N) mean of ln E_k over the target in each image; path_lengths: (n,)
     mean d_T over the same pixels, metres; log_variance: (n, N) variance of each
     log_signal entry, if known (independent between channels and distances). Two distances
-    use the closed form of DESIGN.md §4, more use generalised least squares on
+    use the closed form of docs/physics.md §4, more use generalised least squares on
     ln(E_k/E_ref) = b_k − V_k·d_T for all channels jointly: the ratios of one distance share the
     reference channel's noise, so they are correlated, and the joint fit gives the covariance of
     every V and b with every other (``covariance``). With spare degrees of freedom it is scaled by
@@ -348,7 +348,7 @@ def fit_attenuation_differences(
     cov = 0.5 * (cov + cov.T)
     v, b = np.zeros(n_ch), np.zeros(n_ch)
     if n_img == 2:
-        # Closed form (DESIGN.md §4): V = ln((E_ref1/E_ref2)/(E_k1/E_k2)) / (d1 − d2),
+        # Closed form (docs/physics.md §4): V = ln((E_ref1/E_ref2)/(E_k1/E_k2)) / (d1 − d2),
         # b = ln(E_k1/E_ref1) + V·d1. Identical to the fit, stated as the design states it.
         v = ((ln_e[0, reference] - ln_e[1, reference]) - (ln_e[0] - ln_e[1])) / (d[0] - d[1])
         b = (ln_e[0] - ln_e[0, reference]) + v * d[0]

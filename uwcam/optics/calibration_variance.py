@@ -1,6 +1,6 @@
 """How the calibration's own uncertainty reaches every pixel's range.
 
-The fused path length of DESIGN.md §5 is d_T = −Σ w_k (c_k − c̄)(y_k − ȳ) / S with
+The fused path length of docs/physics.md §5 is d_T = −Σ w_k (c_k − c̄)(y_k − ȳ) / S with
 y_k = ln E_k − b_k and S = Σ w_k (c_k − c̄)². Its sensitivity to the calibration is
 
     ∂d_T/∂b_k = h_k,   ∂d_T/∂V_k = −d_T·h_k,   h_k = w_k (c_k − c̄) / S
