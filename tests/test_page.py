@@ -4,6 +4,7 @@ prefix as BlueOS does."""
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import shutil
@@ -602,3 +603,22 @@ def test_tank_calibration_guided_from_the_page(browser):
             assert page.errors == [], page.errors
         finally:
             page.close()
+
+
+def test_sigma_colour_scale_follows_the_bulk_of_the_pixels_not_the_worst_one(server, browser):
+    page = open_page(browser, server.url + "/", server.url)
+    try:
+        page.check("#show-sigma")
+        start = displayed(page)
+        assert wait_for(lambda: displayed(page) > start + 25, 30.0), "the page painted no frames"
+        shown = float(page.inner_text("#bar-max"))
+        variance = np.load(io.BytesIO(server.http.get("/api/v1/snapshot/variance").content))
+        sigma = np.sqrt(variance[np.isfinite(variance)])
+        bulk, worst = np.percentile(sigma, 98), sigma.max()
+        # The scale's top is the 98th percentile of σ (smoothed over frames, on the stream's
+        # half-resolution σ, shown to the millimetre), far below the noisiest pixel's σ.
+        assert worst > 2 * bulk, "the scene has no outlying σ: this test could not tell max from percentile"
+        assert 0.6 * bulk - 0.001 <= shown <= 1.5 * bulk + 0.001, (shown, bulk, worst)
+        assert page.errors == []
+    finally:
+        page.close()

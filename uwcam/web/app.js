@@ -202,15 +202,23 @@ function drawRange(frame) {
     }
     const out = new Uint32Array(sigmaImage.data.buffer);
     const lo = limits.min * 1000, scale = 255 / Math.max((limits.max - limits.min) * 1000, 1e-6);
-    let top = 0;
+    // The next frame's scale: the 98th percentile of σ, so that a few wild pixels (edges, the
+    // image border) do not squeeze every other pixel into the first colour.
+    const sample = new Float32Array(Math.ceil(s.data.length / 5));
+    let n = 0;
     for (let i = 0; i < s.data.length; i++) {
       const v = float16(s.data[i]);
       if (Number.isNaN(v)) { out[i] = reasonTable[1]; continue; }
-      if (v > top) top = v;
+      if (i % 5 === 0) sample[n++] = v;
       let t = ((v - lo) * scale) | 0;
       out[i] = table[t < 0 ? 0 : t > 255 ? 255 : t];
     }
-    state.sigmaLimits = { min: 0, max: Math.max(top / 1000, 0.001) };
+    if (n >= 20) {
+      const sorted = sample.subarray(0, n).sort();
+      const top = Math.max(sorted[Math.floor(0.98 * (n - 1))] / 1000, 0.001);
+      const a = state.sigmaLimits;
+      state.sigmaLimits = { min: 0, max: a ? a.max + 0.3 * (top - a.max) : top };
+    }
     sigmaCanvas.getContext("2d").putImageData(sigmaImage, 0, 0);
     ctx.imageSmoothingEnabled = false;
     ctx.drawImage(sigmaCanvas, 0, 0, r.width, r.height);
