@@ -74,3 +74,18 @@ def test_normals_of_a_tilted_plane_with_non_square_pixels():
     assert np.median(n[ok] @ expected) > 0.97  # 2 % range noise: the window averages it out
     with pytest.raises(ValueError, match="odd"):
         normals_from_range(rng, intr, window=4)
+
+
+def test_normals_next_to_a_large_hole_are_finite_or_nan_never_infinite():
+    """A masked block (no range) larger than the window: OpenCV's running box sums leave a
+    residue of ~1e-16 where a window holds no pixel; it must not become an infinite point."""
+    from uwcam.optics.geometry import Intrinsics
+    from uwcam.optics.orientation import normals_from_range
+
+    h, w = 60, 80
+    r = np.full((h, w), 2.0) + np.linspace(0, 0.3, w)[None, :]
+    r[10:40, 20:60] = np.nan
+    with np.errstate(all="raise"):
+        n = normals_from_range(r, Intrinsics(70.0, 70.0, w / 2, h / 2))
+    assert not np.isinf(n).any()
+    assert np.all(np.isnan(n[10:40, 20:60])) and np.isfinite(n[45:55, 10:70]).all()

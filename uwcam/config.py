@@ -135,6 +135,10 @@ class ProcessingConfig(Strict):
     from the lamp-lit frames that follow; 0: never."""
     reflectance: ReflectanceConfig | None = None
     """Correct for the surface's hue with the rangefinder; None: assume the calibration target's hue."""
+    vehicle_mask: Annotated[list[Box], Field(max_length=64)] = []
+    """Regions (x, y, width, height in pixels) where the vehicle itself is in view: the patch's
+    bracket, skids, a manipulator. They get no range (reason 6, "vehicle"), so that the page's
+    minimum range, MAVLink obstacles and point clouds never take the vehicle for an obstacle."""
 
     @model_validator(mode="after")
     def _bounds(self) -> "ProcessingConfig":

@@ -70,6 +70,22 @@ def simulated_patch(rig: SimulatedRig) -> PatchConfig:
     return PatchConfig(region=(int(x + inset), int(y + inset), int(w - 2 * inset), int(h - 2 * inset)), path_length_m=path)
 
 
+def simulated_vehicle_mask(rig: SimulatedRig) -> list[tuple[int, int, int, int]]:
+    """The bracket carrying the calibration patch and its marker plate (scenes seabed-patch and
+    survey), as one box with a margin for the blur of its edges in the water."""
+    from uwcam.simulation.scene import (MARKER_CENTRE_M, MARKER_SIDE_M, PATCH_CENTRE_M, PATCH_DISTANCE_M,
+                                        PATCH_SIZE_M)
+
+    marker_half, patch_half = 0.75 * MARKER_SIDE_M, PATCH_SIZE_M / 2  # the marker plate has a quiet zone
+    x0 = min(MARKER_CENTRE_M[0] - marker_half, PATCH_CENTRE_M[0] - patch_half)
+    x1 = max(MARKER_CENTRE_M[0] + marker_half, PATCH_CENTRE_M[0] + patch_half)
+    y0 = min(MARKER_CENTRE_M[1] - marker_half, PATCH_CENTRE_M[1] - patch_half)
+    y1 = max(MARKER_CENTRE_M[1] + marker_half, PATCH_CENTRE_M[1] + patch_half)
+    x, y, w, h = project_plate_box(((x0 + x1) / 2, (y0 + y1) / 2), (x1 - x0, y1 - y0), PATCH_DISTANCE_M, rig.world.intrinsics)
+    margin = max(2, round(0.01 * rig.size[0]))
+    return [(max(x - margin, 0), max(y - margin, 0), w + 2 * margin, h + 2 * margin)]
+
+
 def check_devices(config: DaemonConfig) -> dict[str, dict]:
     """Validate what a configuration asks of the drivers, touching no device: each driver exists
     in the registry and its options fit the driver's ``Options``. Returns the validated options by kind; UserInputError
@@ -166,6 +182,8 @@ class Daemon:
             processing = cfg.processing
             if processing.patch is None and self.rig is not None and self.rig.scene in PATCH_SCENES:
                 processing = processing.model_copy(update={"patch": simulated_patch(self.rig)})
+                if not processing.vehicle_mask:
+                    processing = processing.model_copy(update={"vehicle_mask": simulated_vehicle_mask(self.rig)})
             if processing.reflectance is None and self.rig is not None and cfg.rangefinder is not None \
                     and cfg.rangefinder.driver in SIMULATED:
                 # The simulated sonar looks along the optical axis: its footprint is the image centre.

@@ -28,7 +28,7 @@ from uwcam.memory import release_free_memory
 from uwcam.optics.geometry import Intrinsics, path_length_from_camera_range, pixel_rays
 from uwcam.optics.reflectance import surface_log_constant
 from uwcam.profile import CalibrationProfile
-from uwcam.ranging import RangeEstimator, RangeResult, smooth_range_map
+from uwcam.ranging import RangeEstimator, RangeResult, mask_vehicle, smooth_range_map
 
 log = logging.getLogger(__name__)
 
@@ -434,6 +434,8 @@ class FramePipeline:
         if processing.smoothing != "none" and processing.smoothing_stage == "before":
             data = cv2.blur(data, (3, 3)) if processing.smoothing == "mean" else cv2.medianBlur(data, 3)
         result = estimator(data, background=ambient)
+        if processing.vehicle_mask:
+            mask_vehicle(result, processing.vehicle_mask)
         if processing.smoothing != "none" and processing.smoothing_stage == "after":
             result = smooth_range_map(result, processing.smoothing)
         now = time.monotonic_ns()

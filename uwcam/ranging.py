@@ -8,6 +8,7 @@ is installed, see :mod:`uwcam.optics.kernels`).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -20,7 +21,7 @@ from uwcam.optics import kernels
 from uwcam.optics.calibration_variance import calibration_path_variance
 from uwcam.optics.geometry import Intrinsics, camera_range_derivative, pixel_rays
 from uwcam.optics.noise import signal_variance
-from uwcam.optics.validity import ChannelState, channel_states
+from uwcam.optics.validity import ChannelState, Reason, channel_states
 from uwcam.profile import CalibrationProfile
 
 # A channel state the kernel neither uses nor counts (channels outside a chosen pair).
@@ -332,3 +333,16 @@ def smooth_range_map(result: RangeResult, kind: str = "mean") -> RangeResult:
         result.reasons.copy(),
         result.calibration_variance,
     )
+
+
+def mask_vehicle(result: RangeResult, boxes: Sequence[tuple[int, int, int, int]]) -> RangeResult:
+    """Mark pixels where the vehicle itself is in view (x, y, width, height boxes, clipped to the
+    image) as having no range, reason VEHICLE, in place; returns ``result``. Done before smoothing
+    and publication, so the vehicle's parts never feed a neighbour's range or an obstacle figure."""
+    h, w = result.range.shape
+    for x, y, bw, bh in boxes:
+        rows, cols = slice(min(y, h), min(y + bh, h)), slice(min(x, w), min(x + bw, w))
+        result.range[rows, cols] = np.nan
+        result.variance[rows, cols] = np.nan
+        result.reasons[rows, cols] = Reason.VEHICLE
+    return result

@@ -29,7 +29,7 @@ from uwcam import recording as rec
 from uwcam.fileio import UserInputError
 from uwcam.outputs.recorder import to_depth
 from uwcam.profile import CalibrationProfile, load_profile, profile_to_yaml
-from uwcam.ranging import RangeEstimator, smooth_range_map
+from uwcam.ranging import RangeEstimator, mask_vehicle, smooth_range_map
 
 END_OF_TIME = 2**63 - 1
 
@@ -183,6 +183,8 @@ def process_part(part: Part, profile_yaml: str | None = None, kernel_threads: in
 
                 data = cv2.blur(data, (3, 3)) if proc["smoothing"] == "mean" else cv2.medianBlur(data, 3)
             result = est(data, background=ambient if record["ambient_subtracted"] else None)
+            if proc.get("vehicle_mask"):  # recordings made before the mask existed have none
+                mask_vehicle(result, proc["vehicle_mask"])
             if proc["smoothing"] != "none" and proc["smoothing_stage"] == "after":
                 result = smooth_range_map(result, proc["smoothing"])
             shape = (profile.name, *raw.shape[:2])

@@ -118,11 +118,13 @@ def normals_from_range(range_m: ArrayLike, intrinsics: Intrinsics, window: int =
     valid = np.isfinite(r)
     points = np.where(valid, r, 0.0)[..., None] * pixel_rays(intrinsics, h, w)
     if window > 1:
-        weight = cv2.boxFilter(valid.astype(np.float64), -1, (window, window), normalize=False,
-                               borderType=cv2.BORDER_CONSTANT)
+        # Counts of valid pixels; OpenCV's running sums leave rounding residue (1e-16 where the
+        # window holds none), which would divide into an infinite point.
+        weight = np.rint(cv2.boxFilter(valid.astype(np.float64), -1, (window, window), normalize=False,
+                                       borderType=cv2.BORDER_CONSTANT))
         summed = cv2.boxFilter(points, -1, (window, window), normalize=False, borderType=cv2.BORDER_CONSTANT)
         with np.errstate(invalid="ignore", divide="ignore"):
-            points = summed / weight[..., None]
+            points = np.where(weight[..., None] > 0, summed / weight[..., None], np.nan)
     else:
         points[~valid] = np.nan
     k = max(window // 2, 1)

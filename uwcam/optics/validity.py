@@ -26,6 +26,8 @@ class Reason(IntEnum):
     BACKSCATTER_ONLY = 3
     TOO_FEW_CHANNELS = 4
     PATH_OUT_OF_BOUNDS = 5
+    VEHICLE = 6
+    """The vehicle itself is in view here (processing.vehicle_mask): not a surface to range."""
 
     @classmethod
     def describe(cls) -> dict[int, str]:

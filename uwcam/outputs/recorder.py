@@ -353,7 +353,8 @@ def ranging_record(p: Published, profile: CalibrationProfile, processing) -> dic
             "ambient_subtracted": p.ambient is not None,
             "processing": {"pair": processing.pair, "smoothing": processing.smoothing,
                            "smoothing_stage": processing.smoothing_stage,
-                           "path_length_bounds": list(processing.path_length_bounds)},
+                           "path_length_bounds": list(processing.path_length_bounds),
+                           "vehicle_mask": [list(box) for box in processing.vehicle_mask]},
             "depth": "metres along the optical axis (range along the pixel ray times u_z)"}
 
 

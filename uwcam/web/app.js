@@ -181,6 +181,8 @@ function currentLimits(frame) {
 }
 
 let rangeImage = null, sigmaCanvas = null, sigmaImage = null;
+const SIGMA_BINS = 10001;  // σ histogram: 1 mm bins to 10 m, the last holds everything above
+const sigmaBins = new Uint32Array(SIGMA_BINS);
 const reasonTable = new Uint32Array(64).map((_, code) => reasonColour(code));
 
 function drawRange(frame) {
@@ -203,19 +205,22 @@ function drawRange(frame) {
     const out = new Uint32Array(sigmaImage.data.buffer);
     const lo = limits.min * 1000, scale = 255 / Math.max((limits.max - limits.min) * 1000, 1e-6);
     // The next frame's scale: the 98th percentile of σ, so that a few wild pixels (edges, the
-    // image border) do not squeeze every other pixel into the first colour.
-    const sample = new Float32Array(Math.ceil(s.data.length / 5));
+    // image border) do not squeeze every other pixel into the first colour. Every pixel counts,
+    // in 1 mm bins (a sample on a fixed stride would keep hitting the same border columns).
+    const bins = sigmaBins.fill(0);
     let n = 0;
     for (let i = 0; i < s.data.length; i++) {
       const v = float16(s.data[i]);
       if (Number.isNaN(v)) { out[i] = reasonTable[1]; continue; }
-      if (i % 5 === 0) sample[n++] = v;
+      bins[v < SIGMA_BINS - 1 ? v | 0 : SIGMA_BINS - 1]++;
+      n++;
       let t = ((v - lo) * scale) | 0;
       out[i] = table[t < 0 ? 0 : t > 255 ? 255 : t];
     }
     if (n >= 20) {
-      const sorted = sample.subarray(0, n).sort();
-      const top = Math.max(sorted[Math.floor(0.98 * (n - 1))] / 1000, 0.001);
+      let b = 0;
+      for (let acc = bins[0]; acc < 0.98 * n; acc += bins[++b]);
+      const top = Math.max((b + 1) / 1000, 0.001);
       const a = state.sigmaLimits;
       state.sigmaLimits = { min: 0, max: a ? a.max + 0.3 * (top - a.max) : top };
     }

@@ -46,6 +46,7 @@ export const REASON_COLOURS = {
   3: [70, 110, 140],   // backscatter only (water): murky blue-grey
   4: [120, 60, 130],   // too few channels: purple
   5: [200, 60, 160],   // path out of bounds: magenta
+  6: [40, 40, 40],     // the vehicle in view (bracket, skids): near black
 };
 
 export function reasonColour(code) {
