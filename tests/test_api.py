@@ -4,15 +4,13 @@ import asyncio
 import io
 import json
 import struct
-import threading
 
 import cv2
-import httpx
 import numpy as np
 import pytest
-import uvicorn
 import websockets
 
+from tests.served import Server
 from tests.waiting import wait_for
 from uwcam.api import HEADER, create_app
 from uwcam.cli import main
@@ -33,31 +31,6 @@ def small_config(token=None) -> DaemonConfig:
                     "lamp_offset": [0.3, 0.0, 0.0], "material": "grey"},
         api=ApiConfig(token=token),
     )
-
-
-class Server:
-    def __init__(self, config: DaemonConfig) -> None:
-        self.app = create_app(config)
-        self.server = uvicorn.Server(uvicorn.Config(self.app, host="127.0.0.1", port=0, log_level="warning", lifespan="on",
-                                                    ws_per_message_deflate=False))
-        self.thread = threading.Thread(target=self.server.run, name="uvicorn-test")
-
-    def __enter__(self) -> "Server":
-        self.thread.start()
-        assert wait_for(lambda: self.server.started, 60.0), "server did not start"
-        self.port = self.server.servers[0].sockets[0].getsockname()[1]
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.http = httpx.Client(base_url=self.url, timeout=10.0)
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.http.close()
-        self.server.should_exit = True
-        self.thread.join(timeout=30.0)
-
-    @property
-    def daemon(self):
-        return self.app.state.daemon
 
 
 @pytest.fixture(scope="module")

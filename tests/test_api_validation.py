@@ -7,7 +7,8 @@ import json
 
 import pytest
 
-from tests.test_auth import TOKEN, Server, config
+from tests.served import Server
+from tests.test_auth import TOKEN, config
 from tests.waiting import wait_for
 
 AUTH = {"Authorization": f"Bearer {TOKEN}"}

@@ -10,17 +10,14 @@ from __future__ import annotations
 
 import asyncio
 import re
-import threading
 
 import httpx
 import pytest
-import uvicorn
 import websockets
 from fastapi.routing import APIRoute
 from starlette.routing import Mount
 
-from tests.waiting import wait_for
-from uwcam.api import create_app
+from tests.served import Server
 from uwcam.api.app import ROUTERS
 from uwcam.api.security import required_token
 from uwcam.config import ApiConfig, CameraConfig, DaemonConfig, DeviceConfig
@@ -49,28 +46,6 @@ def config(token: str | None, **api) -> DaemonConfig:
         simulation={"scene": "seabed", "distance": 2.0, "size": [64, 48], "water": "jerlov-IB"},
         api=ApiConfig(token=token, **api),
     )
-
-
-class Server:
-    """The application served by uvicorn in a thread, on an ephemeral port."""
-
-    def __init__(self, cfg: DaemonConfig) -> None:
-        self.app = create_app(cfg)
-        self.server = uvicorn.Server(uvicorn.Config(self.app, host="127.0.0.1", port=0, log_level="warning", lifespan="on"))
-        self.thread = threading.Thread(target=self.server.run, name="uvicorn-auth-test")
-
-    def __enter__(self) -> "Server":
-        self.thread.start()
-        assert wait_for(lambda: self.server.started, 60.0), "server did not start"
-        self.port = self.server.servers[0].sockets[0].getsockname()[1]
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.http = httpx.Client(base_url=self.url, timeout=10.0)
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.http.close()
-        self.server.should_exit = True
-        self.thread.join(timeout=30.0)
 
 
 @pytest.fixture(scope="module")

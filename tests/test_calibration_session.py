@@ -4,7 +4,7 @@ captures (SimulatedRig.place, as a crew moves the plate)."""
 
 import pytest
 
-from tests.test_api import Server
+from tests.served import Server
 from tests.waiting import wait_for
 from uwcam.config import ApiConfig, CameraConfig, DaemonConfig, DeviceConfig
 

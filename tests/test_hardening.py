@@ -14,7 +14,8 @@ import pytest
 import websockets
 import yaml
 
-from tests.test_api import Server, small_config
+from tests.served import Server
+from tests.test_api import small_config
 from tests.waiting import wait_for
 from uwcam.api.limits import DEFAULT_BODY_LIMIT
 from uwcam.api.profiles import MAX_PROFILE_BYTES

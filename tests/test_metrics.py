@@ -8,7 +8,8 @@ import pytest
 import websockets
 from prometheus_client.parser import text_string_to_metric_families
 
-from tests.test_api import Server, small_config
+from tests.served import Server
+from tests.test_api import small_config
 from tests.test_mavlink import Listener
 from tests.waiting import wait_for
 from uwcam.config import MavlinkConfig

@@ -20,7 +20,8 @@ import numpy as np
 import pytest
 import websockets.sync.client
 
-from tests.test_api import SERIAL, Server, small_config
+from tests.served import Server
+from tests.test_api import SERIAL, small_config
 from tests.waiting import wait_for
 from uwcam.drivers.sim import SimulatedCamera
 
@@ -238,8 +239,6 @@ def test_readout_agrees_with_the_range_snapshot_at_that_pixel(server, browser):
                 x, y = int(page.get_attribute("#readout", "data-x")), int(page.get_attribute("#readout", "data-y"))
                 snap = server.http.get("/api/v1/snapshot/range")
                 assert page.get_attribute("#readout", "data-frame") == snap.headers["X-Frame-Number"]
-                import io
-
                 truth = float(np.load(io.BytesIO(snap.content))[y, x])
                 if np.isfinite(truth):
                     shown = float(text.split(" m")[0])

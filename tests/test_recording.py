@@ -390,7 +390,7 @@ def test_killed_daemon_leaves_a_recording_that_is_repaired_and_read(tmp_path):
 
 
 def test_recordings_api_starts_stops_lists_and_downloads(tmp_path):
-    from tests.test_api import Server
+    from tests.served import Server
 
     cfg = recording_config(tmp_path)
     cfg.api.token = "s3cret"

@@ -25,7 +25,8 @@ import time
 import pytest
 import websockets
 
-from tests.test_api import Server, small_config
+from tests.served import Server
+from tests.test_api import small_config
 from tests.waiting import wait_for
 from uwcam.api import HEADER
 from uwcam.drivers.sim import SimulatedCamera
