@@ -621,3 +621,17 @@ def test_sigma_colour_scale_follows_the_bulk_of_the_pixels_not_the_worst_one(ser
         assert page.errors == []
     finally:
         page.close()
+
+
+def test_a_phone_wide_page_fits_the_screen_and_stacks_the_views(server, browser):
+    page = browser.new_page(viewport={"width": 400, "height": 860})
+    try:
+        page.goto(server.url + "/")
+        assert wait_for(lambda: displayed(page) > 3, 30.0), "the page painted no frames"
+        assert page.evaluate("document.documentElement.scrollWidth") <= 400  # no sideways scrolling
+        colour, rng = page.locator("#colour").bounding_box(), page.locator("#range").bounding_box()
+        assert rng["y"] >= colour["y"] + colour["height"] - 1 and rng["x"] + rng["width"] <= 400
+        digits = page.locator("#centre-range").bounding_box()
+        assert digits["height"] < 40, "the centre range wrapped onto two lines"
+    finally:
+        page.close()
