@@ -28,7 +28,7 @@ from uwcam.memory import release_free_memory
 from uwcam.optics.geometry import Intrinsics, path_length_from_camera_range, pixel_rays
 from uwcam.optics.reflectance import surface_log_constant
 from uwcam.profile import CalibrationProfile
-from uwcam.ranging import RangeEstimator, RangeResult, mask_vehicle, smooth_range_map
+from uwcam.ranging import RangeEstimator, RangeResult, range_frame
 
 log = logging.getLogger(__name__)
 
@@ -430,14 +430,8 @@ class FramePipeline:
             b = corrector.update(frame, attenuation, ambient)
             if b is not None and np.max(np.abs(b - estimator.log_constant)) > processing.reflectance.tolerance:
                 estimator.set_log_constants(b)
-        data = frame.data
-        if processing.smoothing != "none" and processing.smoothing_stage == "before":
-            data = cv2.blur(data, (3, 3)) if processing.smoothing == "mean" else cv2.medianBlur(data, 3)
-        result = estimator(data, background=ambient)
-        if processing.vehicle_mask:
-            mask_vehicle(result, processing.vehicle_mask)
-        if processing.smoothing != "none" and processing.smoothing_stage == "after":
-            result = smooth_range_map(result, processing.smoothing)
+        result = range_frame(estimator, frame.data, processing.smoothing, processing.smoothing_stage, ambient,
+                             processing.vehicle_mask)
         now = time.monotonic_ns()
         published = Published(self.processed + 1, frame, result, now, tuple(float(v) for v in attenuation),
                                tuple(float(v) for v in estimator.log_constant), ambient)

@@ -29,7 +29,7 @@ from uwcam import recording as rec
 from uwcam.fileio import UserInputError
 from uwcam.outputs.recorder import to_depth
 from uwcam.profile import CalibrationProfile, load_profile, profile_to_yaml
-from uwcam.ranging import RangeEstimator, mask_vehicle, smooth_range_map
+from uwcam.ranging import RangeEstimator, range_frame
 
 END_OF_TIME = 2**63 - 1
 
@@ -177,16 +177,9 @@ def process_part(part: Part, profile_yaml: str | None = None, kernel_threads: in
             v, b = _corrected(profile, was, record)
             est.set_attenuation_differences(v)
             est.set_log_constants(b)
-            data = raw
-            if proc["smoothing"] != "none" and proc["smoothing_stage"] == "before":
-                import cv2
-
-                data = cv2.blur(data, (3, 3)) if proc["smoothing"] == "mean" else cv2.medianBlur(data, 3)
-            result = est(data, background=ambient if record["ambient_subtracted"] else None)
-            if proc.get("vehicle_mask"):  # recordings made before the mask existed have none
-                mask_vehicle(result, proc["vehicle_mask"])
-            if proc["smoothing"] != "none" and proc["smoothing_stage"] == "after":
-                result = smooth_range_map(result, proc["smoothing"])
+            # Recordings made before the vehicle mask existed have none.
+            result = range_frame(est, raw, proc["smoothing"], proc["smoothing_stage"],
+                                 ambient if record["ambient_subtracted"] else None, proc.get("vehicle_mask") or ())
             shape = (profile.name, *raw.shape[:2])
             if shape not in factors:
                 factors[shape] = rec.depth_factor(profile, *raw.shape[:2])
