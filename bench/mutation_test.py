@@ -77,7 +77,9 @@ TARGETS: dict[str, Target] = {
     "optics.geometry": Target("uwcam/optics/geometry.py", "tests/test_independent_geometry.py"),
     "optics.validity": Target("uwcam/optics/validity.py", "tests/test_independent_validity.py tests/test_validity.py"),
     "ranging": Target("uwcam/ranging.py", "tests/test_independent_estimator.py tests/test_independent_geometry.py "
-                                          "tests/test_smoothing.py tests/test_independent_validity.py"),
+                                          "tests/test_smoothing.py tests/test_independent_validity.py "
+                                          "tests/test_estimator.py tests/test_statistics.py tests/test_calibration_statistics.py "
+                                          "tests/test_backscatter_terms.py"),
     "calibration": Target("uwcam/calibration.py", "tests/test_independent_calibration.py"),
     "api.security": Target("uwcam/api/security.py", "tests/test_auth.py", annotations_inert=False),
     "api.session": Target("uwcam/api/session.py", "tests/test_auth.py", annotations_inert=False),
