@@ -286,13 +286,24 @@ def covariance_profile(lamp=(0.3, 0.0, 0.0), shape=(120, 160)):
     return base, base.model_copy(update={"covariance": cov}), intr
 
 
-def test_ranging_adds_the_calibration_variance_and_smoothing_keeps_it():
+@pytest.mark.parametrize("lamp, near, far, intrinsics", [
+    ((0.3, 0.0, 0.0), 3.0, 9.0, None),
+    # A lamp close beside and above, surfaces near (its direction matters most there), non-square
+    # pixels and an off-centre principal point: the block centres' rays must be the right ones.
+    ((0.4, -0.35, 0.05), 1.0, 2.5, (150.0, 118.0, 71.3, 66.8)),
+])
+def test_ranging_adds_the_calibration_variance_and_smoothing_keeps_it(lamp, near, far, intrinsics):
+    from uwcam.optics import Intrinsics
     from uwcam.ranging import RangeEstimator, smooth_range_map
 
     shape = (120, 160)
-    base, with_cov, intr = covariance_profile(shape=shape)
+    base, with_cov, intr = covariance_profile(lamp=lamp, shape=shape)
+    if intrinsics is not None:
+        intr = Intrinsics(*intrinsics)
+        k = {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy}
+        base, with_cov = (p.model_copy(update={"intrinsics": k}) for p in (base, with_cov))
     yy, _ = np.mgrid[0 : shape[0], 0 : shape[1]]
-    path = 3.0 + 6.0 * yy / shape[0]
+    path = near + (far - near) * yy / shape[0]
     clean = 5e4 * np.exp(-np.array([0.46, 0.11, 0.06]) * path[..., None])
     frame = np.clip(np.rint(clean + np.sqrt(25 + 0.3 * clean) * np.random.default_rng(1).standard_normal(clean.shape)),
                     0, 65535).astype(np.uint16)
@@ -376,3 +387,18 @@ def test_black_patch_edges_do_not_leak_into_the_single_frame_noise_model():
         model = signal_variance(point.mean, p.array("read_noise"), p.array("shot_gain"), 0.0, p.array("fixed_pattern"))
         # Within 20 % everywhere (read noise is the least determined part, at the black patch): not 5×.
         np.testing.assert_allclose(model, read**2 + gain * point.mean, rtol=0.2)
+
+
+def test_calibration_variance_blocks_use_the_rays_through_their_centres():
+    """The calibration's share is evaluated on 8×8 block averages: at each block's centre pixel
+    position ((j + ½)·8 − ½, (i + ½)·8 − ½), whose ray is written out here from the pinhole."""
+    from uwcam.ranging import RangeEstimator
+
+    fx, fy, cx, cy = 150.0, 118.0, 71.3, 66.8
+    _, with_cov, _ = covariance_profile(lamp=(0.4, -0.35, 0.05))
+    profile = with_cov.model_copy(update={"intrinsics": {"fx": fx, "fy": fy, "cx": cx, "cy": cy}})
+    h, w, block = 120, 160, 8
+    rays = RangeEstimator(profile)._rays_for(h // block, w // block, h, w)
+    i, j = np.mgrid[0 : h // block, 0 : w // block]
+    u = np.stack([((j + 0.5) * block - 0.5 - cx) / fx, ((i + 0.5) * block - 0.5 - cy) / fy, np.ones(i.shape)], axis=-1)
+    np.testing.assert_allclose(rays, u / np.linalg.norm(u, axis=-1, keepdims=True), rtol=1e-12, atol=1e-12)

@@ -1,0 +1,94 @@
+"""The calibration's share of each pixel's variance at the edges of its use: with a background
+(backscatter) subtracted, next to pixels without a range, on frames narrower than a block, and
+for integer frames in which no code carries a signal. Expected values are written out here."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from tests.test_calibration_statistics import covariance_profile
+from tests.synthetic import make_profile
+from uwcam.optics.validity import Reason
+from uwcam.ranging import RangeEstimator
+
+C = np.array([0.46, 0.11, 0.06])
+READ2, GAIN = 25.0, 0.3  # covariance_profile's noise model: read 5 DN, 0.3 DN per electron
+
+
+def expected_calibration_variance(profile, signal, total, path):
+    """deriv² · hᵀ(Σbb − 2d·Σvb + d²·Σvv)h with h the fusion's sensitivity to each channel's ln E
+    (weights E²/σ², σ² from the total light), and ∂d_c/∂d_T for a lamp at S on the optical axis
+    ray of each pixel (here: the whole frame sees one path along the axis)."""
+    w = signal**2 / (READ2 + GAIN * total + 1 / 12)
+    cw = (w * C).sum(-1, keepdims=True) / w.sum(-1, keepdims=True)
+    h = w * (C - cw) / (w * (C - cw) ** 2).sum(-1, keepdims=True)
+    cvv, cvb, cbb = profile.covariance_blocks()
+    d = path[..., None, None]
+    hv = np.einsum("...k,...kl->...l", h, cbb - d * (cvb + cvb.T) + d**2 * cvv)
+    return (hv * h).sum(-1)
+
+
+def test_with_a_background_the_weights_come_from_the_total_light_and_the_signal_from_the_rest():
+    _, profile, _ = covariance_profile(lamp=(0.0, 0.0, 0.0))
+    est = RangeEstimator(profile)
+    path = np.full((48, 64), 4.0)
+    signal = 4e4 * np.exp(-C * path[..., None])
+    background = np.broadcast_to([300.0, 2000.0, 3500.0], signal.shape)
+    out = est((signal + background).astype(np.float32), background=background.astype(np.float32))
+    # Lamp at the camera: d_c = d_T / 2, so ∂d_c/∂d_T = ½ everywhere.
+    expected = 0.25 * expected_calibration_variance(profile, signal, signal + background, path)
+    np.testing.assert_allclose(out.calibration_variance, expected, rtol=1e-3)
+    without = est(signal.astype(np.float32)).calibration_variance
+    assert np.all(np.abs(without - out.calibration_variance) > 1e-3 * out.calibration_variance)
+
+
+def test_pixels_next_to_a_hole_keep_a_positive_calibration_share():
+    _, profile, _ = covariance_profile(lamp=(0.3, 0.0, 0.0))
+    path = np.full((64, 96), 3.0)
+    frame = 4e4 * np.exp(-C * path[..., None])
+    frame[16:40, 24:56] = 0.0  # a dark hole: no range there, no calibration share to interpolate
+    out = RangeEstimator(profile)(frame.astype(np.float32))
+    valid = out.reasons == Reason.VALID
+    assert valid.sum() > 0.7 * valid.size and np.all(out.reasons[20:36, 28:52] == Reason.BELOW_NOISE_FLOOR)
+    share = out.calibration_variance[valid]
+    far = out.calibration_variance[:8, :8].min()
+    assert np.all(share >= 0.5 * far), "pixels next to the hole got less than their share (or a negative one)"
+
+
+@pytest.mark.parametrize("shape", [(5, 6), (30, 4)])
+def test_frames_smaller_than_a_block_get_the_share_of_their_mean(shape):
+    _, profile, _ = covariance_profile(lamp=(0.0, 0.0, 0.0))
+    path = np.full(shape, 4.0)
+    signal = 4e4 * np.exp(-C * path[..., None])
+    out = RangeEstimator(profile)(signal.astype(np.float32))
+    expected = 0.25 * expected_calibration_variance(profile, signal, signal, path)
+    np.testing.assert_allclose(out.calibration_variance, expected, rtol=1e-3)
+
+
+def test_an_integer_frame_in_which_no_code_carries_signal_is_all_below_the_floor():
+    """Every uint8 code lies below a floor of 300 DN: the lookup table has no usable code."""
+    profile = make_profile(C, np.zeros(3), read_noise=2.0, shot_gain=0.1, noise_floor=300.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out = RangeEstimator(profile)(np.full((4, 5, 3), 200, np.uint8))
+    assert np.all(out.reasons == Reason.BELOW_NOISE_FLOOR) and np.all(np.isnan(out.range))
+
+
+def test_a_frame_lower_than_a_block_is_one_row_of_blocks():
+    """Six rows whose path differs a lot: the share of every row is that of the 6×8 block means."""
+    _, profile, _ = covariance_profile(lamp=(0.0, 0.0, 0.0))
+    h, w = 6, 40
+    path = np.repeat(np.linspace(2.0, 7.0, h)[:, None], w, axis=1)
+    signal = 4e4 * np.exp(-C * path[..., None])
+    out = RangeEstimator(profile)(signal.astype(np.float32))
+    means = signal.reshape(1, h, w // 8, 8, 3).mean(axis=(1, 3))  # (1, 5, 3) block means
+    weight = means**2 / (READ2 + GAIN * means + 1 / 12)
+    y = np.log(means)  # log constants 0
+    cw = (weight * C).sum(-1, keepdims=True) / weight.sum(-1, keepdims=True)
+    yw = (weight * y).sum(-1, keepdims=True) / weight.sum(-1, keepdims=True)
+    block_path = -(weight * (C - cw) * (y - yw)).sum(-1) / (weight * (C - cw) ** 2).sum(-1)
+    expected = 0.25 * expected_calibration_variance(profile, means, means, block_path)  # (1, 5)
+    np.testing.assert_allclose(out.calibration_variance, np.repeat(np.repeat(expected, h, 0), 8, 1), rtol=1e-3)
