@@ -36,6 +36,7 @@ from uwcam.optics.kernels import (
     LAMP_ON_AXIS_RAY,
     LAMP_PIXEL_RAYS,
 )
+from uwcam.parallel import parallel
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -98,6 +99,7 @@ def _fuse_row(pair, p_row, c, b, lo, hi, s_norm, out_range, out_var, out_reason)
         out_reason[j] = reason
 
 
+@parallel
 @njit(parallel=True, cache=True, nogil=True, error_model="numpy")
 def fuse_lookup(raw, table, c, b, geo, bounds, out_range, out_var, out_reason):
     """Range, variance and reason of every pixel of an integer frame; arguments as
@@ -114,6 +116,7 @@ def fuse_lookup(raw, table, c, b, geo, bounds, out_range, out_var, out_reason):
         _fuse_row(buf.view(np.float32), p_row, c, b, bounds[0], bounds[1], geo[4], out_range[i], out_var[i], out_reason[i])
 
 
+@parallel
 @njit(parallel=True, cache=True, nogil=True, error_model="numpy")
 def fuse_arrays(pairs, c, b, geo, bounds, out_range, out_var, out_reason):
     """As :func:`fuse_lookup` with pairs (H, W, N) given per pixel and channel: for float frames."""

@@ -18,7 +18,15 @@ except ImportError:  # pragma: no cover - exercised on platforms without numba w
 HAVE_NUMBA = _numba is not None
 
 if _numba is not None:
-    njit = _numba.njit
+    from uwcam.parallel import parallel
+
+    def njit(*args: Any, **kwargs: Any) -> Callable:
+        """numba.njit; a ``parallel=True`` kernel is also made safe to call from several threads
+        (see :mod:`uwcam.parallel`)."""
+        if kwargs.get("parallel"):
+            return lambda f: parallel(_numba.njit(*args, **kwargs)(f))
+        return _numba.njit(*args, **kwargs)
+
     prange = _numba.prange
 else:  # pragma: no cover
     def njit(*args: Any, **kwargs: Any) -> Callable:
