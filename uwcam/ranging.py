@@ -28,7 +28,7 @@ from uwcam.profile import CalibrationProfile
 # A channel state the kernel neither uses nor counts (channels outside a chosen pair).
 _IGNORED = 4
 # With a known background subtracted, a channel needs this many σ of signal to be used.
-BACKGROUND_SIGMAS = 3.0
+BACKGROUND_SIGMAS = kernels.BACKGROUND_SIGMAS
 # The calibration's share of the variance is smooth across the image: it is computed on blocks
 # of this many pixels a side and interpolated (bench/bench_fusion.py prints the error and cost).
 CALIBRATION_VARIANCE_BLOCK = 8
@@ -161,6 +161,18 @@ class RangeEstimator:
             y = np.where(ok, np.log(np.where(ok, e, 1.0)) - self.log_constant, 0.0)
         return y, weight, state.astype(np.uint8)
 
+    def _noise_terms(self) -> NDArray[np.float64]:
+        """(N, 8) per channel: dark, read², shot gain, fixed pattern, q²/12, floor, b, active, for
+        the compiled background kernel (b follows :meth:`set_log_constants`)."""
+        q = float(np.asarray(self.profile.quantisation_step, dtype=np.float64))
+        return np.stack([self.dark, self.read_noise**2, self.shot_gain, self.fixed_pattern,
+                         np.full(self.n_channels, q**2 / 12.0), self.floor, self.log_constant,
+                         self.active.astype(np.float64)], axis=1).astype(np.float64)
+
+    @property
+    def _open_water_levels(self) -> NDArray[np.float64]:
+        return np.full(self.n_channels, -np.inf) if self.backscatter is None else self.backscatter.astype(np.float64)
+
     def _lookup_tables(self, dtype: np.dtype) -> tuple[NDArray[np.uint64], float]:
         """Per-channel table over every code of an integer dtype: (N, L) pairs [ln E − offset, E²/σ²]
         (see :func:`uwcam.optics.kernels.pack_pairs`) and the offset. They do not depend on the log
@@ -217,6 +229,12 @@ class RangeEstimator:
             table, offset = self._lookup_tables(frame.dtype)
             b = tuple(float(v) for v in self.log_constant - offset)
             kernels.fuse_lookup(frame, table, self._c, b, *common)
+        elif background is not None and samples is None and kernels.fuse_background is not None and (
+                np.issubdtype(frame.dtype, np.integer) or np.issubdtype(frame.dtype, np.floating)):
+            # Compiled: the per-channel terms of channel_terms, computed row by row in the kernel.
+            bg = np.ascontiguousarray(np.broadcast_to(background, frame.shape), dtype=np.float32)
+            kernels.fuse_background(frame, bg, self._noise_terms(), self._open_water_levels, float(self.profile.saturation_level),
+                                    self._c, *common)
         elif np.issubdtype(frame.dtype, np.integer) or np.issubdtype(frame.dtype, np.floating):
             y, weight, state = self.channel_terms(frame, background, samples)  # y already has b subtracted
             pairs = kernels.pack_pairs(y, weight, state, ChannelState.SATURATED, ChannelState.BACKSCATTER_ONLY)

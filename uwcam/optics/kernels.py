@@ -56,6 +56,10 @@ _VALID, _R_BELOW, _R_SATURATED, _R_BACKSCATTER, _R_TOO_FEW, _R_BOUNDS = 0, 1, 2,
 FLAG_USABLE, FLAG_BACKSCATTER, FLAG_SATURATED = 1.0, 256.0, 65536.0
 MAX_CHANNELS = 255
 
+# A channel whose signal, once a known background is subtracted, is not this many standard
+# deviations of the total light's noise above zero carries no usable surface signal.
+BACKGROUND_SIGMAS = 3.0
+
 # Rows per block in the numpy path: bounds its temporaries (~20 float32 rows of the block).
 _NUMPY_BLOCK_ROWS = 32
 
@@ -184,3 +188,5 @@ BACKEND: str = "numba" if _compiled is not None else "numpy"
 
 fuse_lookup = _compiled.fuse_lookup if _compiled is not None else fuse_lookup_numpy
 fuse_arrays = _compiled.fuse_arrays if _compiled is not None else fuse_arrays_numpy
+fuse_background = _compiled.fuse_background if _compiled is not None else None
+"""Compiled per-channel terms and fusion for frames with a background; None on the numpy path."""

@@ -32,6 +32,9 @@ from uwcam.optics.kernels import (
     _R_SATURATED,
     _R_TOO_FEW,
     _VALID,
+    BACKGROUND_SIGMAS,
+    FLAG_BACKSCATTER,
+    FLAG_SATURATED,
     FLAG_USABLE,
     LAMP_ON_AXIS_RAY,
     LAMP_PIXEL_RAYS,
@@ -130,3 +133,55 @@ def fuse_arrays(pairs, c, b, geo, bounds, out_range, out_var, out_reason):
         p_row = np.empty(w, np.float32)
         _lamp_dot_row(i, geo, p_row)
         _fuse_row(buf.view(np.float32), p_row, c, b, bounds[0], bounds[1], geo[4], out_range[i], out_var[i], out_reason[i])
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _background_pair(raw, bg, k, noise, levels, sat):
+    """One channel's [y, w] pair (as two float32 in a uint64's place) for a raw value with a
+    background ``bg`` (DN) known not to come from the surface: the same arithmetic, in float64,
+    as RangeEstimator.channel_terms. noise[k] = (dark, read², shot gain, fixed pattern, q²/12, floor,
+    b, active); levels[k]: open-water level (−inf: none)."""
+    dark, read2, gain, fpn, q12, floor, b, active = (noise[k, 0], noise[k, 1], noise[k, 2], noise[k, 3],
+                                                       noise[k, 4], noise[k, 5], noise[k, 6], noise[k, 7])
+    e = raw - dark - bg
+    total = max(e + bg, 0.0)
+    var = read2 + gain * total + q12 + (fpn * total) * (fpn * total)
+    if not var > 0.0:
+        var = 1.0
+    flag = 0.0
+    usable = False
+    if active == 0.0:
+        flag = 0.0
+    elif raw >= sat:
+        flag = FLAG_SATURATED
+    elif not (e > floor) or not math.isfinite(e):
+        flag = 0.0
+    elif e <= levels[k]:
+        flag = FLAG_BACKSCATTER
+    elif e <= BACKGROUND_SIGMAS * math.sqrt(var):
+        flag = FLAG_BACKSCATTER
+    else:
+        usable = True
+    if usable:
+        return np.float32(math.log(e) - b), np.float32(e * e / var)
+    return np.float32(flag), np.float32(0.0)
+
+
+@parallel
+@njit(parallel=True, cache=True, nogil=True, error_model="numpy")
+def fuse_background(frame, background, noise, levels, sat, c, geo, bounds, out_range, out_var, out_reason):
+    """As :func:`fuse_arrays` for a frame (H, W, N) of any pixel type with a background (H, W, N)
+    float32 subtracted: the per-channel terms are computed here, row by row, instead of in numpy."""
+    h, w = out_range.shape
+    n = len(c)
+    zeros = np.zeros(n)
+    for i in prange(h):
+        buf = np.empty((n, 2 * w), np.float32)
+        for j in range(w):
+            for k in range(n):
+                y, wk = _background_pair(np.float64(frame[i, j, k]), np.float64(background[i, j, k]), k, noise, levels, sat)
+                buf[k, 2 * j] = y
+                buf[k, 2 * j + 1] = wk
+        p_row = np.empty(w, np.float32)
+        _lamp_dot_row(i, geo, p_row)
+        _fuse_row(buf, p_row, c, zeros, bounds[0], bounds[1], geo[4], out_range[i], out_var[i], out_reason[i])
