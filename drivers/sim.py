@@ -108,6 +108,15 @@ class SimulatedRig:
             self._world = None
             self._cache = {}
 
+    def show(self, scene: str) -> None:
+        """Point the camera at another scene (e.g. "open-water": nothing in range), keeping the
+        exposure, as turning a real vehicle does; the next frame shows it."""
+        with self._lock:
+            self._exposure = None if self._world is None else self._world.exposure
+            self.scene = scene
+            self._world = None
+            self._cache = {}
+
     @property
     def moving(self) -> bool:
         return self.scene == "survey"

@@ -120,6 +120,14 @@ class ReflectanceConfig(Strict):
     """Change in log constants (natural-log units) below which the estimator is not rebuilt."""
 
 
+class BackscatterConfig(Strict):
+    """Backscatter subtracted in the frame loop (docs/physics.md §5), from the calibration's
+    black-patch measurements and an open-water frame when one was taken."""
+
+    iterations: Annotated[Whole, Field(ge=1, le=5)] = 2
+    """Range → backscatter at that range → subtract → range, this many times per frame."""
+
+
 class ProcessingConfig(Strict):
     pair: tuple[str, str] | None = None
     """Two channel names for single-pair ranging; None fuses all channels."""
@@ -135,6 +143,8 @@ class ProcessingConfig(Strict):
     from the lamp-lit frames that follow; 0: never."""
     reflectance: ReflectanceConfig | None = None
     """Correct for the surface's hue with the rangefinder; None: assume the calibration target's hue."""
+    backscatter: BackscatterConfig | None = None
+    """Subtract the water's own light (backscatter) in the loop; None: do not."""
     vehicle_mask: Annotated[list[Box], Field(max_length=64)] = []
     """Regions (x, y, width, height in pixels) where the vehicle itself is in view: the patch's
     bracket, skids, a manipulator. They get no range (reason 6, "vehicle"), so that the page's

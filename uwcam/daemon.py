@@ -8,6 +8,7 @@ a calibration profile the daemon calibrates in that simulated water at start (gr
 from __future__ import annotations
 
 import glob
+import json
 import logging
 import os
 import threading
@@ -21,7 +22,7 @@ from uwcam.config import DaemonConfig, PatchConfig, ProcessingConfig, Reflectanc
 from uwcam.drivers import registry
 from uwcam.drivers.base import CameraSettings, ConfigurationError, DriverError
 from uwcam.drivers.supervisor import SupervisedCamera
-from uwcam.fileio import UserInputError
+from uwcam.fileio import UserInputError, atomic_write
 from uwcam.outputs.mavlink import MavlinkOutput
 from uwcam.pipeline import FramePipeline
 from uwcam.profile import CalibrationProfile, load_profile, save_profile
@@ -194,6 +195,8 @@ class Daemon:
             self.camera = SupervisedCamera(driver, settings, queue_size=cfg.camera.queue_size, watchdog_s=cfg.camera.watchdog_s)
             # Built before the camera starts: the pipeline readies its kernels now, not on the first frames.
             self.pipeline = self._restored_pipeline(profile, processing, saved)
+            self._restore_open_water()
+            self.pipeline.on_open_water = self._keep_open_water
             if self.lamp is not None:
                 self._start_lamp(saved)
             self.camera.start()
@@ -236,6 +239,53 @@ class Daemon:
             return FramePipeline(self.camera, profile, processing, self.rangefinder, self.lamp)
         except ValueError as exc:  # settings that do not fit the profile (a pair of unknown channels)
             raise UserInputError(f"processing: {exc}") from None
+
+    OPEN_WATER_FILE = "open-water.npz"
+    """Beside the state file: the open-water frame backscatter compensation uses, with its origin."""
+
+    def _restore_open_water(self) -> None:
+        if self.state_dir is None:
+            return
+        path = os.path.join(self.state_dir, self.OPEN_WATER_FILE)
+        if not os.path.exists(path):
+            return
+        try:
+            with np.load(path, allow_pickle=False) as saved:
+                frame, info = saved["frame"], json.loads(str(saved["info"]))
+            if frame.ndim != 3 or frame.shape[-1] != len(self.pipeline.profile.channels) or not np.all(np.isfinite(frame)):
+                raise ValueError(f"a {frame.shape} frame does not fit the {len(self.pipeline.profile.channels)}-channel profile")
+        except (OSError, ValueError, KeyError) as exc:
+            log.warning("ignoring the saved open-water frame %s: %s", path, exc)
+            return
+        info.pop("monotonic", None)
+        self.pipeline.set_open_water(frame, {**info, "restored_from": path})
+        log.info("restored the open-water frame taken %s", info.get("source", "earlier"))
+
+    def _keep_open_water(self, frame: np.ndarray, info: dict) -> None:
+        """Called by the frame loop when it has taken an open-water frame: written atomically in
+        a thread of its own (megabytes; the loop must not wait for the disk)."""
+        if self.state_dir is None:
+            return
+        path = os.path.join(self.state_dir, self.OPEN_WATER_FILE)
+        kept = {k: v for k, v in info.items() if k != "monotonic"}
+
+        def write() -> None:
+            try:
+                with atomic_write(path) as f:
+                    np.savez(f, frame=frame, info=np.array(json.dumps(kept)))
+            except OSError as exc:
+                log.error("could not keep the open-water frame in %s: %s", path, exc)
+
+        threading.Thread(target=write, name="open-water-writer", daemon=True).start()
+
+    def forget_open_water(self) -> None:
+        """Stop using the open-water frame and remove its file."""
+        self.pipeline.set_open_water(None)
+        if self.state_dir is not None:
+            try:
+                os.unlink(os.path.join(self.state_dir, self.OPEN_WATER_FILE))
+            except FileNotFoundError:
+                pass
 
     def save_state(self) -> None:
         """Persist live settings, the active profile and the lamp's intensity (if there is a state
@@ -368,6 +418,7 @@ class Daemon:
             "latency_ms": stats.get("latency_ms"),
             "calibration": {"name": self.profile_name, "created": self._created(), "tracking": stats.get("patch"),
                             "reflectance": stats.get("reflectance")},
+            "backscatter": stats.get("backscatter"),
             "rangefinder": rf,
             "lamp": lamp,
             "recording": self.recorder.status() if self.recorder else None,

@@ -224,6 +224,17 @@ class FramePipeline:
         self._lit_while_dark = 0
         self._ticket = 0
         self._lamp_commander = LampCommander(lamp) if lamp is not None else None
+        # Backscatter compensation (processing thread only, apart from the open-water frame).
+        self._compensator = None
+        self.open_water: NDArray[np.float32] | None = None
+        """A lamp-lit frame (H, W, N) of open water, raw DN less ambient light, or None."""
+        self.open_water_info: dict = {}
+        self.on_open_water: Callable[[NDArray[np.float32], dict], None] | None = None
+        """Called (from the processing thread) when an open-water frame has been taken."""
+        self._open_water_request: dict | None = None
+        self._open_water_capture: str | None = None
+        """How the last open-water request ended (None: none made)."""
+        self._compensation_ms: collections.deque[float] = collections.deque(maxlen=100)
         self._lock = threading.Lock()  # guards configuration swaps and the published result
         self._apply(processing, profile)
         self.previous_processing: ProcessingConfig | None = None
@@ -245,6 +256,9 @@ class FramePipeline:
             raise ValueError("reflectance correction needs a rangefinder in the configuration")
         if processing.lamp_off_interval and self.lamp is None:
             raise ValueError("lamp_off_interval needs a lamp in the configuration")
+        if processing.backscatter is not None and profile.backscatter is None:
+            raise ValueError(f"backscatter compensation needs backscatter measurements in the calibration profile "
+                             f"'{profile.name}' (calibrate with a rig that has a black patch, e.g. grey-plate)")
         if processing.pair is not None and any(p not in profile.channel_names for p in processing.pair):
             raise ValueError(f"pair {list(processing.pair)} is not two of the profile's channels {profile.channel_names}")
         estimator = RangeEstimator(profile, pair=processing.pair, path_length_bounds=processing.path_length_bounds)
@@ -264,6 +278,7 @@ class FramePipeline:
             self.estimator = estimator
             self.tracker = tracker
             self.corrector = corrector
+            self._compensator = None  # rebuilt for the new profile and settings on the next frame
 
     def check(self, processing: ProcessingConfig | None = None, profile: CalibrationProfile | None = None) -> None:
         """ValueError if these settings or this profile would not work; changes nothing."""
@@ -287,6 +302,97 @@ class FramePipeline:
         """Range with another calibration from the next frame on; ValueError, changing nothing,
         if it does not fit the processing settings."""
         self._apply(self.processing, profile)
+
+    def set_open_water(self, frame: NDArray | None, info: dict | None = None) -> None:
+        """Use this open-water frame (H, W, N; raw DN less ambient light) for backscatter from the
+        next frame on; None forgets it (the profile's black-patch measurements are used alone)."""
+        with self._lock:
+            self.open_water = None if frame is None else np.asarray(frame, np.float32)
+            self.open_water_info = dict(info or {})
+            self._compensator = None
+
+    def request_open_water(self, frames: int = 4, timeout_s: float = 10.0) -> threading.Event:
+        """Average the next ``frames`` lamp-lit frames into the open-water frame; the event is set
+        when it is in use. Frames later than ``timeout_s`` from now are not taken (the request
+        lapses, and :meth:`backscatter_status` says so). The view must show only water meanwhile."""
+        done = threading.Event()
+        with self._lock:
+            self._open_water_request = {"frames": int(frames), "sum": None, "count": 0, "done": done,
+                                        "deadline": time.monotonic() + timeout_s, "timeout_s": timeout_s}
+            self._open_water_capture = "capturing"
+        return done
+
+    def _pending_open_water(self) -> dict | None:
+        """The open-water request still pending, dropping one past its deadline."""
+        with self._lock:
+            request = self._open_water_request
+            if request is not None and time.monotonic() > request["deadline"]:
+                self._open_water_request = None
+                self._open_water_capture = (f"lapsed: {request['count']} of {request['frames']} lamp-lit frames came "
+                                            f"within {request['timeout_s']:g} s (is the camera streaming and the lamp on?)")
+                return None
+            return request
+
+    def _take_open_water(self, frame: Frame, ambient: NDArray | None, source: str) -> None:
+        """Accumulate ``frame`` for a pending open-water request."""
+        request = self._pending_open_water()
+        if request is None:
+            return
+        light = frame.data.astype(np.float32) if ambient is None else frame.data.astype(np.float32) - ambient
+        request["sum"] = light if request["sum"] is None else request["sum"] + light
+        request["count"] += 1
+        total, count = request["sum"], request["count"]
+        if count < request["frames"]:
+            return
+        info = {"source": source, "frames": count, "wall_time": frame.wall_time, "monotonic": time.monotonic(),
+                "shape": list(frame.data.shape)}
+        mean = total / count
+        self.set_open_water(mean, info)
+        with self._lock:
+            self._open_water_request = None
+            self._open_water_capture = "done"
+        request["done"].set()
+        if self.on_open_water is not None:
+            self.on_open_water(mean, info)
+
+    def _compensation(self, frame: Frame, processing: ProcessingConfig, profile: CalibrationProfile,
+                      estimator: RangeEstimator, ambient: NDArray | None):
+        """The refine step of range_frame that subtracts backscatter, or None."""
+        config = processing.backscatter
+        if config is None:
+            return None
+        from uwcam.backscatter_loop import BackscatterCompensator
+
+        shape = frame.data.shape[:2]
+        comp = self._compensator
+        if comp is None or comp.shape != shape:
+            water = self.open_water if self.open_water is not None and self.open_water.shape == frame.data.shape else None
+            comp = BackscatterCompensator(profile, shape, config.iterations, water, pair=processing.pair,
+                                          path_length_bounds=processing.path_length_bounds)
+            self._compensator = comp
+
+        def refine(data: NDArray, first: RangeResult, samples: NDArray | None) -> RangeResult:
+            started = time.perf_counter()
+            # The loop's attenuation differences (centred: only differences matter) and log constants.
+            result = comp.refine(data, first, estimator.attenuation, estimator.log_constant, ambient, samples)
+            self._compensation_ms.append((time.perf_counter() - started) * 1e3)
+            return result
+
+        return refine
+
+    def backscatter_status(self) -> dict:
+        """Whether backscatter is compensated, with what, and its cost per frame."""
+        config = self.processing.backscatter
+        info = dict(self.open_water_info)
+        if "monotonic" in info:
+            info["age_s"] = round(time.monotonic() - info.pop("monotonic"), 1)
+        ms = list(self._compensation_ms)
+        return {"enabled": config is not None, "iterations": None if config is None else config.iterations,
+                "open_water": info or None,
+                "model": None if config is None else ("open-water frame and black-patch measurements" if self.open_water is not None
+                                                       else "black-patch measurements of the calibration"),
+                "ms_per_frame": round(float(np.median(ms)), 2) if ms else None,
+                "capture": "capturing" if self._pending_open_water() is not None else self._open_water_capture}
 
     def subscribe(self, callback: Callable[[Published], None]) -> None:
         """``callback(published)`` from the processing thread; it must not block."""
@@ -430,8 +536,11 @@ class FramePipeline:
             b = corrector.update(frame, attenuation, ambient)
             if b is not None and np.max(np.abs(b - estimator.log_constant)) > processing.reflectance.tolerance:
                 estimator.set_log_constants(b)
+        if frame.lamp_on is not False:
+            self._take_open_water(frame, ambient, "taken on request")
+        refine = self._compensation(frame, processing, profile, estimator, ambient)
         result = range_frame(estimator, frame.data, processing.smoothing, processing.smoothing_stage, ambient,
-                             processing.vehicle_mask)
+                             processing.vehicle_mask, refine)
         now = time.monotonic_ns()
         published = Published(self.processed + 1, frame, result, now, tuple(float(v) for v in attenuation),
                                tuple(float(v) for v in estimator.log_constant), ambient)
@@ -465,4 +574,5 @@ class FramePipeline:
             "patch": None if self.tracker is None else self.tracker.status(),
             "reflectance": None if self.corrector is None else self.corrector.status(),
             "ambient_frames": self._ambient_frames,
+            "backscatter": self.backscatter_status(),
         }

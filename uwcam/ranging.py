@@ -9,7 +9,7 @@ is installed, see :mod:`uwcam.optics.kernels`).
 from __future__ import annotations
 
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -199,12 +199,15 @@ class RangeEstimator:
         """Compile the kernels (or load them from numba's on-disk cache) and build the lookup tables
         for frames of these pixel types, and for frames with a background when ``background``, so
         that the first real frame is as fast as the rest. Call it before the frame loop starts."""
+        zeros = np.zeros((2, 8, self.n_channels), np.float32)
         for dtype in dtypes:
             frame = np.zeros((2, 8, self.n_channels), dtype)
             self(frame)
             self(frame[:, :, ::-1])  # a strided view (e.g. BGR reordered) is compiled apart
+            if background:  # the background kernel is compiled for each pixel type and layout
+                self(frame, background=zeros)
+                self(frame[:, :, ::-1], background=zeros)
         if background:
-            zeros = np.zeros((2, 8, self.n_channels), np.float32)
             self(zeros, background=zeros)
 
     def __call__(self, frame: NDArray, out: RangeResult | None = None, background: NDArray | None = None,
@@ -366,16 +369,19 @@ def smooth_frame(frame: NDArray, kind: str, saturation_level: float) -> tuple[ND
 
 
 def range_frame(estimator: RangeEstimator, frame: NDArray, smoothing: str = "none", stage: str = "after",
-                background: NDArray | None = None, vehicle_mask: Sequence[tuple[int, int, int, int]] = ()) -> RangeResult:
+                background: NDArray | None = None, vehicle_mask: Sequence[tuple[int, int, int, int]] = (),
+                refine: Callable[[NDArray, RangeResult, NDArray | None], RangeResult] | None = None) -> RangeResult:
     """Range one frame as the daemon's processing settings say: 3×3 smoothing of the image
-    (stage "before", :func:`smooth_frame`), the transform, the vehicle mask (:func:`mask_vehicle`),
+    (stage "before", :func:`smooth_frame`), the transform, ``refine(frame, result, samples)`` (e.g.
+    backscatter compensation, on the frame as ranged), the vehicle mask (:func:`mask_vehicle`),
     then 3×3 smoothing of the range map (stage "after", :func:`smooth_range_map`: the masked vehicle
     lends no range to its neighbours). The frame loop and ``uwcam reprocess`` both range through here."""
+    samples = None
     if smoothing != "none" and stage == "before":
-        smoothed, samples = smooth_frame(frame, smoothing, estimator.profile.saturation_level)
-        result = estimator(smoothed, background=background, samples=samples)
-    else:
-        result = estimator(frame, background=background)
+        frame, samples = smooth_frame(frame, smoothing, estimator.profile.saturation_level)
+    result = estimator(frame, background=background, samples=samples)
+    if refine is not None:
+        result = refine(frame, result, samples)
     if vehicle_mask:
         mask_vehicle(result, vehicle_mask)
     if smoothing != "none" and stage == "after":

@@ -1,0 +1,93 @@
+"""Backscatter compensation in the frame loop, within the frame's time budget.
+
+The model is that of :mod:`uwcam.backscatter` (the profile's black-patch measurements and, when
+one was taken, a lamp-lit frame of open water). Every frame: range without compensation (or
+with the ambient light only), then ``iterations`` times: the backscatter in front of each
+pixel's surface at that range → subtracted → range again. A channel whose signal left after the
+subtraction is not 3σ of the total light's noise above zero carries only water: reason 3,
+"backscatter only", and no range (docs/physics.md §5).
+
+The backscatter varies slowly across the image, so it is evaluated on blocks of
+:data:`BLOCK` pixels (each at the median depth of its pixels, open water where none has a
+range) and interpolated; the subtraction and transform run in the compiled kernel.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from uwcam.backscatter import BackscatterModel
+from uwcam.optics.geometry import pixel_rays
+from uwcam.profile import CalibrationProfile
+from uwcam.ranging import RangeEstimator, RangeResult
+
+BLOCK = 8
+"""Side of the blocks (pixels) the backscatter is evaluated on."""
+
+
+class BackscatterCompensator:
+    """Subtracts modelled backscatter from frames of one size, for one profile."""
+
+    def __init__(self, profile: CalibrationProfile, shape: tuple[int, int], iterations: int = 2,
+                 open_water: NDArray | None = None, **estimator_options) -> None:
+        """shape: (H, W) of the frames; open_water: a lamp-lit frame (H, W, N) of open water, raw.
+        Raises UserInputError if the profile has no backscatter measurements."""
+        self.model = BackscatterModel.from_profile(profile, open_water, shape)
+        self.iterations = iterations
+        self.shape = shape
+        self.open_water = open_water is not None
+        h, w = shape
+        gh, gw = max(h // BLOCK, 1), max(w // BLOCK, 1)
+        self._grid = (gh, gw)
+        # Block centres in full-resolution pixel coordinates, and the cosine of their ray's angle
+        # to the axis (the model's depth is along the optical axis).
+        rows = ((np.arange(gh) + 0.5) * (h / gh) - 0.5)[:, None] * np.ones((1, gw))
+        cols = np.ones((gh, 1)) * ((np.arange(gw) + 0.5) * (w / gw) - 0.5)[None, :]
+        self._rows, self._cols = rows, cols
+        intr = profile.camera_intrinsics()
+        self._axis_cos = np.ones((h, w), np.float32) if intr is None else pixel_rays(intr, h, w)[..., 2].astype(np.float32)
+        pattern = self.model.pattern
+        if pattern.shape[0] > 1:  # from an open-water frame: sampled at the block centres
+            ri = np.clip(np.rint(rows).astype(int), 0, h - 1)
+            ci = np.clip(np.rint(cols).astype(int), 0, w - 1)
+            pattern = pattern[ri, ci]
+        self._pattern = pattern
+        # Once backscatter is subtracted, the floor that stays is the black patch's own noise
+        # (3σ), not backscatter + 3σ (as uwcam.backscatter.compensated_range).
+        sigma = profile.backscatter.noise_sigma if profile.backscatter else {}
+        channels = [c.model_copy(update={"noise_floor": 3.0 * sigma.get(c.name, 0.0)}) for c in profile.channels]
+        self.estimator = RangeEstimator(profile.model_copy(update={"channels": channels}), **estimator_options)
+
+    def level(self, range_m: NDArray) -> NDArray[np.float32]:
+        """Backscatter (DN, dark-corrected) in front of surfaces at camera range ``range_m`` (H, W)
+        metres (NaN: no surface, open water) → (H, W, N) float32."""
+        h, w = self.shape
+        gh, gw = self._grid
+        depth = np.asarray(range_m, np.float32) * self._axis_cos
+        blocks = depth[: gh * (h // gh), : gw * (w // gw)].reshape(gh, h // gh, gw, w // gw)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # blocks without any range: open water
+            block_depth = np.nanmedian(blocks, axis=(1, 3))
+        fraction = self.model.fraction(block_depth, self._rows, self._cols)
+        small = (self._pattern * fraction).astype(np.float32)
+        return cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR).reshape(h, w, -1)
+
+    def refine(self, frame: NDArray, first: RangeResult, attenuation_differences: NDArray, log_constants: NDArray,
+               ambient: NDArray | None = None, samples: NDArray | None = None) -> RangeResult:
+        """Range ``frame`` with backscatter subtracted, starting from ``first`` (its range without
+        compensation), ranging with these attenuation differences and log constants (the loop's);
+        samples: as for :class:`RangeEstimator` (a frame smoothed before the transform)."""
+        est = self.estimator
+        est.set_attenuation_differences(attenuation_differences)
+        est.set_log_constants(log_constants)
+        result = first
+        for _ in range(self.iterations):
+            background = self.level(result.range)
+            if ambient is not None:
+                background += ambient
+            result = est(frame, background=background, samples=samples)
+        return result
