@@ -9,6 +9,7 @@ path). Devices read the shared :class:`uwcam.drivers.sim.SimulatedRig`.
 
 from __future__ import annotations
 
+import math
 import os
 import select
 import tempfile
@@ -222,6 +223,8 @@ class SimulatedAsciiRanger(PtyDevice):
         if self.silent:
             return
         reported = self.rig.true_range() * self.scale
+        if not math.isfinite(reported):  # nothing in range (open water): a sounder sends no depth
+            return
         if self.style == "mm":
             self.send(f"R{int(round(reported * 1000)):04d}\r".encode())
         else:
@@ -261,8 +264,10 @@ class SimulatedPing1D(PtyDevice):
                 self.ping_number += 1
                 echo_time = 2 * self.rig.true_range() / self.water_speed_of_sound
                 reply = PingMessage(definitions.PING1D_DISTANCE)
-                reply.distance = int(round(echo_time * self.speed_of_sound / 2 * 1000))
-                reply.confidence = self.confidence
+                # Nothing in range (open water): no echo, which a Ping1D reports as confidence 0.
+                found = math.isfinite(echo_time)
+                reply.distance = int(round(echo_time * self.speed_of_sound / 2 * 1000)) if found else 0
+                reply.confidence = self.confidence if found else 0
                 reply.transmit_duration = 100
                 reply.ping_number = self.ping_number
                 reply.scan_start = 0

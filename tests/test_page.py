@@ -635,3 +635,31 @@ def test_a_phone_wide_page_fits_the_screen_and_stacks_the_views(server, browser)
         assert digits["height"] < 40, "the centre range wrapped onto two lines"
     finally:
         page.close()
+
+
+def test_backscatter_compensation_and_its_open_water_frame_from_the_page(server, browser):
+    page = open_page(browser, server.url + "/", server.url)
+    rig = server.daemon.rig
+    try:
+        assert wait_for(lambda: page.locator("#backscatter-on").is_enabled() and displayed(page) > 0, 15.0)
+        page.check("#backscatter-on")
+        assert wait_for(lambda: server.daemon.pipeline.processing.backscatter is not None, 10.0)
+        assert wait_for(lambda: "no open-water frame" in page.inner_text("#backscatter-state"), 10.0)
+        rig.show("open-water")  # the vehicle turned to open water
+        n = server.daemon.pipeline.processed
+        assert wait_for(lambda: server.daemon.pipeline.processed > n + 2, 20.0)
+        page.click("#open-water")
+        assert wait_for(lambda: server.daemon.pipeline.open_water is not None, 20.0)
+        assert wait_for(lambda: "open-water frame taken on request" in page.inner_text("#backscatter-state"), 10.0)
+        water = server.daemon.pipeline.open_water
+        assert water.shape == server.daemon.pipeline.latest.frame.data.shape
+        page.click("#open-water-forget")
+        assert wait_for(lambda: server.daemon.pipeline.open_water is None, 10.0)
+        page.uncheck("#backscatter-on")
+        assert wait_for(lambda: server.daemon.pipeline.processing.backscatter is None, 10.0)
+        assert page.errors == []
+    finally:
+        rig.show("seabed-patch")
+        server.daemon.forget_open_water()
+        server.http.patch("/api/v1/config", json={"backscatter": None})
+        page.close()

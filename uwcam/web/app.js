@@ -526,6 +526,18 @@ function renderHealth(s) {
   }
   $("figures").replaceChildren(...figures);
   renderRecording(s.recording);
+  renderBackscatter(s.backscatter);
+}
+
+function renderBackscatter(b) {
+  const el = $("backscatter-state");
+  if (!b) { el.textContent = ""; return; }
+  const water = b.open_water;
+  const from = water ? `open-water frame ${water.source}${water.age_s !== undefined ? ` ${ago(water.age_s)} ago` : ""}`
+    : "no open-water frame: the calibration's black-patch measurements alone";
+  const parts = [b.enabled ? `on · ${b.iterations} iterations${b.ms_per_frame !== null ? ` · ${b.ms_per_frame} ms per frame` : ""}` : "off", from];
+  if (b.capture && b.capture !== "done") parts.push(b.capture);
+  el.textContent = parts.join(" · ");
 }
 
 function renderRecording(r) {
@@ -575,6 +587,7 @@ async function loadConfig() {
   $("smoothing").value = c.smoothing;
   $("smoothing-stage").value = c.smoothing_stage;
   $("lamp-off-interval").value = c.lamp_off_interval;
+  $("backscatter-on").checked = c.backscatter !== null && c.backscatter !== undefined;
   if (c.patch?.path_length_m) $("patch-path").value = c.patch.path_length_m;
 }
 
@@ -630,6 +643,13 @@ function wireControls() {
     const n = Number($("lamp-off-interval").value);
     if (!Number.isInteger(n) || n < 0) { message("the lamp-off interval is a whole number of frames, 0 or more"); return; }
     patchConfig("Lamp-off interval", { lamp_off_interval: n });
+  };
+  $("backscatter-on").onchange = () => patchConfig("Backscatter", { backscatter: $("backscatter-on").checked ? { iterations: 2 } : null });
+  $("open-water").onclick = async () => {
+    if (await change("Take open-water frame", "api/v1/backscatter/open-water", { method: "POST", body: { frames: 4 } })) pollStatusNow();
+  };
+  $("open-water-forget").onclick = async () => {
+    if (await change("Forget open-water frame", "api/v1/backscatter/open-water", { method: "DELETE" })) pollStatusNow();
   };
   $("profile-upload").onclick = async () => {
     const file = $("profile-file").files[0];
