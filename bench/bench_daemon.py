@@ -13,7 +13,10 @@ then over --seconds more: processed fps, drops (queue overflow or skipped for a 
 latency from capture to WebSocket send (from the stream's own header), daemon CPU and resident
 memory (RSS, sampled every second; the peak is printed).
 
-    python3 bench/bench_daemon.py [--seconds 30] [--fps 60] [--rigs replay,sim] [--frames 8] [--startup-seconds 20]
+    python3 bench/bench_daemon.py [--seconds 30] [--fps 60] [--rigs replay,sim,sim-backscatter] [--frames 8] [--startup-seconds 20]
+
+sim-backscatter: the embedded default with backscatter compensation switched on through the API
+as soon as the daemon answers; with "sim" in the same run, the ratio of the two is printed.
 """
 
 from __future__ import annotations
@@ -87,8 +90,9 @@ def write_replay_rig(folder: str, size: tuple[int, int], fps: float, frames: int
     return cfg
 
 
-def measure(args: list[str], port: int, seconds: float) -> dict:
-    """Start `uwcam run ARGS`, stream from it from the first moment it answers, and measure it."""
+def measure(args: list[str], port: int, seconds: float, settings: dict | None = None) -> dict:
+    """Start `uwcam run ARGS`, stream from it from the first moment it answers, and measure it;
+    ``settings``: processing settings PATCHed as soon as it answers (before the start-up window ends)."""
     t0 = time.monotonic()
     proc = subprocess.Popen([sys.executable, "-m", "uwcam", "run", *args, "--port", str(port)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
@@ -107,6 +111,10 @@ def measure(args: list[str], port: int, seconds: float) -> dict:
                     raise RuntimeError(f"uwcam run did not start: {proc.stderr.read().decode()[-2000:]}") from None
                 time.sleep(0.05)
         t_status = time.monotonic() - t0
+        if settings:
+            request = urllib.request.Request(f"http://127.0.0.1:{port}/api/v1/config", data=json.dumps(settings).encode(),
+                                             method="PATCH", headers={"Content-Type": "application/json"})
+            urllib.request.urlopen(request, timeout=30).read()
         rss, frames_at = [], {}
 
         async def client() -> tuple[list, float | None, float]:
@@ -198,10 +206,20 @@ def main() -> None:
             cfg = write_replay_rig(tmp, (w, h), args.fps, args.frames, port)
             r = measure(["--config", cfg], port, args.seconds)
         report(f"replay {w}x{h}x3 uint16 at {args.fps:g} fps (a real-rig configuration)", r, args.seconds, args.fps)
+    sim = {}
     if "sim" in rigs:
         port = free_port()
-        r = measure([], port, args.seconds)
+        sim["off"] = r = measure([], port, args.seconds)
         report("embedded default (simulated camera, lamp and Ping1D)", r, args.seconds, None)
+    if "sim-backscatter" in rigs:
+        port = free_port()
+        sim["on"] = r = measure([], port, args.seconds, settings={"backscatter": {"iterations": 2}})
+        report("embedded default with backscatter compensation (2 iterations)", r, args.seconds, None)
+    if len(sim) == 2:
+        print(f"backscatter compensation on / off, same machine, one after the other: processed fps "
+              f"{sim['on']['fps'] / sim['off']['fps']:.2f}×, CPU per frame "
+              f"{sim['on']['cpu_ms_per_frame'] / sim['off']['cpu_ms_per_frame']:.2f}×, drops {sim['off']['dropped']} → "
+              f"{sim['on']['dropped']}, p99 {sim['off']['p99_ms']:.0f} → {sim['on']['p99_ms']:.0f} ms")
 
 
 if __name__ == "__main__":

@@ -14,8 +14,6 @@ range) and interpolated; the subtraction and transform run in the compiled kerne
 
 from __future__ import annotations
 
-import warnings
-
 import cv2
 import numpy as np
 from numpy.typing import NDArray
@@ -60,18 +58,31 @@ class BackscatterCompensator:
         # (3σ), not backscatter + 3σ (as uwcam.backscatter.compensated_range).
         sigma = profile.backscatter.noise_sigma if profile.backscatter else {}
         channels = [c.model_copy(update={"noise_floor": 3.0 * sigma.get(c.name, 0.0)}) for c in profile.channels]
-        self.estimator = RangeEstimator(profile.model_copy(update={"channels": channels}), **estimator_options)
+        compensated = profile.model_copy(update={"channels": channels})
+        self.estimator = RangeEstimator(compensated, **estimator_options)
+        # The intermediate iterations' estimator: frames of half the size (2×2 means), whose
+        # pixel rays are those of the full frame's 2×2 block centres.
+        half = compensated
+        if intr is not None:
+            half = compensated.model_copy(update={"intrinsics": {"fx": intr.fx / 2, "fy": intr.fy / 2,
+                                                                  "cx": (intr.cx + 0.5) / 2 - 0.5, "cy": (intr.cy + 0.5) / 2 - 0.5}})
+        self._half = RangeEstimator(half, calibration_variance=False, **estimator_options)
+        self._axis_cos_half = cv2.resize(self._axis_cos, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
 
     def level(self, range_m: NDArray) -> NDArray[np.float32]:
-        """Backscatter (DN, dark-corrected) in front of surfaces at camera range ``range_m`` (H, W)
-        metres (NaN: no surface, open water) → (H, W, N) float32."""
+        """Backscatter (DN, dark-corrected) in front of surfaces at camera range ``range_m`` metres
+        (NaN: no surface, open water), of the frame's size or half of it → (H, W, N) float32 at
+        the frame's size."""
         h, w = self.shape
         gh, gw = self._grid
-        depth = np.asarray(range_m, np.float32) * self._axis_cos
-        blocks = depth[: gh * (h // gh), : gw * (w // gw)].reshape(gh, h // gh, gw, w // gw)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # blocks without any range: open water
-            block_depth = np.nanmedian(blocks, axis=(1, 3))
+        r = np.asarray(range_m, np.float32)
+        cos = self._axis_cos if r.shape == (h, w) else self._axis_cos_half
+        valid = np.isfinite(r)
+        # Mean depth of each block's pixels that have a range (NaN where none: open water).
+        depth_sum = cv2.resize(np.where(valid, r * cos, 0.0).astype(np.float32), (gw, gh), interpolation=cv2.INTER_AREA)
+        count = cv2.resize(valid.astype(np.float32), (gw, gh), interpolation=cv2.INTER_AREA)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            block_depth = np.where(count > 0.05, depth_sum / count, np.nan)
         fraction = self.model.fraction(block_depth, self._rows, self._cols)
         small = (self._pattern * fraction).astype(np.float32)
         return cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR).reshape(h, w, -1)
@@ -80,14 +91,25 @@ class BackscatterCompensator:
                ambient: NDArray | None = None, samples: NDArray | None = None) -> RangeResult:
         """Range ``frame`` with backscatter subtracted, starting from ``first`` (its range without
         compensation), ranging with these attenuation differences and log constants (the loop's);
-        samples: as for :class:`RangeEstimator` (a frame smoothed before the transform)."""
-        est = self.estimator
-        est.set_attenuation_differences(attenuation_differences)
-        est.set_log_constants(log_constants)
+        samples: as for :class:`RangeEstimator` (a frame smoothed before the transform).
+
+        All iterations but the last only refine the depths the backscatter is evaluated at: they
+        run on the frame at half resolution, without the calibration's share of the variance."""
+        h, w = self.shape
+        for est in (self.estimator, self._half):
+            est.set_attenuation_differences(attenuation_differences)
+            est.set_log_constants(log_constants)
         result = first
-        for _ in range(self.iterations):
-            background = self.level(result.range)
-            if ambient is not None:
-                background += ambient
-            result = est(frame, background=background, samples=samples)
-        return result
+        if self.iterations > 1:
+            half = (w // 2, h // 2)
+            small = cv2.resize(np.asarray(frame, np.float32), half, interpolation=cv2.INTER_AREA)
+            small_ambient = None if ambient is None else cv2.resize(ambient, half, interpolation=cv2.INTER_AREA)
+            for _ in range(self.iterations - 1):
+                background = cv2.resize(self.level(result.range), half, interpolation=cv2.INTER_AREA)
+                if small_ambient is not None:
+                    background += small_ambient
+                result = self._half(small, background=background)
+        background = self.level(result.range)
+        if ambient is not None:
+            background += ambient
+        return self.estimator(frame, background=background, samples=samples)
