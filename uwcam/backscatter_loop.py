@@ -68,11 +68,13 @@ class BackscatterCompensator:
                                                                   "cx": (intr.cx + 0.5) / 2 - 0.5, "cy": (intr.cy + 0.5) / 2 - 0.5}})
         self._half = RangeEstimator(half, calibration_variance=False, **estimator_options)
         self._axis_cos_half = cv2.resize(self._axis_cos, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
+        for est in (self.estimator, self._half):  # compiled (or loaded from the cache) now, not mid-frame
+            est.warm_up()
 
-    def level(self, range_m: NDArray) -> NDArray[np.float32]:
+    def level(self, range_m: NDArray, half: bool = False) -> NDArray[np.float32]:
         """Backscatter (DN, dark-corrected) in front of surfaces at camera range ``range_m`` metres
-        (NaN: no surface, open water), of the frame's size or half of it → (H, W, N) float32 at
-        the frame's size."""
+        (NaN: no surface, open water), a map of the frame's size or of half of it → (H, W, N)
+        float32 at the frame's size (or half of it when ``half``)."""
         h, w = self.shape
         gh, gw = self._grid
         r = np.asarray(range_m, np.float32)
@@ -85,30 +87,32 @@ class BackscatterCompensator:
             block_depth = np.where(count > 0.05, depth_sum / count, np.nan)
         fraction = self.model.fraction(block_depth, self._rows, self._cols)
         small = (self._pattern * fraction).astype(np.float32)
-        return cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR).reshape(h, w, -1)
+        size = (w // 2, h // 2) if half else (w, h)
+        return cv2.resize(small, size, interpolation=cv2.INTER_LINEAR).reshape(size[1], size[0], -1)
 
-    def refine(self, frame: NDArray, first: RangeResult, attenuation_differences: NDArray, log_constants: NDArray,
-               ambient: NDArray | None = None, samples: NDArray | None = None) -> RangeResult:
-        """Range ``frame`` with backscatter subtracted, starting from ``first`` (its range without
-        compensation), ranging with these attenuation differences and log constants (the loop's);
-        samples: as for :class:`RangeEstimator` (a frame smoothed before the transform).
+    def range(self, frame: NDArray, attenuation_differences: NDArray, log_constants: NDArray,
+              ambient: NDArray | None = None, samples: NDArray | None = None) -> RangeResult:
+        """Range ``frame`` with backscatter subtracted, with these attenuation differences and log
+        constants (the loop's); samples: as for :class:`RangeEstimator` (a frame smoothed before
+        the transform).
 
-        All iterations but the last only refine the depths the backscatter is evaluated at: they
-        run on the frame at half resolution, without the calibration's share of the variance."""
+        All passes but the last only find the depths the backscatter is evaluated at: they run on
+        the frame at half resolution (2×2 means), the first with the ambient light alone, without
+        the calibration's share of the variance; the last at full resolution."""
         h, w = self.shape
         for est in (self.estimator, self._half):
             est.set_attenuation_differences(attenuation_differences)
             est.set_log_constants(log_constants)
-        result = first
-        if self.iterations > 1:
-            half = (w // 2, h // 2)
-            small = cv2.resize(np.asarray(frame, np.float32), half, interpolation=cv2.INTER_AREA)
-            small_ambient = None if ambient is None else cv2.resize(ambient, half, interpolation=cv2.INTER_AREA)
-            for _ in range(self.iterations - 1):
-                background = cv2.resize(self.level(result.range), half, interpolation=cv2.INTER_AREA)
-                if small_ambient is not None:
-                    background += small_ambient
-                result = self._half(small, background=background)
+        half = (w // 2, h // 2)
+        small = cv2.resize(np.asarray(frame), half, interpolation=cv2.INTER_AREA)
+        small_ambient = None if ambient is None else cv2.resize(ambient, half, interpolation=cv2.INTER_AREA)
+        zeros = np.zeros(small.shape, np.float32) if small_ambient is None else small_ambient
+        result = self._half(small, background=zeros)
+        for _ in range(self.iterations - 1):
+            background = self.level(result.range, half=True)
+            if small_ambient is not None:
+                background += small_ambient
+            result = self._half(small, background=background)
         background = self.level(result.range)
         if ambient is not None:
             background += ambient

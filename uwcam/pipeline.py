@@ -357,7 +357,7 @@ class FramePipeline:
 
     def _compensation(self, frame: Frame, processing: ProcessingConfig, profile: CalibrationProfile,
                       estimator: RangeEstimator, ambient: NDArray | None):
-        """The refine step of range_frame that subtracts backscatter, or None."""
+        """The transform of range_frame that subtracts backscatter, or None."""
         config = processing.backscatter
         if config is None:
             return None
@@ -371,14 +371,14 @@ class FramePipeline:
                                           path_length_bounds=processing.path_length_bounds)
             self._compensator = comp
 
-        def refine(data: NDArray, first: RangeResult, samples: NDArray | None) -> RangeResult:
+        def transform(data: NDArray, samples: NDArray | None) -> RangeResult:
             started = time.perf_counter()
             # The loop's attenuation differences (centred: only differences matter) and log constants.
-            result = comp.refine(data, first, estimator.attenuation, estimator.log_constant, ambient, samples)
+            result = comp.range(data, estimator.attenuation, estimator.log_constant, ambient, samples)
             self._compensation_ms.append((time.perf_counter() - started) * 1e3)
             return result
 
-        return refine
+        return transform
 
     def backscatter_status(self) -> dict:
         """Whether backscatter is compensated, with what, and its cost per frame."""
@@ -538,9 +538,9 @@ class FramePipeline:
                 estimator.set_log_constants(b)
         if frame.lamp_on is not False:
             self._take_open_water(frame, ambient, "taken on request")
-        refine = self._compensation(frame, processing, profile, estimator, ambient)
+        transform = self._compensation(frame, processing, profile, estimator, ambient)
         result = range_frame(estimator, frame.data, processing.smoothing, processing.smoothing_stage, ambient,
-                             processing.vehicle_mask, refine)
+                             processing.vehicle_mask, transform)
         now = time.monotonic_ns()
         published = Published(self.processed + 1, frame, result, now, tuple(float(v) for v in attenuation),
                                tuple(float(v) for v in estimator.log_constant), ambient)

@@ -370,18 +370,19 @@ def smooth_frame(frame: NDArray, kind: str, saturation_level: float) -> tuple[ND
 
 def range_frame(estimator: RangeEstimator, frame: NDArray, smoothing: str = "none", stage: str = "after",
                 background: NDArray | None = None, vehicle_mask: Sequence[tuple[int, int, int, int]] = (),
-                refine: Callable[[NDArray, RangeResult, NDArray | None], RangeResult] | None = None) -> RangeResult:
+                transform: Callable[[NDArray, NDArray | None], RangeResult] | None = None) -> RangeResult:
     """Range one frame as the daemon's processing settings say: 3×3 smoothing of the image
-    (stage "before", :func:`smooth_frame`), the transform, ``refine(frame, result, samples)`` (e.g.
-    backscatter compensation, on the frame as ranged), the vehicle mask (:func:`mask_vehicle`),
-    then 3×3 smoothing of the range map (stage "after", :func:`smooth_range_map`: the masked vehicle
-    lends no range to its neighbours). The frame loop and ``uwcam reprocess`` both range through here."""
+    (stage "before", :func:`smooth_frame`), the transform (``estimator``, or ``transform(frame,
+    samples)`` such as backscatter compensation), the vehicle mask (:func:`mask_vehicle`), then 3×3
+    smoothing of the range map (stage "after", :func:`smooth_range_map`: the masked vehicle lends
+    no range to its neighbours). The frame loop and ``uwcam reprocess`` both range through here."""
     samples = None
     if smoothing != "none" and stage == "before":
         frame, samples = smooth_frame(frame, smoothing, estimator.profile.saturation_level)
-    result = estimator(frame, background=background, samples=samples)
-    if refine is not None:
-        result = refine(frame, result, samples)
+    if transform is not None:
+        result = transform(frame, samples)
+    else:
+        result = estimator(frame, background=background, samples=samples)
     if vehicle_mask:
         mask_vehicle(result, vehicle_mask)
     if smoothing != "none" and stage == "after":
