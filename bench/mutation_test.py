@@ -80,8 +80,8 @@ TARGETS: dict[str, Target] = {
                                           "tests/test_smoothing.py tests/test_independent_validity.py "
                                           "tests/test_estimator.py tests/test_statistics.py tests/test_calibration_statistics.py "
                                           "tests/test_backscatter_terms.py tests/test_calibration_variance_edges.py"),
-    "calibration": Target("uwcam/calibration.py", "tests/test_independent_calibration.py tests/test_calibration.py "
-                                                  "tests/test_calibration_statistics.py"),
+    "calibration": Target("uwcam/calibration.py", "tests/test_independent_calibration.py tests/test_calibration_closed_forms.py "
+                                                  "tests/test_calibration.py tests/test_calibration_statistics.py"),
     "api.security": Target("uwcam/api/security.py", "tests/test_auth.py", annotations_inert=False),
     "api.session": Target("uwcam/api/session.py", "tests/test_auth.py", annotations_inert=False),
     "api.models": Target("uwcam/api/settings.py", "tests/test_api_validation.py",
