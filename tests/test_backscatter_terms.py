@@ -5,6 +5,7 @@ E is the signal left after the background B; a channel is usable only 3σ above 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from tests.synthetic import RGB_ATTENUATION, make_profile
 from uwcam.ranging import RangeEstimator
@@ -74,11 +75,11 @@ def test_compiled_background_kernel_equals_the_numpy_terms_with_every_state():
         pytest.skip("numba is not installed: ranging with a background runs the numpy terms themselves")
     rng = np.random.default_rng(9)
     intr = Intrinsics(150.0, 118.0, 71.3, 66.8)
-    for pair, levels in ((None, None), (("R", "B"), None), (None, [30.0, 80.0, 60.0])):
+    for pair, levels, u in ((None, None, 0.0), (("R", "B"), None, 0.0), (None, [30.0, 80.0, 60.0], 0.0), (None, None, 0.05)):
         profile = make_profile(RGB_ATTENUATION, B, read_noise=READ, shot_gain=GAIN, dark_level=DARK, noise_floor=FLOOR,
                                saturation_level=SAT, quantisation_step=Q, lamp=(0.3, -0.2, 0.0), intrinsics=intr)
         profile = profile.model_copy(update={"channels": [c.model_copy(update={"fixed_pattern": 0.01}) for c in profile.channels]})
-        est = RangeEstimator(profile, pair=pair, backscatter_level=levels, calibration_variance=False)
+        est = RangeEstimator(profile, pair=pair, backscatter_level=levels, calibration_variance=False, background_uncertainty=u)
         raw = rng.uniform(40, 4100, (40, 56, 3)).round().astype(np.uint16)
         background = rng.uniform(0, 400, raw.shape).astype(np.float32)
         got = est(raw, background=background)
@@ -91,3 +92,22 @@ def test_compiled_background_kernel_equals_the_numpy_terms_with_every_state():
         np.testing.assert_allclose(got.range, ref[0], rtol=2e-6, equal_nan=True)
         np.testing.assert_allclose(got.variance, ref[1], rtol=2e-5, equal_nan=True)
         assert len(set(np.unique(ref[2]))) >= 3  # several reasons exercised
+
+
+def test_an_uncertain_background_adds_its_share_to_the_noise():
+    """With a background known to 10 %: σ² = (noise model) + (0.1·B)², in the weights and in the
+    3σ test; a channel whose light is not 3σ above the background is left out."""
+    profile = make_profile(RGB_ATTENUATION, B, read_noise=READ, shot_gain=GAIN, dark_level=DARK, noise_floor=FLOOR,
+                           saturation_level=SAT, quantisation_step=Q)
+    est = RangeEstimator(profile, calibration_variance=False, background_uncertainty=0.1)
+    raw = np.array([[[DARK + 1000 + 100, DARK + 200 + 1000, DARK + 600 + 3000]]])
+    background = np.array([[[100.0, 1000.0, 3000.0]]])
+    _, weight, state = est.channel_terms(raw, background)
+    e = np.array([1000.0, 200.0, 600.0])
+    var = READ**2 + GAIN * (e + background[0, 0]) + Q**2 / 12 + (0.1 * background[0, 0]) ** 2
+    ok = e > 3 * np.sqrt(var)  # R: 1000 > 3·32 yes; G: 200 > 3·104 no; B: 600 > 3·302 no
+    assert list(ok) == [True, False, False]
+    np.testing.assert_array_equal(state[0, 0] == 0, ok)
+    assert weight[0, 0, 0] == pytest.approx(e[0] ** 2 / var[0], rel=1e-12)
+    with pytest.raises(ValueError, match="background_uncertainty"):
+        RangeEstimator(profile, background_uncertainty=float("nan"))

@@ -26,6 +26,12 @@ from uwcam.ranging import RangeEstimator, RangeResult
 BLOCK = 8
 """Side of the blocks (pixels) the backscatter is evaluated on."""
 
+MODEL_UNCERTAINTY = 0.05
+"""Relative standard uncertainty of the modelled backscatter: it enters each value's variance
+as (0.05·B)², so a pixel whose own light is not well above the backscatter's uncertainty has
+no range (reason 3) instead of a wrong one, and the variance of the rest says how much the
+model can be trusted."""
+
 
 class BackscatterCompensator:
     """Subtracts modelled backscatter from frames of one size, for one profile."""
@@ -59,14 +65,15 @@ class BackscatterCompensator:
         sigma = profile.backscatter.noise_sigma if profile.backscatter else {}
         channels = [c.model_copy(update={"noise_floor": 3.0 * sigma.get(c.name, 0.0)}) for c in profile.channels]
         compensated = profile.model_copy(update={"channels": channels})
-        self.estimator = RangeEstimator(compensated, **estimator_options)
+        options = {"background_uncertainty": MODEL_UNCERTAINTY, **estimator_options}
+        self.estimator = RangeEstimator(compensated, **options)
         # The intermediate iterations' estimator: frames of half the size (2×2 means), whose
         # pixel rays are those of the full frame's 2×2 block centres.
         half = compensated
         if intr is not None:
             half = compensated.model_copy(update={"intrinsics": {"fx": intr.fx / 2, "fy": intr.fy / 2,
                                                                   "cx": (intr.cx + 0.5) / 2 - 0.5, "cy": (intr.cy + 0.5) / 2 - 0.5}})
-        self._half = RangeEstimator(half, calibration_variance=False, **estimator_options)
+        self._half = RangeEstimator(half, calibration_variance=False, **options)
         self._axis_cos_half = cv2.resize(self._axis_cos, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
         for est in (self.estimator, self._half):  # compiled (or loaded from the cache) now, not mid-frame
             est.warm_up()

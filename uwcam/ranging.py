@@ -61,6 +61,7 @@ class RangeEstimator:
         backscatter_level: NDArray | list[float] | None = None,
         path_length_bounds: tuple[float, float] = (0.0, np.inf),
         calibration_variance: bool = True,
+        background_uncertainty: float = 0.0,
     ) -> None:
         """pair: two channel names for single-pair ranging (default: fuse all channels).
         surface_reflectance: (N,) reflectance of the imaged surface, when it differs in hue
@@ -68,7 +69,12 @@ class RangeEstimator:
         (DN, dark-corrected) of open water; pixels not above it carry no surface signal.
         path_length_bounds: (min, max) accepted path length d_T in metres.
         calibration_variance: add the calibration's own uncertainty (the profile's covariance of
-        attenuation differences and log constants) to every pixel's variance."""
+        attenuation differences and log constants) to every pixel's variance.
+        background_uncertainty: relative standard uncertainty of a background passed to
+        :meth:`__call__` (a modelled backscatter is known to a few per cent; a measured lamp-off
+        frame's noise is already in the shot noise: 0); it adds (u·B)² to each value's variance,
+        so that where the surface's light is small next to the background the pixel has no range
+        (reason 3) rather than a wrong one."""
         self.profile = profile
         names = profile.channel_names
         n = len(names)
@@ -82,6 +88,9 @@ class RangeEstimator:
         self.with_calibration_variance = bool(calibration_variance) and any(np.any(m != 0) for m in self.covariance)
         self._low_res_rays: dict[tuple[int, int, int, int], NDArray | None] = {}
         self.backscatter = None if backscatter_level is None else np.asarray(backscatter_level, dtype=np.float64)
+        if not (np.isfinite(background_uncertainty) and 0.0 <= background_uncertainty <= 10.0):
+            raise ValueError(f"background_uncertainty must be a relative uncertainty from 0 to 10, got {background_uncertainty}")
+        self.background_uncertainty = float(background_uncertainty)
         v = profile.array("attenuation_difference")
         b = profile.array("log_constant")
         if surface_reflectance is not None:
@@ -152,6 +161,8 @@ class RangeEstimator:
             var = np.where(var > 0, var, 1.0)
             if samples is not None:
                 var = var / np.maximum(samples, 1)
+            if background is not None and self.background_uncertainty > 0:
+                var = var + (self.background_uncertainty * background) ** 2
             if background is not None:
                 state[(state == ChannelState.USABLE) & (e <= BACKGROUND_SIGMAS * np.sqrt(var))] = ChannelState.BACKSCATTER_ONLY
         state[..., ~self.active] = _IGNORED
@@ -162,12 +173,14 @@ class RangeEstimator:
         return y, weight, state.astype(np.uint8)
 
     def _noise_terms(self) -> NDArray[np.float64]:
-        """(N, 8) per channel: dark, read², shot gain, fixed pattern, q²/12, floor, b, active, for
+        """(N, 9) per channel: dark, read², shot gain, fixed pattern, q²/12, floor, b, active, relative
+        background uncertainty, for
         the compiled background kernel (b follows :meth:`set_log_constants`)."""
         q = float(np.asarray(self.profile.quantisation_step, dtype=np.float64))
         return np.stack([self.dark, self.read_noise**2, self.shot_gain, self.fixed_pattern,
                          np.full(self.n_channels, q**2 / 12.0), self.floor, self.log_constant,
-                         self.active.astype(np.float64)], axis=1).astype(np.float64)
+                         self.active.astype(np.float64), np.full(self.n_channels, self.background_uncertainty)],
+                        axis=1).astype(np.float64)
 
     @property
     def _open_water_levels(self) -> NDArray[np.float64]:

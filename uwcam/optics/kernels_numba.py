@@ -140,14 +140,16 @@ def _background_pair(raw, bg, k, noise, levels, sat):
     """One channel's [y, w] pair (as two float32 in a uint64's place) for a raw value with a
     background ``bg`` (DN) known not to come from the surface: the same arithmetic, in float64,
     as RangeEstimator.channel_terms. noise[k] = (dark, read², shot gain, fixed pattern, q²/12, floor,
-    b, active); levels[k]: open-water level (−inf: none)."""
-    dark, read2, gain, fpn, q12, floor, b, active = (noise[k, 0], noise[k, 1], noise[k, 2], noise[k, 3],
-                                                       noise[k, 4], noise[k, 5], noise[k, 6], noise[k, 7])
+    b, active, relative background uncertainty u, adding (u·bg)²); levels[k]: open-water level (−inf: none)."""
+    dark, read2, gain, fpn, q12, floor, b, active, u = (noise[k, 0], noise[k, 1], noise[k, 2], noise[k, 3],
+                                                          noise[k, 4], noise[k, 5], noise[k, 6], noise[k, 7], noise[k, 8])
     e = raw - dark - bg
     total = max(e + bg, 0.0)
     var = read2 + gain * total + q12 + (fpn * total) * (fpn * total)
     if not var > 0.0:
         var = 1.0
+    if u > 0.0:
+        var = var + (u * bg) * (u * bg)
     flag = 0.0
     usable = False
     if active == 0.0:
