@@ -45,3 +45,11 @@ def test_calibration_study_runs():
     out = subprocess.run([sys.executable, str(ROOT / "bench" / "calibration_study.py"), "--trials", "3", "--size", "160x120"],
                          check=True, capture_output=True, text=True, timeout=600).stdout
     assert "z-score sd" in out and "reported sigma / spread over calibrations" in out
+
+
+@pytest.mark.slow
+def test_water_study_runs_and_judges_its_goals():
+    out = subprocess.run([sys.executable, str(ROOT / "bench" / "water_study.py"), "--quick"],
+                         check=True, capture_output=True, text=True, timeout=600).stdout
+    assert "## compensated" in out and "## gated" in out and "## Goals" in out
+    assert "jerlov-II, lamp 0.3 m, compensated, 3 m:" in out and ("met" in out or "NOT met" in out)
