@@ -111,3 +111,12 @@ def test_an_uncertain_background_adds_its_share_to_the_noise():
     assert weight[0, 0, 0] == pytest.approx(e[0] ** 2 / var[0], rel=1e-12)
     with pytest.raises(ValueError, match="background_uncertainty"):
         RangeEstimator(profile, background_uncertainty=float("nan"))
+
+
+@pytest.mark.parametrize("u", [-0.01, 10.5, float("inf"), float("nan")])
+def test_background_uncertainty_out_of_range_is_refused(u):
+    profile = make_profile(RGB_ATTENUATION, B)
+    with pytest.raises(ValueError, match="background_uncertainty must be a relative uncertainty from 0 to 10"):
+        RangeEstimator(profile, background_uncertainty=u)
+    RangeEstimator(profile, background_uncertainty=10.0)  # the bounds themselves are allowed
+    RangeEstimator(profile, background_uncertainty=0.0)

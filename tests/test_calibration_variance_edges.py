@@ -92,3 +92,35 @@ def test_a_frame_lower_than_a_block_is_one_row_of_blocks():
     block_path = -(weight * (C - cw) * (y - yw)).sum(-1) / (weight * (C - cw) ** 2).sum(-1)
     expected = 0.25 * expected_calibration_variance(profile, means, means, block_path)  # (1, 5)
     np.testing.assert_allclose(out.calibration_variance, np.repeat(np.repeat(expected, h, 0), 8, 1), rtol=1e-3)
+
+
+def test_a_lamp_beside_the_camera_without_intrinsics_uses_the_optical_axis():
+    """No intrinsics: every block is taken on the axis, where S·u = S_z (here 0): the calibration
+    share is that of a lamp at the camera's distance |S| aside, ∂d_c/∂d_T = ½(d² + s²)/d² at d_T = d."""
+    from tests.synthetic import make_profile
+    from uwcam.profile import CalibrationCovariance
+
+    a = np.random.default_rng(3).normal(size=(4, 4)) * np.array([3e-4, 3e-4, 2e-3, 2e-3])
+    base = make_profile(C, [0.0, 0.0, 0.0], read_noise=5.0, shot_gain=0.3, lamp=(0.3, 0.0, 0.0))
+    profile = base.model_copy(update={"covariance": CalibrationCovariance(parameters=["V:G", "V:B", "b:G", "b:B"],
+                                                                           matrix=(a @ a.T).tolist())})
+    path = np.full((16, 24), 4.0)
+    signal = 4e4 * np.exp(-C * path[..., None])
+    out = RangeEstimator(profile)(signal.astype(np.float32))
+    s2 = 0.3**2
+    deriv = 0.5 * (16.0 + s2) / 16.0
+    expected = deriv**2 * expected_calibration_variance(profile, signal, signal, path)
+    np.testing.assert_allclose(out.calibration_variance, expected, rtol=1e-3)
+
+
+def test_wrong_channel_count_and_a_pair_without_contrast_say_what_is_wrong():
+    from tests.synthetic import make_profile
+    from uwcam.fileio import UserInputError
+
+    profile = make_profile([0.46, 0.11, 0.11], [0.0, 0.0, 0.0])
+    with pytest.raises(UserInputError, match=r"the image has 2 channel\(s\) but the calibration profile has 3 \(R,G,B\)"):
+        RangeEstimator(profile)(np.ones((4, 4, 2), np.uint16))
+    with pytest.raises(UserInputError, match=r"the image has 1 channel\(s\)"):
+        RangeEstimator(profile)(np.ones((4, 4), np.uint16))
+    with pytest.raises(UserInputError, match="channels G and B have equal attenuation"):
+        RangeEstimator(profile, pair=("G", "B"))

@@ -67,3 +67,19 @@ def test_default_rig_masks_the_bracket_so_minimum_distance_is_the_seabed():
     # where the simulated ranging reads up to ~15 % short (see tests/test_mavlink.py).
     assert 0.8 * 100 * SEABED_M < masked <= 1.05 * 100 * SEABED_M
     assert unmasked < 100
+
+
+def test_range_frame_masks_before_smoothing_so_the_vehicle_lends_no_range():
+    from tests.synthetic import RGB_ATTENUATION, make_profile
+    from uwcam.ranging import RangeEstimator, range_frame
+
+    e = np.exp(np.log([0.6, 1.0, 0.9]) - RGB_ATTENUATION * 4.0)
+    frame = np.full((6, 8, 3), 3000.0 * e / e.max(), np.float32)
+    frame[:, :2] *= 3.0  # the bracket: brighter, so nearer
+    est = RangeEstimator(make_profile(RGB_ATTENUATION, np.log([0.6, 1.0, 0.9]), read_noise=2.0), calibration_variance=False)
+    plain = range_frame(est, frame, "mean", "after")
+    masked = range_frame(est, frame, "mean", "after", vehicle_mask=[(0, 0, 2, 6)])
+    assert np.all(masked.reasons[:, :2] == Reason.VEHICLE) and np.all(np.isnan(masked.range[:, :2]))
+    # Next to the bracket, the mean no longer mixes in its (shorter) range.
+    assert np.allclose(masked.range[:, 2:], masked.range[0, 5], rtol=1e-5)
+    assert np.all(plain.range[:, 2] < masked.range[:, 2] - 1e-3)
