@@ -73,9 +73,12 @@ def test_range_frame_masks_before_smoothing_so_the_vehicle_lends_no_range():
     from tests.synthetic import RGB_ATTENUATION, make_profile
     from uwcam.ranging import RangeEstimator, range_frame
 
-    e = np.exp(np.log([0.6, 1.0, 0.9]) - RGB_ATTENUATION * 4.0)
-    frame = np.full((6, 8, 3), 3000.0 * e / e.max(), np.float32)
-    frame[:, :2] *= 3.0  # the bracket: brighter, so nearer
+    def light(path_m):  # a grey surface at this lamp → surface → camera path
+        e = np.exp(np.log([0.6, 1.0, 0.9]) - RGB_ATTENUATION * path_m)
+        return 3000.0 * e / e.max()
+
+    frame = np.full((6, 8, 3), light(4.0), np.float32)
+    frame[:, :2] = light(1.6)  # the bracket, nearer
     est = RangeEstimator(make_profile(RGB_ATTENUATION, np.log([0.6, 1.0, 0.9]), read_noise=2.0), calibration_variance=False)
     plain = range_frame(est, frame, "mean", "after")
     masked = range_frame(est, frame, "mean", "after", vehicle_mask=[(0, 0, 2, 6)])
