@@ -389,7 +389,8 @@ def test_lamp_off_frames_remove_daylight():
             assert wait_for(lambda: s.daemon.pipeline.processed > 8, 30.0)
             if interval:
                 assert wait_for(lambda: s.daemon.pipeline.stats()["ambient_frames"] >= 2, 20.0)
-                assert s.daemon.rig.lamp_on  # back on after each dark frame
+                # Back on after each dark frame (the next one may be under way at any moment: wait).
+                assert wait_for(lambda: s.daemon.rig.lamp_on, 5.0)
                 latest = s.daemon.pipeline.latest
                 assert latest.frame.lamp_on is True  # dark frames are not published as ranges
             r = np.load(io.BytesIO(s.http.get("/api/v1/snapshot/range").content))
