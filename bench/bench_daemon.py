@@ -14,6 +14,12 @@ latency from capture to WebSocket send (from the stream's own header), daemon CP
 memory (RSS, sampled every second; the peak is printed).
 
     python3 bench/bench_daemon.py [--seconds 30] [--fps 60] [--rigs replay,sim,sim-backscatter] [--frames 8] [--startup-seconds 20]
+                                  [--record FOLDER]
+
+--record FOLDER: the replay rig records the whole run into FOLDER (MCAP, every topic) as
+`uwcam run --record` does; the recorder's own figures (frames written and dropped, MB written)
+are printed. Give a folder on the disk the vehicle would record to (a tmpfs measures the CPU
+cost alone); it must have room for the run.
 
 sim-backscatter: the embedded default with backscatter compensation switched on through the API
 as soon as the daemon answers; with "sim" in the same run, the ratio of the two is printed.
@@ -90,7 +96,7 @@ def write_replay_rig(folder: str, size: tuple[int, int], fps: float, frames: int
     return cfg
 
 
-def measure(args: list[str], port: int, seconds: float, settings: dict | None = None) -> dict:
+def measure(args: list[str], port: int, seconds: float, settings: dict | None = None) -> dict:  # noqa: C901
     """Start `uwcam run ARGS`, stream from it from the first moment it answers, and measure it;
     ``settings``: processing settings PATCHed as soon as it answers (before the start-up window ends)."""
     t0 = time.monotonic()
@@ -141,7 +147,9 @@ def measure(args: list[str], port: int, seconds: float, settings: dict | None = 
                         if first_range is None:
                             first_range = time.monotonic() - t0
                         received.append((time.monotonic() - t0, (sent - captured) / 1e6))
-                frames_at["end"] = (await asyncio.to_thread(status))["frames"]
+                final = await asyncio.to_thread(status)
+                frames_at["end"] = final["frames"]
+                frames_at["recording"] = final.get("recording")
                 frames_at["t_end"] = time.monotonic()
                 return received, first_range, proc_figures(proc.pid)[0] - cpu_at_startup_end
 
@@ -164,6 +172,7 @@ def measure(args: list[str], port: int, seconds: float, settings: dict | None = 
         "p99_ms": float(np.percentile(late, 99)) if late else float("nan"),
         "cpu_percent": 100.0 * cpu / span, "cpu_ms_per_frame": 1e3 * cpu / max(processed, 1), "rss_peak_mb": max(r for r, _ in rss), "rss_end_mb": rss[-1][0],
         "anon_peak_mb": max(a for _, a in rss), "anon_end_mb": rss[-1][1],
+        "recording": frames_at.get("recording"),
     }
 
 
@@ -184,6 +193,11 @@ def report(name: str, r: dict, seconds: float, fps: float | None) -> None:
           f"other load than the rates); resident memory peak {r['rss_peak_mb']:.0f} MB, "
           f"at the end {r['rss_end_mb']:.0f} MB (goal < 250 MB on a real rig); anonymous (not shared-library "
           f"code) peak {r['anon_peak_mb']:.0f} MB, at the end {r['anon_end_mb']:.0f} MB")
+    rec = r.get("recording")
+    if rec and rec.get("state") != "idle" or rec and rec.get("frames_written"):
+        print(f"  recording ({rec['state']}): {rec['frames_written']} frames written, {rec['frames_dropped']} dropped by the "
+              f"recorder (the disk or its CPU share could not keep up; ranging is not slowed), "
+              f"{rec['bytes'] / 1e6:.0f} MB, {rec['queued']} queued at the end")
 
 
 def main() -> None:
@@ -194,6 +208,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=8, help="distinct replayed frames (looped)")
     parser.add_argument("--rigs", default="replay,sim", help="which rigs to run, comma-separated")
     parser.add_argument("--startup-seconds", type=float, default=20.0, help="start-up window")
+    parser.add_argument("--record", metavar="FOLDER", help="the replay rig records into this folder (MCAP)")
     args = parser.parse_args()
     global STARTUP_S
     STARTUP_S = args.startup_seconds
@@ -204,8 +219,12 @@ def main() -> None:
         with tempfile.TemporaryDirectory() as tmp:
             port = free_port()
             cfg = write_replay_rig(tmp, (w, h), args.fps, args.frames, port)
-            r = measure(["--config", cfg], port, args.seconds)
-        report(f"replay {w}x{h}x3 uint16 at {args.fps:g} fps (a real-rig configuration)", r, args.seconds, args.fps)
+            record = []
+            if args.record:
+                record = ["--record", os.path.join(os.path.abspath(args.record), f"bench-{time.strftime('%Y%m%dT%H%M%S')}.mcap")]
+            r = measure(["--config", cfg, *record], port, args.seconds)
+        report(f"replay {w}x{h}x3 uint16 at {args.fps:g} fps (a real-rig configuration"
+               f"{', recording' if record else ''})", r, args.seconds, args.fps)
     sim = {}
     if "sim" in rigs:
         port = free_port()

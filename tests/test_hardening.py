@@ -556,7 +556,7 @@ def test_simulated_serial_devices_leave_no_folders_behind(tmp_path, monkeypatch)
 
 FRAGMENT = """
 import ctypes, sys
-from uwcam.malloc import return_large_blocks_to_the_system
+from uwcam.memory import return_large_blocks_to_the_system
 
 def rss_kb():
     with open("/proc/self/status") as handle:
@@ -583,7 +583,7 @@ print(rss_kb() - before)
 
 
 def test_large_blocks_go_back_to_the_system():
-    """The daemon fixes glibc's mmap threshold (uwcam/malloc.py): freed frame-sized blocks then
+    """The daemon fixes glibc's mmap threshold (uwcam/memory.py): freed frame-sized blocks then
     leave resident memory even with small live blocks between them; without it they stay."""
     import subprocess
     import sys

@@ -192,6 +192,14 @@ class RecordingConfig(Strict):
     """Start a new file when one has recorded this long; None: no limit."""
     queue_frames: Annotated[int, Field(ge=1, le=10000)] = 32
     """Frames waiting for the disk; beyond this the oldest is dropped and counted."""
+    queue_mb: Annotated[FiniteFloat, Field(gt=0, le=1e6)] = 128.0
+    """Most megabytes of frames (raw frame, range, variance, reasons) waiting for the disk: at
+    1920×1080 a frame and its results are 31 MB, so this, not queue_frames, bounds the memory
+    a slow disk can take; beyond it the oldest is dropped and counted."""
+    compression: Literal["lz4", "zstd", "none"] = "lz4"
+    """Compression of each MCAP chunk. lz4 keeps up with 1080p60 on one core; zstd makes files
+    about a third smaller but costs ~9× the CPU (~140 MB/s on one core here: it drops frames
+    beyond about 720p at 10 fps); none only copies."""
     chunk_kb: Annotated[FiniteFloat, Field(ge=16, le=65536)] = 1024
     """MCAP chunk size: a crash loses at most the chunk being filled; reprocessing splits at chunks."""
     status_interval_s: Annotated[FiniteFloat, Field(gt=0, le=3600)] = 1.0

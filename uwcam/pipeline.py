@@ -1,8 +1,8 @@
 """The frame loop: newest frame → range, variance, reasons → published state.
 
 Acquisition runs in the camera's own supervisor thread; processing runs here, in one thread
-that always takes the newest frame (older queued frames are skipped and counted, never the
-newest), tracks the attenuation difference live from a calibration patch in view
+that ranges queued frames in order while they are fresh and skips to the newest when it falls
+behind (skipped frames are counted, never the newest; see QUEUED_FRAME_BUDGET_S), tracks the attenuation difference live from a calibration patch in view
 (docs/physics.md §6) and publishes immutable results. Readers (the API) never block the loop:
 they read the latest published result or are called back with it.
 """
@@ -24,11 +24,17 @@ from uwcam.config import PatchConfig, ProcessingConfig, ReflectanceConfig
 from uwcam.drivers.base import Frame
 from uwcam.drivers.supervisor import SupervisedCamera
 from uwcam.lamp_control import LampCommander
-from uwcam.memory import release_free_memory
+from uwcam.memory import release_compiler_pages, release_free_memory
 from uwcam.optics.geometry import Intrinsics, path_length_from_camera_range, pixel_rays
 from uwcam.optics.reflectance import surface_log_constant
 from uwcam.profile import CalibrationProfile
 from uwcam.ranging import RangeEstimator, RangeResult, range_frame
+
+QUEUED_FRAME_BUDGET_S = 0.030
+"""A frame that waited longer than this (seconds since capture) is skipped when a newer one is
+already queued. Younger frames are ranged in order: a hiccup of the loop (a scrape, a snapshot
+encoded, the garbage collector) then costs a few milliseconds of latency instead of frames, while
+a loop that cannot keep up falls back to the newest frame and its latency stays bounded."""
 
 log = logging.getLogger(__name__)
 
@@ -436,16 +442,24 @@ class FramePipeline:
             self._lamp_commander.stop()
 
     def _run(self) -> None:
-        next_release = time.monotonic()
+        next_release = next_compiler_release = time.monotonic()
         while not self._stop.is_set():
             if time.monotonic() >= next_release:
                 release_free_memory()  # ~0.1 ms: keeps resident memory at what frames in flight need
                 next_release = time.monotonic() + 1.0
+            if self.processed and time.monotonic() >= next_compiler_release:
+                # Kernels are loaded once a frame is ranged; later ones (settings changed, another
+                # output started) are caught by the next round. ~0.1 ms when nothing came back.
+                release_compiler_pages()
+                next_compiler_release = time.monotonic() + 30.0
             frame = self.camera.get(timeout_s=0.25)
             if frame is None:
                 continue
-            while (newer := self.camera.get(timeout_s=0.0)) is not None:
-                self.skipped += 1  # always the newest: the older frame is dropped
+            while time.monotonic_ns() - frame.host_monotonic_ns > QUEUED_FRAME_BUDGET_S * 1e9:
+                newer = self.camera.get(timeout_s=0.0)
+                if newer is None:
+                    break
+                self.skipped += 1  # too old to be worth its latency, and a newer one waits
                 self._unranged(frame, "skipped for newer")
                 frame = newer
             try:

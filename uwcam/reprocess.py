@@ -292,7 +292,7 @@ def _write_output(path: str, results: Iterable[PartResult], bar) -> None:
     os.close(fd)
     out = None
     try:
-        out = rec.McapFile(tmp, replace=True)  # the empty temporary file made above
+        out = rec.McapFile(tmp, replace=True, compression="zstd")  # the empty temporary file made above; offline, so the smallest
         attached: set[str] = set()
         last_profile = None
         for result in results:

@@ -1,9 +1,10 @@
 """The MCAP recorder: every frame the camera delivered, raw at full bit depth, with the range
 results, into one MCAP file per recording (layout in :mod:`uwcam.recording`).
 
-An output of the frame loop: the loop's callbacks only append to a bounded queue (the oldest
-item is dropped and counted when the disk cannot keep up); one writer thread per recording
-encodes and writes. A write error (disk full, folder gone) or a vanished folder ends the
+An output of the frame loop: the loop's callbacks only append to a queue bounded in frames and
+in bytes (the oldest item is dropped and counted when the disk cannot keep up); one writer
+thread per recording encodes and writes, at a lower scheduling priority than the frame loop, so
+a recorder short of CPU loses frames of its own rather than slowing ranging. A write error (disk full, folder gone) or a vanished folder ends the
 recording cleanly: the file is cut after its last complete record and closed with a footer,
 so any MCAP reader reads it, and :meth:`Recorder.status` says why it stopped.
 """
@@ -29,6 +30,31 @@ from uwcam.pipeline import FramePipeline, Published
 from uwcam.profile import CalibrationProfile
 
 log = logging.getLogger(__name__)
+
+WRITER_NICENESS = 10
+"""How much less CPU priority the writer thread has than the frame loop (Linux nice levels)."""
+
+
+def lower_this_threads_priority(niceness: int) -> bool:
+    """Raise the nice level of the calling thread alone by ``niceness``; False where the system
+    cannot (not Linux, where a thread id is no process id for setpriority, or refused)."""
+    if not hasattr(os, "setpriority") or not os.path.isdir("/proc/self/task"):
+        return False
+    tid = threading.get_native_id()
+    try:
+        os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + niceness))
+    except OSError:
+        return False
+    return True
+
+
+def item_bytes(item: tuple) -> int:
+    """Bytes a queued item holds: the raw frame and, for a ranged frame, its result arrays."""
+    if item[0] == "unranged":
+        return item[1].data.nbytes
+    published = item[1]
+    r = published.result
+    return published.frame.data.nbytes + r.range.nbytes + r.variance.nbytes + r.reasons.nbytes
 
 
 def time_name(now: float | None = None) -> str:
@@ -59,6 +85,7 @@ class Recorder:
         self._control = threading.Lock()  # one start or stop at a time (API requests run in parallel)
         self._ready = threading.Condition(self._lock)
         self._queue: collections.deque = collections.deque()
+        self._queued_bytes = 0
         self._thread: threading.Thread | None = None
         self._stop_reason: str | None = None
         self._state = "idle"
@@ -73,12 +100,23 @@ class Recorder:
 
     # ---------------------------------------------------------------- loop-thread callbacks
     def _enqueue(self, item: tuple) -> None:
+        size = item_bytes(item)
+        limit = self.config.queue_mb * 1e6
         with self._lock:
-            if len(self._queue) >= self.config.queue_frames:
-                self._queue.popleft()  # the disk cannot keep up: lose the oldest, count it
+            while self._queue and (len(self._queue) >= self.config.queue_frames or self._queued_bytes + size > limit):
+                self._queued_bytes -= item_bytes(self._queue.popleft())  # the disk cannot keep up: lose the oldest
                 self.frames_dropped += 1
             self._queue.append(item)
+            self._queued_bytes += size
             self._ready.notify()
+
+    def _dequeue(self) -> tuple | None:
+        """The oldest queued item, or None; the caller holds the lock."""
+        if not self._queue:
+            return None
+        item = self._queue.popleft()
+        self._queued_bytes -= item_bytes(item)
+        return item
 
     def _on_published(self, published: Published) -> None:
         # Profile and settings are read here, in the loop's thread, so they match the frame.
@@ -119,6 +157,7 @@ class Recorder:
         with self._lock:
             self._files = [path]
             self._queue.clear()
+            self._queued_bytes = 0
             self.frames_written = self.frames_dropped = self.bytes_closed = 0
             self._stop_reason = None
             self._state = "recording"
@@ -176,13 +215,14 @@ class Recorder:
             "frames_written": self.frames_written,
             "frames_dropped": self.frames_dropped,
             "queued": len(self._queue),
+            "queued_mb": round(self._queued_bytes / 1e6, 1),
             "bytes": size,
             "last_stop_reason": self.last_stop_reason,
         }
 
     # ---------------------------------------------------------------------- writer thread
     def _open(self, path: str) -> None:
-        self._file = rec.McapFile(path, chunk_size=int(self.config.chunk_kb * 1024))
+        self._file = rec.McapFile(path, chunk_size=int(self.config.chunk_kb * 1024), compression=self.config.compression)
         self._file_started = time.monotonic()
         self._attached = set()
         self._last_profile = None
@@ -195,6 +235,7 @@ class Recorder:
 
     def _run(self) -> None:
         reason = "stopped"
+        lower_this_threads_priority(WRITER_NICENESS)
         try:
             while True:
                 with self._lock:
@@ -202,7 +243,7 @@ class Recorder:
                         # Woken by a frame, a stop, or the timeout: the folder, the rangefinder
                         # and the status are checked even when no frame comes.
                         self._ready.wait(timeout=0.25)
-                    item = self._queue.popleft() if self._queue else None
+                    item = self._dequeue()
                     stopping = item is None and self._stop_reason is not None
                 if item is not None:
                     self._write_item(item)
@@ -224,6 +265,7 @@ class Recorder:
                 self.last_stop_reason = reason
                 self._thread = None
                 self._queue.clear()
+                self._queued_bytes = 0
             log.info("recording stopped: %s", reason)
 
     def _finish(self) -> None:

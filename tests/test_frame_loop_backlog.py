@@ -1,0 +1,90 @@
+"""The frame loop's queue policy: fresh queued frames are ranged in order, stale ones skipped."""
+
+from __future__ import annotations
+
+import collections
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from tests.synthetic import make_profile
+from tests.waiting import wait_for
+from uwcam.config import ProcessingConfig
+from uwcam.drivers.base import Frame
+from uwcam import pipeline as pipeline_module
+from uwcam.pipeline import QUEUED_FRAME_BUDGET_S, FramePipeline
+
+BUDGET_S = 2.0
+"""The budget the tests run with: far above any scheduling delay of a loaded test machine, so
+"fresh" and "stale" are decided by the ages the tests give, not by how busy the machine is."""
+
+
+class QueuedCamera:
+    """Hands out frames put in its queue, oldest first, as SupervisedCamera.get does."""
+
+    def __init__(self) -> None:
+        self.queue: collections.deque[Frame] = collections.deque()
+        self.lock = threading.Lock()
+
+    def get(self, timeout_s: float) -> Frame | None:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            with self.lock:
+                if self.queue:
+                    return self.queue.popleft()
+            if time.monotonic() >= deadline:
+                return None
+            time.sleep(0.002)
+
+
+def frame(sequence: int, age_s: float) -> Frame:
+    data = np.full((8, 8, 3), (2000, 9000, 12000), np.uint16)
+    return Frame(data=data, sequence=sequence, host_monotonic_ns=time.monotonic_ns() - int(age_s * 1e9),
+                 wall_time=time.time(), lamp_on=True)
+
+
+def run_with(ages_s: list[float]) -> tuple[list[int], list[tuple[int, str]]]:
+    """Frames 1, 2, … of these ages queued at once, as after a stall; (ranged, unranged) sequences."""
+    camera = QueuedCamera()
+    pipeline = FramePipeline(camera, make_profile([0.46, 0.11, 0.06], [0, 0, 0]), ProcessingConfig())
+    ranged, unranged = [], []
+    pipeline.subscribe(lambda p: ranged.append(p.frame.sequence))
+    pipeline.subscribe_unranged(lambda f, why: unranged.append((f.sequence, why)))
+    frames = [frame(k, age) for k, age in enumerate(ages_s, start=1)]  # made after the set-up's compilation
+    with camera.lock:
+        camera.queue.extend(frames)
+    pipeline.start()
+    try:
+        assert wait_for(lambda: len(ranged) + len(unranged) == len(frames), 10.0)
+    finally:
+        pipeline.stop()
+    return ranged, unranged
+
+
+@pytest.fixture(autouse=True)
+def budget(monkeypatch):
+    monkeypatch.setattr(pipeline_module, "QUEUED_FRAME_BUDGET_S", BUDGET_S)
+
+
+def test_the_budget_keeps_latency_within_the_daemons_goal():
+    assert 0.0 < QUEUED_FRAME_BUDGET_S < 0.05  # p99 capture → send < 50 ms
+
+
+def test_fresh_queued_frames_are_all_ranged_in_order():
+    # A stall of a few milliseconds left three frames queued, each younger than the budget.
+    ranged, unranged = run_with([0.0, 0.0, 0.0])
+    assert ranged == [1, 2, 3] and unranged == []
+
+
+def test_stale_frames_are_skipped_for_the_newest_and_counted():
+    stale = 3 * BUDGET_S
+    ranged, unranged = run_with([stale, stale, 0.0])
+    assert ranged == [3]
+    assert unranged == [(1, "skipped for newer"), (2, "skipped for newer")]
+
+
+def test_a_stale_frame_with_nothing_newer_is_still_ranged():
+    ranged, unranged = run_with([3 * BUDGET_S])
+    assert ranged == [1] and unranged == []
