@@ -133,23 +133,62 @@ def test_numpy_twins_give_the_same_frames(terrain):
 
 
 def test_expose_twins_are_identical_on_the_same_radiance():
-    from uwcam.simulation.camera import frame_key, inverse_normal_table
-    from uwcam.simulation.survey import _expose, expose_numpy
+    from uwcam.simulation.camera import frame_key
+    from uwcam.simulation.survey import NOISE_BLOCK, _expose, expose_numpy, noise_pool
 
     rng = np.random.default_rng(1)
-    radiance = rng.uniform(0, 2e-5, 3 * 777).astype(np.float32)
+    radiance = rng.uniform(0, 2e-5, 3 * 7777).astype(np.float32)  # several noise blocks and a partial one
     gain = rng.uniform(0.98, 1.02, radiance.size).astype(np.float32)
     a, b = np.empty(radiance.size, np.uint16), np.empty(radiance.size, np.uint16)
-    args = (1e9, 40.0, 65535 / 20000, (5.0 * 65535 / 20000) ** 2, frame_key(3, 4), 65535.0, inverse_normal_table())
+    args = (1e9, 40.0, 65535 / 20000, (5.0 * 65535 / 20000) ** 2, frame_key(3, 4), 65535.0, noise_pool())
     _expose(radiance, gain, *args, a)
-    expose_numpy(radiance, gain, *args, b, chunk=100)
+    expose_numpy(radiance, gain, *args, b, chunk=NOISE_BLOCK + 100)
     assert np.array_equal(a, b)
-    # The same noise as the static camera given the same mean and σ.
-    cam = CameraModel()
-    electrons = radiance.astype(np.float64) * 1e9 * gain
-    mean = ((np.maximum(electrons, 0) + 40.0) * cam.gain_dn_per_e).astype(np.float32)
-    std = np.sqrt(mean.astype(np.float64) * cam.gain_dn_per_e + (5.0 * cam.gain_dn_per_e) ** 2).astype(np.float32)
-    np.testing.assert_array_equal(cam.digitise(mean, std, 3, 4), a)
+
+
+def test_survey_noise_has_the_camera_models_mean_and_variance_and_is_new_every_frame():
+    """Shot and read noise of the survey's exposure against the camera model written out here:
+    mean (E + dark)·g DN and variance (E + dark)·g² + (read·g)² DN², for a flat radiance; frames
+    with other keys get independent noise; neighbouring pixels are uncorrelated."""
+    from uwcam.simulation.camera import frame_key
+    from uwcam.simulation.survey import _expose, expose_numpy, noise_pool
+
+    n, g, dark, read = 400_000, 65535 / 20000, 40.0, 5.0
+    electrons = 3000.0
+    radiance = np.full(n, electrons / 1e9, np.float32)
+    gain = np.ones(n, np.float32)
+    mean_dn = (electrons + dark) * g
+    var_dn = (electrons + dark) * g * g + (read * g) ** 2 + 1.0 / 12.0  # + rounding to whole codes
+    frames = []
+    for kernel in (_expose, expose_numpy):
+        for index in (4, 5):
+            out = np.empty(n, np.uint16)
+            kernel(radiance, gain, 1e9, dark, g, (read * g) ** 2, frame_key(3, index), 65535.0, noise_pool(), out)
+            frames.append(out.astype(np.float64))
+    for f in frames:
+        # Standard errors: of the mean sqrt(var/n) ≈ 0.25 DN; of the variance var·sqrt(2/n) ≈ 0.2 %.
+        assert abs(f.mean() - mean_dn) < 5 * np.sqrt(var_dn / n)
+        assert abs(f.var() / var_dn - 1.0) < 5 * np.sqrt(2.0 / n)
+        lag1 = np.corrcoef(f[:-1], f[1:])[0, 1]
+        assert abs(lag1) < 5 / np.sqrt(n)
+    assert abs(np.corrcoef(frames[0], frames[1])[0, 1]) < 5 / np.sqrt(n)  # frame 4 against frame 5
+    np.testing.assert_array_equal(frames[0], frames[2])  # the two kernels, frame 4
+
+
+def test_noise_pool_is_standard_normal():
+    from statistics import NormalDist
+
+    from uwcam.simulation.survey import NOISE_BLOCK, NOISE_POOL_SIZE, noise_pool
+
+    pool = noise_pool()
+    z = pool[:NOISE_POOL_SIZE].astype(np.float64)
+    assert pool.dtype == np.float32 and pool.size == NOISE_POOL_SIZE + NOISE_BLOCK
+    np.testing.assert_array_equal(pool[NOISE_POOL_SIZE:], pool[:NOISE_BLOCK])  # runs never wrap
+    assert abs(z.mean()) < 1e-6 and abs(z.std() - 1.0) < 1e-6
+    # The share beyond 1, 2 and 3 σ against the normal distribution's (binomial standard errors).
+    for k in (1.0, 2.0, 3.0):
+        p = 2 * (1 - NormalDist().cdf(k))
+        assert abs(np.mean(np.abs(z) > k) - p) < 5 * np.sqrt(p * (1 - p) / z.size)
 
 
 def test_rig_devices_see_the_moving_survey():

@@ -20,12 +20,13 @@ Each frame follows the same physics as :func:`uwcam.simulation.render` (Jaffe–
 * backscatter: the slab model's integral along each ray up to the surface, tabulated once
   (the lamp rides with the camera, so the water column in front of it never changes) on a
   coarse pixel grid against log depth, and interpolated per pixel;
-* camera: fixed exposure, gain map, dark current, shot and read noise from the same
-  counter-based generator as static scenes, quantisation and saturation.
+* camera: fixed exposure, gain map, dark current, shot and read noise (normal deviates from a
+  pool drawn once with the static scenes' counter-based generator, two independent runs of it
+  summed per block of pixels: see ``_expose``), quantisation and saturation.
 
 Geometry and light are computed on a grid of every ``step``-th pixel (4: the height map's
 1 cm cells span 3 pixels at 4 m) and interpolated bilinearly to the full image, where
-exposure and noise are per pixel: a 1280×720 frame costs about 11 ms of rendering and 15 ms
+exposure and noise are per pixel: a 1280×720 frame costs about 11 ms of rendering and a few ms
 of noise on one core (``bench/bench_simulator.py``). Each kernel has a numpy twin, used
 where numba is missing.
 """
@@ -33,6 +34,7 @@ where numba is missing.
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -397,43 +399,52 @@ def _splitmix(x):
     return z ^ (z >> uint64(31))
 
 
-@njit(cache=True, inline="always")
-def _lower_tail(p):
-    q = math.sqrt(-2.0 * math.log(p))
-    num = ((((-7.784894002430293e-03 * q - 3.223964580411365e-01) * q - 2.400758277161838) * q
-            - 2.549732539343734) * q + 4.374664141464968) * q + 2.938163982698783
-    den = (((7.784695709041462e-03 * q + 3.224671290700398e-01) * q + 2.445134137142996) * q
-           + 3.754408661907416) * q + 1.0
-    return num / den
+NOISE_POOL_SIZE = 1 << 20
+"""Standard normal deviates drawn once for the survey's noise (float32, 4 MB)."""
+NOISE_BLOCK = 4096
+"""Samples that take their deviates from one pair of places in the pool."""
+SQRT_HALF = math.sqrt(0.5)
 
 
 @njit(cache=True, inline="always")
-def _normal(bits32, table):
-    idx = bits32 >> 16
-    frac = (bits32 & 0xFFFF) * (1.0 / 65536.0) + 0.5 / 65536.0
-    if idx == 0:
-        return _lower_tail(frac / 65536.0)
-    if idx == 65535:
-        return -_lower_tail((1.0 - frac) / 65536.0)
-    return table[idx] + (frac - 0.5 / 65536.0) * (table[idx + 1] - table[idx])
+def _pool_offsets(key, block, size):
+    """The two places in the pool (distinct, each < size) that block ``block`` of a frame reads from."""
+    r = _splitmix(key + uint64(block))
+    a = np.int64(r >> uint64(32)) % size
+    b = np.int64(r & uint64(0xFFFFFFFF)) % size
+    return a, (b if b != a else (a + size // 2) % size)
+
+
+@njit(cache=True, nogil=True)
+def _expose_block(radiance, gain, exposure, dark_e, g_dn, read_dn2, top, za, zb, out):
+    """One block of ``_expose`` on slices of equal length (deviates from the pool's runs za, zb).
+    A function of its own, on slices that start at 0, so that LLVM vectorises the loop (written
+    inline in the prange loop it stays scalar: 15 against 8.6 ms a 1080p frame on one core)."""
+    for t in range(out.shape[0]):
+        mean = (max(radiance[t] * exposure * gain[t], 0.0) + dark_e) * g_dn
+        std = np.float32(math.sqrt(mean * g_dn + read_dn2))
+        z = (np.float64(za[t]) + np.float64(zb[t])) * SQRT_HALF
+        v = np.float64(np.float32(mean)) + np.float64(std) * z
+        out[t] = min(max(np.rint(v), 0.0), top)  # rint: half to even, as round(), and it vectorises
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _expose(radiance, gain, exposure, dark_e, g_dn, read_dn2, key, top, table, out):
+def _expose(radiance, gain, exposure, dark_e, g_dn, read_dn2, key, top, pool, out):
     """Flat arrays: radiance → electrons → mean and σ (DN, float32, as CameraModel.expected) →
-    the noise of CameraModel.digitise (the same counter per sample) → rounded, clipped codes."""
+    mean + σ·z, rounded and clipped to codes. The deviates z: each block of NOISE_BLOCK samples
+    adds two runs of the pool (see :func:`noise_pool`) starting at places drawn from the frame's
+    key, scaled by √½, so each z is exactly as normal as the pool and independent of the rest
+    (two blocks share both runs with probability ~1e-12); the loop is then a stream of loads
+    and arithmetic that vectorises, ~4× the speed of drawing each deviate apart."""
     n = radiance.shape[0]
-    for p in prange((n + 1) // 2):
-        r = _splitmix(key + uint64(p))
-        for half in range(2):
-            i = 2 * p + half
-            if i >= n:
-                break
-            mean = (max(radiance[i] * exposure * gain[i], 0.0) + dark_e) * g_dn
-            std = np.float32(math.sqrt(mean * g_dn + read_dn2))
-            bits = np.int64(r >> uint64(32)) if half == 0 else np.int64(r & uint64(0xFFFFFFFF))
-            v = np.float32(mean) + std * _normal(bits, table)
-            out[i] = min(max(round(v), 0.0), top)
+    size = pool.shape[0] - NOISE_BLOCK
+    for block in prange((n + NOISE_BLOCK - 1) // NOISE_BLOCK):
+        a, b = _pool_offsets(key, block, size)
+        start = block * NOISE_BLOCK
+        stop = min(start + NOISE_BLOCK, n)
+        count = stop - start
+        _expose_block(radiance[start:stop], gain[start:stop], exposure, dark_e, g_dn, read_dn2, top,
+                      pool[a:a + count], pool[b:b + count], out[start:stop])
 
 
 # numpy twins -------------------------------------------------------------------------
@@ -538,17 +549,48 @@ def upsample(grid: NDArray[np.float32], size: tuple[int, int], step: int, use_nu
     return out
 
 
-def expose_numpy(radiance, gain, exposure, dark_e, g_dn, read_dn2, key, top, table, out, chunk: int = 1 << 20) -> None:
-    """numpy twin of ``_expose`` (flat arrays), in chunks to bound memory."""
+def noise_pool() -> NDArray[np.float32]:
+    """NOISE_POOL_SIZE standard normal deviates (float32) for the survey's noise, from the static
+    camera's counter-based generator with a fixed key, standardised to mean 0 and standard
+    deviation 1 over the pool; the first NOISE_BLOCK repeated at the end so a block's run never
+    wraps. Built once (~0.1 s)."""
+    return _noise_pool()
+
+
+@lru_cache(maxsize=1)
+def _noise_pool() -> NDArray[np.float32]:
     from uwcam.simulation.camera import deviates_numpy
 
+    z = deviates_numpy(frame_key(0x5EED, 0), 0, NOISE_POOL_SIZE, inverse_normal_table())
+    z = (z - z.mean()) / z.std()
+    return np.concatenate([z, z[:NOISE_BLOCK]]).astype(np.float32)
+
+
+def pool_offsets_numpy(key: np.uint64, blocks: NDArray[np.int64], size: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """numpy twin of ``_pool_offsets`` for an array of block numbers."""
+    from uwcam.simulation.camera import splitmix_numpy
+
+    r = splitmix_numpy(np.uint64(key) + blocks.astype(np.uint64))
+    a = (r >> np.uint64(32)).astype(np.int64) % size
+    b = (r & np.uint64(0xFFFFFFFF)).astype(np.int64) % size
+    return a, np.where(b != a, b, (a + size // 2) % size)
+
+
+def expose_numpy(radiance, gain, exposure, dark_e, g_dn, read_dn2, key, top, pool, out, chunk: int = 1 << 20) -> None:
+    """numpy twin of ``_expose`` (flat arrays), in chunks (whole noise blocks) to bound memory."""
     n = radiance.shape[0]
+    size = pool.shape[0] - NOISE_BLOCK
+    chunk = max(NOISE_BLOCK, chunk - chunk % NOISE_BLOCK)
     for start in range(0, n, chunk):
         stop = min(start + chunk, n)
         electrons = radiance[start:stop].astype(np.float64) * exposure * gain[start:stop]
         mean = (np.maximum(electrons, 0.0) + dark_e) * g_dn
         std = np.sqrt(mean * g_dn + read_dn2).astype(np.float32).astype(np.float64)
-        v = mean.astype(np.float32).astype(np.float64) + std * deviates_numpy(key, start, stop - start, table)
+        i = np.arange(start, stop)
+        a, b = pool_offsets_numpy(key, i // NOISE_BLOCK, size)
+        t = i % NOISE_BLOCK
+        z = (pool[a + t].astype(np.float64) + pool[b + t].astype(np.float64)) * SQRT_HALF
+        v = mean.astype(np.float32).astype(np.float64) + std * z
         out[start:stop] = np.minimum(np.maximum(np.rint(v), 0.0), top)
 
 
@@ -723,5 +765,5 @@ class SurveyWorld:
         g = cam.gain_dn_per_e
         kernel = _expose if self.use_numba else expose_numpy
         kernel(radiance, self._gain.reshape(-1), self.exposure, cam.dark_current_e, g, (cam.read_noise_e * g) ** 2,
-               frame_key(self.seed * 2 + int(level > 0), index), float(cam.max_code), inverse_normal_table(), out.reshape(-1))
+               frame_key(self.seed * 2 + int(level > 0), index), float(cam.max_code), noise_pool(), out.reshape(-1))
         return out
