@@ -15,7 +15,7 @@ import pytest
 from tests.served import Server
 from tests.waiting import wait_for
 from uwcam.config import ApiConfig, CameraConfig, DaemonConfig, DeviceConfig
-from uwcam.optics.orientation import (beam_pattern, block_means, incidence_from_blocks, kirlin_estimate,
+from uwcam.optics.orientation import (beam_pattern, block_irradiance, block_means, incidence_from_blocks, kirlin_estimate,
                                       surface_scale)
 
 ALPHA = np.array([0.46, 0.11, 0.06])  # 1/m, Jerlov II-like red, green, blue
@@ -96,6 +96,35 @@ def test_block_means_count_only_valid_pixels():
             else:
                 np.testing.assert_allclose(got[i, j], v[m].mean(axis=0), rtol=1e-5)
     np.testing.assert_allclose(block_means(values[..., 0], valid, 8)[0, 0], values[:8, :8, 0].mean(), rtol=1e-5)
+
+
+def test_block_irradiance_masks_dark_saturated_and_unranged_pixels_alike_on_both_paths():
+    rng = np.random.default_rng(5)
+    h, w, b = 40, 56, 8
+    data = rng.integers(0, 4096, (h, w, 3)).astype(np.uint16)
+    data[:8, :8] = 1000  # a full block, all usable
+    data[8:16, :8, 1] = 4095  # saturated in green
+    range_map = rng.uniform(1, 3, (h, w)).astype(np.float32)
+    range_map[rng.uniform(size=(h, w)) < 0.2] = np.nan
+    range_map[:8, :8] = 2.0
+    dark, floor, saturation = np.array([64.0, 60.5, 70.0]), np.array([20.0, 30.0, 0.0]), 4095.0
+    fast, share, mask = block_irradiance(data, range_map, dark, floor, saturation, b)
+    slow, share2, mask2 = block_irradiance(data, range_map, dark, floor, saturation, b, np.zeros((h, w, 3), np.float32))
+    np.testing.assert_array_equal(mask, mask2)
+    np.testing.assert_allclose(fast, slow, rtol=1e-5)
+    # A plain loop, written apart.
+    e = data.astype(np.float64) - dark
+    ok = np.isfinite(range_map) & np.all((e > floor) & (data < saturation), axis=-1)
+    for i in range(h // b):
+        for j in range(w // b):
+            m = ok[i * b:(i + 1) * b, j * b:(j + 1) * b]
+            assert share[i, j] == pytest.approx(m.mean())
+            if m.mean() < 0.5:
+                assert np.isnan(fast[i, j]).all()
+            else:
+                np.testing.assert_allclose(fast[i, j], e[i * b:(i + 1) * b, j * b:(j + 1) * b][m].mean(axis=0), rtol=1e-5)
+    np.testing.assert_allclose(fast[0, 0], 1000 - dark, rtol=1e-6)
+    assert share[1, 0] == 0 and np.isnan(fast[1, 0]).all()  # saturated in one channel
 
 
 def test_beam_pattern_halves_at_the_half_angle():
@@ -195,3 +224,49 @@ def test_incidence_unavailable_says_why(tmp_path):
         assert state.startswith("unavailable") and "absolute attenuations" in state, state
         r = s.http.get("/api/v1/snapshot/incidence")
         assert r.status_code == 409 and "absolute attenuations" in r.json()["detail"]
+
+
+def test_absolute_scale_at_a_tilted_footprint_divides_by_the_range_map_normals_cos():
+    """The simulator's plane tilted 30°, a rangefinder reading at the image centre: the surface's
+    absolute scale (what a surface square to the lamp would return) equals the simulator's own,
+    because the footprint's cos γ comes from the range map's normal. Assuming the surface square
+    to the beam would make it 1/cos 30° = 15 % too bright, and every angle found with it too steep."""
+    from types import SimpleNamespace
+
+    from uwcam.config import ReflectanceConfig
+    from uwcam.drivers.base import Frame, Health, HealthState
+    from uwcam.drivers.rangefinder import RangeReading
+    from uwcam.pipeline import ReflectanceCorrector
+    from uwcam.simulation.render import Lamp
+    from uwcam.simulation.tank import calibrate_in_simulation
+    from uwcam.simulation.water import water_preset
+    from uwcam.simulation.world import SimulatedWorld
+
+    water = water_preset("ideal", [675.0, 575.0, 475.0])
+    lamp = Lamp(position=(0.0, 0.0, 0.0))
+    size = (160, 120)
+    profile = calibrate_in_simulation(water, lamp, size, noise_free=True)
+    world = SimulatedWorld(scene="tilted-plane", distance=2.0, size=size, water=water, lamp=lamp)
+    w, h = size
+    truth_range = world.camera_range
+    now = 10**12
+    reading = RangeReading(float(truth_range[h // 2, w // 2]), 0.97, now, 0.0)
+    rf = SimpleNamespace(health=Health(HealthState.OK, "reading"), latest=lambda: reading)
+    corrector = ReflectanceCorrector(ReflectanceConfig(footprint=(w // 2 - 4, h // 2 - 4, 9, 9)), profile, rf,
+                                     beam_half_angle_deg=lamp.beam_half_angle_deg)
+    frame = Frame(data=world.noise_free_frame(), sequence=1, host_monotonic_ns=now, wall_time=0.0)
+    corrector.update(frame, profile.array("attenuation_difference"))
+    assert corrector.scale is None  # no normal yet: no absolute scale rather than a wrong one
+    corrector.observe(truth_range)
+    corrector.update(frame, profile.array("attenuation_difference"))
+    assert abs(corrector.status()["incidence_deg"] - 30.0) < 0.5
+    # The simulator's truth over the footprint: E = s · beam · cos γ · exp(−2 c d) / (d + r)² per pixel
+    # (its mean: the camera's fixed-pattern gain moves single pixels by about 1 %).
+    box = (slice(h // 2 - 4, h // 2 + 5), slice(w // 2 - 4, w // 2 + 5))
+    u = world.rays[box].reshape(-1, 3)
+    d = truth_range[box].reshape(-1, 1)
+    cos = np.abs(np.sum(world.hit.normal[box].reshape(-1, 3) * u, axis=1))[:, None]
+    beam = np.exp(-lamp.beam_scale * (1.0 - u[:, 2:]))
+    e = world.noise_free_frame()[box].reshape(-1, 3) - world.camera.dark_level_dn
+    truth = (e / (beam * cos * np.exp(-2 * water.attenuation * d) / (d + lamp.effective_radius) ** 2)).mean(axis=0)
+    np.testing.assert_allclose(corrector.scale, truth, rtol=0.003)

@@ -26,7 +26,8 @@ from uwcam.drivers.supervisor import SupervisedCamera
 from uwcam.lamp_control import LampCommander
 from uwcam.memory import release_free_memory
 from uwcam.optics.geometry import Intrinsics, path_length_from_camera_range, pixel_rays
-from uwcam.optics.orientation import beam_pattern, block_means, incidence_from_blocks, normals_from_range, surface_scale
+from uwcam.optics.orientation import (beam_pattern, block_irradiance, block_means, incidence_from_blocks, normals_from_range,
+                                      surface_scale)
 from uwcam.optics.reflectance import surface_log_constant
 from uwcam.profile import CalibrationProfile
 from uwcam.ranging import RangeEstimator, RangeResult, range_frame
@@ -325,27 +326,24 @@ class OrientationEstimator:
             return None
         started = time.perf_counter()
         p = self.profile
-        e = data.astype(np.float32) - p.array("dark_level").astype(np.float32)
-        if background is not None:
-            e -= background
-        usable = np.isfinite(result.range) & np.all((e > p.array("noise_floor").astype(np.float32))
-                                                   & (data < p.saturation_level), axis=-1)
         b = self.config.block
         if data.shape[0] < b or data.shape[1] < b:
             self.state = f"unavailable: the image is smaller than one block of {b} pixels"
             return None
-        irradiance = block_means(e, usable, b)
-        seed = block_means(result.range, usable, b)
-        bh, bw = seed.shape
-        count = cv2.resize(usable[: bh * b, : bw * b].astype(np.float32), (bw, bh), interpolation=cv2.INTER_AREA) * b * b
+        irradiance, share, usable = block_irradiance(data, result.range, p.array("dark_level"), p.array("noise_floor"),
+                                                     p.saturation_level, b, background)
+        maps = [np.asarray(m, np.float32) for m in (result.range, result.variance, result.calibration_variance) if m is not None]
+        means = block_means(cv2.merge(maps), usable, b)  # one pass over the three maps
+        seed, variance = means[..., 0], means[..., 1]
+        common = means[..., 2] if means.shape[-1] > 2 else 0.0
+        count = share * (b * b)
         # Variances of the block means: the camera's noise model per pixel over the pixels averaged,
         # and the fused range's own (its calibration part is common to all pixels: not averaged down).
         with np.errstate(invalid="ignore", divide="ignore"):
             pixel_var = (p.array("read_noise") ** 2 + p.array("shot_gain") * irradiance
                          + (p.array("fixed_pattern") * irradiance) ** 2 + p.quantisation_step**2 / 12.0)
             irradiance_var = pixel_var / count[..., None]
-            common = 0.0 if result.calibration_variance is None else block_means(result.calibration_variance, usable, b)
-            range_var = (block_means(result.variance, usable, b) - common) / count + common
+            range_var = (variance - common) / count + common
         scale = corrector.scale * self.beam(seed.shape)[..., None]
         _, incidence = incidence_from_blocks(irradiance, seed, self.attenuation, scale, p.lamp_radius_m or 0.0,
                                              self.config.iterations, irradiance_variance=irradiance_var,
