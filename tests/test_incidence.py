@@ -270,3 +270,22 @@ def test_absolute_scale_at_a_tilted_footprint_divides_by_the_range_map_normals_c
     e = world.noise_free_frame()[box].reshape(-1, 3) - world.camera.dark_level_dn
     truth = (e / (beam * cos * np.exp(-2 * water.attenuation * d) / (d + lamp.effective_radius) ** 2)).mean(axis=0)
     np.testing.assert_allclose(corrector.scale, truth, rtol=0.003)
+
+
+@pytest.mark.parametrize("orientation, key", [
+    ({"block": 2}, "block"), ({"block": 1024}, "block"), ({"block": "16"}, "block"), ({"iterations": 0}, "iterations"),
+    ({"beam_half_angle_deg": float("nan")}, "beam_half_angle_deg"), ({"beam_half_angle_deg": -5}, "beam_half_angle_deg"),
+    ({"window": 7}, "window"),
+])
+def test_config_file_refuses_bad_orientation_settings(tmp_path, orientation, key):
+    import yaml
+
+    from uwcam.config import load_config
+    from uwcam.fileio import UserInputError
+
+    path = tmp_path / "rig.yaml"
+    path.write_text(yaml.safe_dump({"version": 1, "processing": {"orientation": orientation}}))
+    with pytest.raises(UserInputError, match=key):
+        load_config(path)
+    path.write_text(yaml.safe_dump({"version": 1, "processing": {"orientation": {"block": 32}}}))
+    assert load_config(path).processing.orientation.block == 32
