@@ -28,7 +28,8 @@ def plate_frame(
     rays = pixel_rays(Intrinsics.from_fov(w, h, fov_deg), h, w)
     dc = distance / rays[..., 2]
     ds = np.linalg.norm(dc[..., None] * rays - lamp, axis=-1)
-    g = (lamp_radius / (ds + lamp_radius)) ** 2 * rays[..., 2]  # spreading × cos of incidence
+    # Spreading × cos of the lamp's incidence on the plate (normal along −z), as the simulator has it.
+    g = (lamp_radius / (ds + lamp_radius)) ** 2 * (distance - lamp[2]) / ds
     frame = constant * reflectance * g[..., None] * np.exp(-attenuation * (dc + ds)[..., None])
     return frame, dc
 

@@ -53,3 +53,12 @@ def test_water_study_runs_and_judges_its_goals():
                          check=True, capture_output=True, text=True, timeout=600).stdout
     assert "## compensated" in out and "## gated" in out and "## Goals" in out
     assert "jerlov-II, lamp 0.3 m, compensated, 3 m:" in out and ("met" in out or "NOT met" in out)
+
+
+@pytest.mark.slow
+def test_orientation_benchmark_runs():
+    out = subprocess.run([sys.executable, str(ROOT / "bench" / "bench_orientation.py"), "--size", "320x240", "--repeat", "2",
+                          "--blocks", "16"], check=True, capture_output=True, text=True, timeout=600).stdout
+    assert "× ranging" in out and "within 2°" in out
+    row = out.strip().splitlines()[-1].split()
+    assert row[0] == "16" and row[3] == "100.0%"  # every block of the tilted plane gets an angle

@@ -198,3 +198,20 @@ def test_reflectance_corrector_recovers_a_surface_of_another_hue():
     stale = Frame(data=data, sequence=2, host_monotonic_ns=now + 2 * 10**9, wall_time=0.0)
     corrector.update(stale, profile.array("attenuation_difference"))
     assert corrector.status()["state"].startswith("paused: reading 2.00 s from the frame")
+
+
+@pytest.mark.parametrize("lamp, tolerance", [((0.0, 0.0, 0.0), 1e-3), ((0.1, 0.0, 0.0), 4e-3)])
+def test_absolute_attenuation_in_the_simulator_equals_its_water(lamp, tolerance):
+    """Water that only absorbs and scatters nothing away from the beam ("ideal": no backscatter, no
+    forward scatter): the calibration's absolute c_k must be the simulator's. The plate fills less
+    of the view at 2 m than at 1 m, so pixels lit by the beam's dim edge (50° half angle) take part
+    at 1 m only; before they were left out the fit read the water 0.02 1/m clearer. With the lamp
+    beside the camera the beam meets a pixel's spot at an angle that changes with distance: 0.003 1/m
+    remain."""
+    from uwcam.simulation.render import Lamp
+    from uwcam.simulation.tank import calibrate_in_simulation
+    from uwcam.simulation.water import water_preset
+
+    water = water_preset("ideal", [675.0, 575.0, 475.0])
+    profile = calibrate_in_simulation(water, Lamp(position=lamp), (160, 120), noise_free=True)
+    np.testing.assert_allclose(profile.array("attenuation"), water.attenuation, atol=tolerance)

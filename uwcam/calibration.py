@@ -382,6 +382,28 @@ def absolute_attenuation(
     return -fit.slope, fit.slope_std
 
 
+def _common_pixel_means(parts: list[tuple[NDArray[np.bool_], NDArray, NDArray]],
+                        path_lengths: list[float]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Per distance, the mean spread-corrected log signal (n, N) and the mean path length (n,) over the
+    pixels that every distance measured.
+
+    ``parts``: per distance (pixel mask (H, W), spread-corrected ln E (M, N) of the mask's pixels in
+    order, path length (M,) or (1,)). The lamp's beam pattern (unknown here) and the camera's
+    vignetting weigh each pixel by a factor of its direction alone, which only the same pixels at
+    every distance cancel: a nearer plate fills more of the view, toward the beam's dim edge, and
+    would read the water as clearer than it is. Without pixels in common (or without per-pixel
+    rays), each distance's own pixels and ``path_lengths`` are used."""
+    common = np.logical_and.reduce([m for m, _, _ in parts])
+    if common.sum() >= 16 and all(len(p) == m.sum() for m, _, p in parts):
+        means, paths = [], []
+        for mask, y, path in parts:
+            rows = common[mask]
+            means.append(y[rows].mean(axis=0))
+            paths.append(float(path[rows].mean()))
+        return np.array(means), np.array(paths)
+    return np.array([y.mean(axis=0) for _, y, _ in parts]), np.asarray(path_lengths, np.float64)
+
+
 def spreading_log(lamp_distance: ArrayLike, lamp_radius: float) -> NDArray[np.float64]:
     """2·ln(d_s + r): the log of the inverse lamp spreading factor, up to a constant."""
     return 2.0 * np.log(np.asarray(lamp_distance, dtype=np.float64) + lamp_radius)
@@ -726,8 +748,10 @@ def calibrate_with_details(frames: list[NDArray], distances_m: list[float], inpu
         log_variance.append(lv)
         path_lengths.append(path)
         if inputs.lamp_radius_m is not None:
-            spread = spreading_log(ds, inputs.lamp_radius_m)
-            log_spread_corrected.append((ln_e + spread[:, None]).mean(axis=0))
+            # The plate (normal along −z) is lit at the angle θ from its normal: cos θ = (z − S_z)/d_s.
+            lit = np.clip((dc * u[:, 2] - lamp[2]) / ds, 1e-6, 1.0)
+            spread = spreading_log(ds, inputs.lamp_radius_m) - np.log(lit)
+            log_spread_corrected.append((pixels, ln_e + spread[:, None], dc + ds))
         fitted.append(replace(g, path_length_m=path, log_signal=log_signal[-1], log_variance=lv, backscatter=estimate,
                               fit_pixels=pixels))
 
@@ -753,7 +777,7 @@ def calibrate_with_details(frames: list[NDArray], distances_m: list[float], inpu
         )
     absolute: tuple[NDArray, NDArray] | None = None
     if inputs.lamp_radius_m is not None:
-        absolute = absolute_attenuation(np.array(log_spread_corrected), path_lengths, np.array(log_variance))
+        absolute = absolute_attenuation(*_common_pixel_means(log_spread_corrected, path_lengths), np.array(log_variance))
 
     channels = [
         ChannelCalibration(

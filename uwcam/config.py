@@ -128,6 +128,20 @@ class BackscatterConfig(Strict):
     """Range → backscatter at that range → subtract → range, this many times per frame."""
 
 
+class OrientationConfig(Strict):
+    """Surface incidence angles by Kirlin's multichannel Gauss–Newton step (docs/physics.md §9),
+    per block of pixels, seeded with the fused range. Needs the profile's absolute attenuations and
+    an absolute scale measured at the rangefinder's footprint (``reflectance``)."""
+
+    block: Annotated[Whole, Field(ge=4, le=128)] = 16
+    """Side of the square pixel blocks whose mean irradiance and range enter one Gauss–Newton solve."""
+    iterations: Annotated[Whole, Field(ge=1, le=50)] = 8
+    """Gauss–Newton steps per frame at most."""
+    beam_half_angle_deg: Annotated[Real, Field(gt=0, le=180)] | None = None
+    """The lamp's beam pattern exp(−k(1 − cos θ)) with half power at this angle off its axis
+    (the camera's z axis); None: a uniform beam."""
+
+
 class ProcessingConfig(Strict):
     pair: tuple[str, str] | None = None
     """Two channel names for single-pair ranging; None fuses all channels."""
@@ -145,6 +159,8 @@ class ProcessingConfig(Strict):
     """Correct for the surface's hue with the rangefinder; None: assume the calibration target's hue."""
     backscatter: BackscatterConfig | None = None
     """Subtract the water's own light (backscatter) in the loop; None: do not."""
+    orientation: OrientationConfig | None = None
+    """Surface incidence angles (Kirlin) in the loop; None: off."""
     vehicle_mask: Annotated[list[Box], Field(max_length=64)] = []
     """Regions (x, y, width, height in pixels) where the vehicle itself is in view: the patch's
     bracket, skids, a manipulator. They get no range (reason 6, "vehicle"), so that the page's

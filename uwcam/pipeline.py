@@ -20,12 +20,14 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from uwcam.config import PatchConfig, ProcessingConfig, ReflectanceConfig
+from uwcam.config import OrientationConfig, PatchConfig, ProcessingConfig, ReflectanceConfig
 from uwcam.drivers.base import Frame
 from uwcam.drivers.supervisor import SupervisedCamera
 from uwcam.lamp_control import LampCommander
 from uwcam.memory import release_compiler_pages, release_free_memory
 from uwcam.optics.geometry import Intrinsics, path_length_from_camera_range, pixel_rays
+from uwcam.optics.orientation import (beam_pattern, block_irradiance, block_means, incidence_from_blocks, normals_from_range,
+                                      surface_scale)
 from uwcam.optics.reflectance import surface_log_constant
 from uwcam.profile import CalibrationProfile
 from uwcam.ranging import RangeEstimator, RangeResult, range_frame
@@ -52,6 +54,11 @@ class Published:
     """The log constants b_k this frame was ranged with (the calibration's, or the surface's)."""
     ambient: NDArray[np.float32] | None = None
     """(H, W, C) light not from the lamp (DN, dark-corrected) subtracted from this frame, or None."""
+    incidence: NDArray[np.float32] | None = None
+    """(H // block, W // block) incidence angle γ in degrees per pixel block (Kirlin), NaN where
+    none was found; None when orientation is off or unavailable."""
+    incidence_block: int = 0
+    """Side of the pixel blocks of ``incidence``."""
 
     @property
     def latency_s(self) -> float:
@@ -154,7 +161,14 @@ class PatchTracker:
 
 @dataclass
 class ReflectanceCorrector:
-    """Surface log constants b_k from rangefinder readings at the beam's footprint (docs/physics.md §8).
+    """Surface log constants b_k from rangefinder readings at the beam's footprint (docs/physics.md §8),
+    and, when the profile has absolute attenuations, the surface's absolute scale s_k of Kirlin's
+    model (§9), the light a surface facing the lamp squarely would return at that range.
+
+    The reading is taken as the camera range along the ray through the footprint's centre. Where
+    the surface there is tilted, each footprint pixel looks at it from another range, and an
+    absolute scale divides by the cosine of the incidence angle: both come from the surface normal
+    at the footprint, estimated from the previous frame's range map (:meth:`observe`).
 
     A reading is used only if it is fresh relative to the frame's capture time and the
     rangefinder is healthy; otherwise the correction pauses (the last estimate stays in use)
@@ -164,9 +178,44 @@ class ReflectanceCorrector:
     config: ReflectanceConfig
     profile: CalibrationProfile
     rangefinder: object
+    beam_half_angle_deg: float | None = None
+    """The lamp's beam pattern (see :func:`uwcam.optics.orientation.beam_pattern`), for the scale."""
     log_constant: NDArray[np.float64] | None = None
+    scale: NDArray[np.float64] | None = None
+    """(N,) absolute scale s_k (DN, at the frame's exposure) of the surface at the footprint, or None."""
+    normal: NDArray[np.float64] | None = None
+    """(3,) unit surface normal at the footprint (camera frame), from the range map; None: unknown."""
+    incidence_deg: float | None = None
+    """Incidence angle at the footprint's centre from ``normal``, degrees."""
     used: int = 0
     state: str = "no reading yet"
+
+    def __post_init__(self) -> None:
+        attenuation = [c.attenuation for c in self.profile.channels]
+        self.attenuation = None if any(a is None for a in attenuation) else np.array(attenuation, np.float64)
+
+    def observe(self, range_map: NDArray) -> None:
+        """The surface normal at the footprint from a range map (H, W), metres: the mean of the
+        range-map normals (:func:`normals_from_range`) over the footprint; None where it has none."""
+        intr = self.profile.camera_intrinsics()
+        if intr is None:
+            return
+        x, y, w, h = self.config.footprint
+        margin = 8  # the normals' 7-pixel window, and a pixel to spare
+        x0, y0 = max(x - margin, 0), max(y - margin, 0)
+        x1, y1 = min(x + w + margin, range_map.shape[1]), min(y + h + margin, range_map.shape[0])
+        crop = np.asarray(range_map[y0:y1, x0:x1], dtype=np.float64)
+        if crop.shape[0] < 3 or crop.shape[1] < 3:
+            self.normal = None
+            return
+        n = normals_from_range(crop, Intrinsics(intr.fx, intr.fy, intr.cx - x0, intr.cy - y0), window=min(7, 2 * (min(crop.shape) // 2) - 1))
+        inside = n[y - y0 : y - y0 + h, x - x0 : x - x0 + w].reshape(-1, 3)
+        inside = inside[np.all(np.isfinite(inside), axis=1)]
+        if len(inside) < max(4, (w * h) // 4):
+            self.normal = None
+            return
+        mean = inside.astype(np.float64).mean(axis=0)
+        self.normal = mean / np.linalg.norm(mean)
 
     def update(self, frame: Frame, attenuation_differences: NDArray, background: NDArray | None = None) -> NDArray[np.float64] | None:
         """background: light (DN) not from the lamp, e.g. the ambient frame, subtracted first."""
@@ -194,13 +243,28 @@ class ReflectanceCorrector:
             return self.log_constant
         intr = self.profile.camera_intrinsics()
         rays = None
+        camera_range = np.full(int(ok.sum()), reading.range_m)
+        cos = np.ones(int(ok.sum()))
         if intr is not None:  # rays of the footprint only: the principal point shifted into it
             window = Intrinsics(intr.fx, intr.fy, intr.cx - x, intr.cy - y)
             rays = pixel_rays(window, pixels.shape[0] // w, w).reshape(-1, 3)[ok]
-        path = path_length_from_camera_range(np.full(int(ok.sum()), reading.range_m), self.profile.lamp_position_m, rays)
+            if self.normal is not None:
+                # The reading lies on the ray through the footprint's centre; every other footprint
+                # pixel meets the tilted surface (the plane of the normal) at its own range.
+                centre = pixel_rays(Intrinsics(intr.fx, intr.fy, intr.cx - x - (w - 1) / 2, intr.cy - y - (h - 1) / 2), 1, 1)[0, 0]
+                facing = rays @ self.normal
+                camera_range = reading.range_m * float(centre @ self.normal) / facing
+                cos = np.abs(facing)
+                self.incidence_deg = float(np.degrees(np.arccos(min(abs(float(centre @ self.normal)), 1.0))))
+        path = path_length_from_camera_range(camera_range, self.profile.lamp_position_m, rays)
         estimate = surface_log_constant(e[ok], path, attenuation_differences, self.profile.reference_index)
         a = 1.0 if self.log_constant is None else self.config.smoothing
         self.log_constant = estimate if self.log_constant is None else (1 - a) * self.log_constant + a * estimate
+        if self.attenuation is not None and rays is not None and self.normal is not None:
+            # Only with the surface's normal: an absolute scale divides by cos γ.
+            beam = beam_pattern(rays, self.beam_half_angle_deg)
+            log_scale = np.log(surface_scale(e[ok], camera_range, self.attenuation, cos, self.profile.lamp_radius_m or 0.0, beam))
+            self.scale = np.exp(log_scale if self.scale is None else (1 - a) * np.log(self.scale) + a * log_scale)
         self.used += 1
         self.state = "correcting"
         return self.log_constant
@@ -209,7 +273,98 @@ class ReflectanceCorrector:
         names = self.profile.channel_names
         target = self.profile.array("log_constant")
         ratio = None if self.log_constant is None else dict(zip(names, map(float, np.exp(self.log_constant - target))))
-        return {"state": self.state, "readings_used": self.used, "reflectance_ratio_to_target": ratio}
+        return {"state": self.state, "readings_used": self.used, "reflectance_ratio_to_target": ratio,
+                "incidence_deg": None if self.incidence_deg is None or self.normal is None else round(self.incidence_deg, 2),
+                "scale": None if self.scale is None else dict(zip(names, map(float, self.scale)))}
+
+
+@dataclass
+class OrientationEstimator:
+    """Incidence angles per pixel block by Kirlin's Gauss–Newton step (docs/physics.md §9), seeded
+    with the fused range, from the profile's absolute attenuations and the absolute scale that the
+    reflectance corrector measures at the rangefinder's footprint."""
+
+    config: OrientationConfig
+    profile: CalibrationProfile
+    state: str = "no frame yet"
+    valid_fraction: float | None = None
+    ms: collections.deque = field(default_factory=lambda: collections.deque(maxlen=100))
+
+    def __post_init__(self) -> None:
+        attenuation = [c.attenuation for c in self.profile.channels]
+        self.attenuation = None if any(a is None for a in attenuation) else np.array(attenuation, np.float64)
+        self._beam: tuple[tuple[int, int], NDArray] | None = None
+
+    def unavailable(self, corrector: ReflectanceCorrector | None) -> str | None:
+        """Why no incidence can be had with this profile and corrector, or None."""
+        if self.attenuation is None:
+            return (f"unavailable: the calibration profile '{self.profile.name}' has no absolute attenuations "
+                    "(calibrate with the lamp's effective radius, docs/calibration.md)")
+        if corrector is None:
+            return ("unavailable: needs the surface's absolute scale from the rangefinder "
+                    "(configure processing.reflectance with its footprint)")
+        if self.config.beam_half_angle_deg is not None and self.profile.camera_intrinsics() is None:
+            return "unavailable: a beam pattern needs camera intrinsics in the calibration profile"
+        if corrector.scale is None:
+            return f"waiting for an absolute scale at the rangefinder's footprint ({corrector.state})"
+        return None
+
+    def beam(self, shape: tuple[int, int]) -> NDArray:
+        """The lamp's relative intensity toward the centre of every block, (bh, bw)."""
+        if self._beam is None or self._beam[0] != shape:
+            intr = self.profile.camera_intrinsics()
+            if intr is None or self.config.beam_half_angle_deg is None:
+                values = np.ones(shape)
+            else:
+                b = self.config.block
+                # Block (i, j) is centred on pixel (j·b + (b − 1)/2, i·b + (b − 1)/2).
+                centres = Intrinsics(intr.fx / b, intr.fy / b, (intr.cx - (b - 1) / 2) / b, (intr.cy - (b - 1) / 2) / b)
+                values = beam_pattern(pixel_rays(centres, *shape), self.config.beam_half_angle_deg)
+            self._beam = (shape, values)
+        return self._beam[1]
+
+    def estimate(self, data: NDArray, result: RangeResult, corrector: ReflectanceCorrector | None,
+                 background: NDArray | None = None) -> NDArray[np.float32] | None:
+        """(H // block, W // block) incidence in degrees for this frame, or None (``state`` says why)."""
+        why = self.unavailable(corrector)
+        if why is not None:
+            self.state = why
+            return None
+        started = time.perf_counter()
+        p = self.profile
+        b = self.config.block
+        if data.shape[0] < b or data.shape[1] < b:
+            self.state = f"unavailable: the image is smaller than one block of {b} pixels"
+            return None
+        irradiance, share, usable = block_irradiance(data, result.range, p.array("dark_level"), p.array("noise_floor"),
+                                                     p.saturation_level, b, background)
+        maps = [np.asarray(m, np.float32) for m in (result.range, result.variance, result.calibration_variance) if m is not None]
+        means = block_means(cv2.merge(maps), usable, b)  # one pass over the three maps
+        seed, variance = means[..., 0], means[..., 1]
+        common = means[..., 2] if means.shape[-1] > 2 else 0.0
+        count = share * (b * b)
+        # Variances of the block means: the camera's noise model per pixel over the pixels averaged,
+        # and the fused range's own (its calibration part is common to all pixels: not averaged down).
+        with np.errstate(invalid="ignore", divide="ignore"):
+            pixel_var = (p.array("read_noise") ** 2 + p.array("shot_gain") * irradiance
+                         + (p.array("fixed_pattern") * irradiance) ** 2 + p.quantisation_step**2 / 12.0)
+            irradiance_var = pixel_var / count[..., None]
+            range_var = (variance - common) / count + common
+        scale = corrector.scale * self.beam(seed.shape)[..., None]
+        _, incidence = incidence_from_blocks(irradiance, seed, self.attenuation, scale, p.lamp_radius_m or 0.0,
+                                             self.config.iterations, irradiance_variance=irradiance_var,
+                                             range_variance=range_var)
+        self.ms.append((time.perf_counter() - started) * 1e3)
+        found = np.isfinite(incidence)
+        self.valid_fraction = float(found.mean())
+        self.state = "estimating"
+        return incidence.astype(np.float32)
+
+    def status(self) -> dict:
+        ms = list(self.ms)
+        return {"enabled": True, "state": self.state, "block": self.config.block,
+                "ms_per_frame": round(float(np.median(ms)), 2) if ms else None,
+                "blocks_with_angle": None if self.valid_fraction is None else round(self.valid_fraction, 4)}
 
 
 class FramePipeline:
@@ -269,12 +424,14 @@ class FramePipeline:
             raise ValueError(f"pair {list(processing.pair)} is not two of the profile's channels {profile.channel_names}")
         estimator = RangeEstimator(profile, pair=processing.pair, path_length_bounds=processing.path_length_bounds)
         tracker = PatchTracker(processing.patch, profile) if processing.patch else None
-        corrector = ReflectanceCorrector(processing.reflectance, profile, self.rangefinder) if processing.reflectance else None
-        return estimator, tracker, corrector
+        beam = processing.orientation.beam_half_angle_deg if processing.orientation else None
+        corrector = ReflectanceCorrector(processing.reflectance, profile, self.rangefinder, beam) if processing.reflectance else None
+        orientation = OrientationEstimator(processing.orientation, profile) if processing.orientation else None
+        return estimator, tracker, corrector, orientation
 
     def _apply(self, processing: ProcessingConfig, profile: CalibrationProfile | None = None) -> None:
         profile = profile or self.profile
-        estimator, tracker, corrector = self._build(processing, profile)
+        estimator, tracker, corrector, orientation = self._build(processing, profile)
         # Compile or load the kernels and build lookup tables here, in the caller's thread (start-up
         # or an API request), not on the loop's first frame, which would stall it for seconds.
         estimator.warm_up(background=bool(processing.lamp_off_interval))
@@ -284,6 +441,7 @@ class FramePipeline:
             self.estimator = estimator
             self.tracker = tracker
             self.corrector = corrector
+            self.orientation = orientation
             self._compensator = None  # rebuilt for the new profile and settings on the next frame
 
     def check(self, processing: ProcessingConfig | None = None, profile: CalibrationProfile | None = None) -> None:
@@ -513,6 +671,7 @@ class FramePipeline:
                         self.tracker.accepted = 0
                     if self.corrector is not None:
                         self.corrector.log_constant = None
+                        self.corrector.scale = None
             else:
                 self._ambient = 0.5 * (self._ambient + level)
             self._ambient_frames += 1
@@ -534,7 +693,7 @@ class FramePipeline:
             frame.lamp_on = None if last is None else bool(last.on)
         with self._lock:
             estimator, tracker, processing, corrector = self.estimator, self.tracker, self.processing, self.corrector
-            profile = self.profile
+            profile, orientation = self.profile, self.orientation
         if not processing.lamp_off_interval and self._cycle != "lit":
             # The cycle was switched off halfway (lamp possibly off): end it with the lamp on.
             self._lamp_commander.request(True)
@@ -555,9 +714,16 @@ class FramePipeline:
         transform = self._compensation(frame, processing, profile, estimator, ambient)
         result = range_frame(estimator, frame.data, processing.smoothing, processing.smoothing_stage, ambient,
                              processing.vehicle_mask, transform)
+        incidence = None
+        if frame.lamp_on is not False:
+            if corrector is not None:
+                corrector.observe(result.range)  # the normal at the footprint, for the next reading
+            if orientation is not None:
+                incidence = orientation.estimate(frame.data, result, corrector, ambient)
         now = time.monotonic_ns()
         published = Published(self.processed + 1, frame, result, now, tuple(float(v) for v in attenuation),
-                               tuple(float(v) for v in estimator.log_constant), ambient)
+                               tuple(float(v) for v in estimator.log_constant), ambient, incidence,
+                               orientation.config.block if orientation is not None else 0)
         with self._lock:
             self._latest = published
         self.processed += 1
@@ -589,4 +755,5 @@ class FramePipeline:
             "reflectance": None if self.corrector is None else self.corrector.status(),
             "ambient_frames": self._ambient_frames,
             "backscatter": self.backscatter_status(),
+            "orientation": {"enabled": False} if self.orientation is None else self.orientation.status(),
         }

@@ -8,7 +8,7 @@ from fastapi import APIRouter, Depends, HTTPException
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from uwcam.api.common import get_daemon
-from uwcam.config import BackscatterConfig, Box, Flag, PatchConfig, ProcessingConfig, Real, Whole
+from uwcam.config import BackscatterConfig, Box, Flag, OrientationConfig, PatchConfig, ProcessingConfig, Real, Whole
 from uwcam.daemon import Daemon
 
 router = APIRouter(prefix="/api/v1/config", tags=["config"])
@@ -32,6 +32,8 @@ class ProcessingPatch(BaseModel):
     """Backscatter compensation in the loop ({"iterations": 2}); null switches it off."""
     vehicle_mask: Annotated[list[Box], Field(max_length=64)] | None = None
     """Regions [x, y, width, height] where the vehicle is in view: no range there."""
+    orientation: OrientationConfig | None = None
+    """Surface incidence angles in the loop ({"block": 16}); null switches them off."""
 
 
 @router.get("")

@@ -70,6 +70,27 @@ def normals(format: Literal["npy", "tiff", "png"] = Query("npy"), d: Daemon = De
     return array_response(n, format, headers)
 
 
+@router.get("/incidence", responses={200: {"content": {"application/octet-stream": {}, "image/png": {}, "image/tiff": {}}}})
+def incidence(format: Literal["npy", "tiff", "png"] = Query("npy"), d: Daemon = Depends(get_daemon)) -> Response:
+    """Incidence angle γ (degrees, float32) between the surface normal and the line of sight, one
+    per block of pixels (X-Block-Size header; block (i, j) covers rows i·b … i·b + b − 1 and
+    columns j·b … j·b + b − 1), from Kirlin's multichannel step (docs/physics.md §9); NaN where no
+    angle was found. 409 when orientation is off or unavailable, saying why. png: false colour
+    from 0° (blue) to 90°, black where NaN."""
+    published = latest(d)
+    if published.incidence is None:
+        status = d.pipeline.orientation.state if d.pipeline.orientation is not None else \
+            "orientation is off (set processing.orientation, e.g. PATCH /api/v1/config {\"orientation\": {}})"
+        raise HTTPException(status_code=409, detail=f"no incidence angles: {status}")
+    data = published.incidence
+    headers = {"X-Frame-Number": str(published.number), "X-Capture-Time": f"{published.frame.wall_time:.6f}",
+               "X-Block-Size": str(published.incidence_block)}
+    if format == "png":
+        picture = false_colour(data, 0.0, 90.0)[0]
+        return Response(cv2.imencode(".png", picture)[1].tobytes(), media_type="image/png", headers=headers)
+    return array_response(data, format, headers)
+
+
 @router.get("/pointcloud", responses={200: {"content": {"application/octet-stream": {}}}})
 def pointcloud(d: Daemon = Depends(get_daemon)) -> Response:
     """The latest range map as a binary PLY point cloud (camera frame, metres; colour from the image)."""
