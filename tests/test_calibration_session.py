@@ -60,7 +60,7 @@ def test_guided_calibration_validated_accepted_and_activated(tank):
     assert live["rangefinder_m"] == pytest.approx(1.0, abs=0.05) and live["rangefinder_agrees"]
     assert all(ch["above_floor"] for ch in live["channels"].values())
     assert 0.2 < live["coverage"] < 0.9 and live["saturated_fraction"] == 0
-    assert status["session"]["exposure"]["locked"] is False and "manual" in status["session"]["exposure"]["how"]
+    assert status["session"]["exposure"]["locked"] is False and "reports its exposure" in status["session"]["exposure"]["how"]
 
     # A wrong distance is refused with the markers' figure and changes nothing.
     bad = tank.http.post(URL + "/captures", json={"distance_m": 1.5})

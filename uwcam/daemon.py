@@ -419,6 +419,7 @@ class Daemon:
             "calibration": {"name": self.profile_name, "created": self._created(), "tracking": stats.get("patch"),
                             "reflectance": stats.get("reflectance")},
             "backscatter": stats.get("backscatter"),
+            "exposure": stats.get("exposure"),
             "rangefinder": rf,
             "lamp": lamp,
             "recording": self.recorder.status() if self.recorder else None,

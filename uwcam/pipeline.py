@@ -97,8 +97,9 @@ class PatchTracker:
         x0, y0 = max(int(round(x)), 0), max(int(round(y)), 0)
         return x0, y0, max(int(round(w)), 1), max(int(round(h)), 1)
 
-    def update(self, data: NDArray, background: NDArray | None = None) -> bool:
-        """background: light (DN) not from the lamp, e.g. the ambient frame, subtracted first."""
+    def update(self, data: NDArray, background: NDArray | None = None, exposure_shift: NDArray | None = None) -> bool:
+        """background: light (DN) not from the lamp, e.g. the ambient frame, subtracted first;
+        exposure_shift: ln m_k of the frame's exposure against the calibration's (the estimator's)."""
         region = self.locate(data)
         if region is None:
             self.last_reason = f"marker {self.config.marker.id} not found (occluded, dark or out of view?)"
@@ -122,6 +123,8 @@ class PatchTracker:
             self.last_reason = "patch below the noise floor (occluded or lamp off?)"
             self.rejected += 1
             return False
+        if exposure_shift is not None:
+            e = e * np.exp(-np.asarray(exposure_shift))  # as if at the calibration's exposure
         estimate = (self.log_constant - (np.log(e) - np.log(e[self.ref]))) / self.config.path_length_m
         estimate[self.ref] = 0.0
         if self.accepted and np.max(np.abs(estimate - self.tracked)) > self.config.max_step:
@@ -162,8 +165,10 @@ class ReflectanceCorrector:
     used: int = 0
     state: str = "no reading yet"
 
-    def update(self, frame: Frame, attenuation_differences: NDArray, background: NDArray | None = None) -> NDArray[np.float64] | None:
-        """background: light (DN) not from the lamp, e.g. the ambient frame, subtracted first."""
+    def update(self, frame: Frame, attenuation_differences: NDArray, background: NDArray | None = None,
+               exposure_shift: NDArray | None = None) -> NDArray[np.float64] | None:
+        """background: light (DN) not from the lamp, e.g. the ambient frame, subtracted first;
+        exposure_shift: ln m_k of the frame's exposure against the calibration's (the estimator's)."""
         rf = self.rangefinder
         health = rf.health
         reading = rf.latest()
@@ -192,7 +197,8 @@ class ReflectanceCorrector:
             window = Intrinsics(intr.fx, intr.fy, intr.cx - x, intr.cy - y)
             rays = pixel_rays(window, pixels.shape[0] // w, w).reshape(-1, 3)[ok]
         path = path_length_from_camera_range(np.full(int(ok.sum()), reading.range_m), self.profile.lamp_position_m, rays)
-        estimate = surface_log_constant(e[ok], path, attenuation_differences, self.profile.reference_index)
+        light = e[ok] if exposure_shift is None else e[ok] * np.exp(-np.asarray(exposure_shift))
+        estimate = surface_log_constant(light, path, attenuation_differences, self.profile.reference_index)
         a = 1.0 if self.log_constant is None else self.config.smoothing
         self.log_constant = estimate if self.log_constant is None else (1 - a) * self.log_constant + a * estimate
         self.used += 1
@@ -261,6 +267,10 @@ class FramePipeline:
                              f"'{profile.name}' (calibrate with a rig that has a black patch, e.g. grey-plate)")
         if processing.pair is not None and any(p not in profile.channel_names for p in processing.pair):
             raise ValueError(f"pair {list(processing.pair)} is not two of the profile's channels {profile.channel_names}")
+        control = getattr(self.camera, "exposure_control", "")
+        if processing.exposure is not None and control not in ("per-channel", "common"):
+            raise ValueError("exposure control needs a camera whose exposure can be set while streaming "
+                             f"(driver '{getattr(getattr(self.camera, 'driver', None), 'name', '?')}' cannot)")
         estimator = RangeEstimator(profile, pair=processing.pair, path_length_bounds=processing.path_length_bounds)
         tracker = PatchTracker(processing.patch, profile) if processing.patch else None
         corrector = ReflectanceCorrector(processing.reflectance, profile, self.rangefinder) if processing.reflectance else None
@@ -269,6 +279,11 @@ class FramePipeline:
     def _apply(self, processing: ProcessingConfig, profile: CalibrationProfile | None = None) -> None:
         profile = profile or self.profile
         estimator, tracker, corrector = self._build(processing, profile)
+        exposure = None
+        if processing.exposure is not None:
+            from uwcam.exposure import ExposureController
+
+            exposure = ExposureController(processing.exposure, tuple(profile.channel_names), self.camera.exposure_control)
         # Compile or load the kernels and build lookup tables here, in the caller's thread (start-up
         # or an API request), not on the loop's first frame, which would stall it for seconds.
         estimator.warm_up(background=bool(processing.lamp_off_interval))
@@ -278,6 +293,7 @@ class FramePipeline:
             self.estimator = estimator
             self.tracker = tracker
             self.corrector = corrector
+            self.exposure = exposure
             self._compensator = None  # rebuilt for the new profile and settings on the next frame
 
     def check(self, processing: ProcessingConfig | None = None, profile: CalibrationProfile | None = None) -> None:
@@ -374,7 +390,7 @@ class FramePipeline:
         def transform(data: NDArray, samples: NDArray | None) -> RangeResult:
             started = time.perf_counter()
             # The loop's attenuation differences (centred: only differences matter) and log constants.
-            result = comp.range(data, estimator.attenuation, estimator.log_constant, ambient, samples)
+            result = comp.range(data, estimator.attenuation, estimator.effective_log_constant, ambient, samples)
             self._compensation_ms.append((time.perf_counter() - started) * 1e3)
             return result
 
@@ -520,7 +536,9 @@ class FramePipeline:
             frame.lamp_on = None if last is None else bool(last.on)
         with self._lock:
             estimator, tracker, processing, corrector = self.estimator, self.tracker, self.processing, self.corrector
-            profile = self.profile
+            profile, exposure = self.profile, self.exposure
+        # The frame's own exposure per channel: the estimator ranges it exactly whatever it was.
+        estimator.set_exposure(*frame.exposures())
         if not processing.lamp_off_interval and self._cycle != "lit":
             # The cycle was switched off halfway (lamp possibly off): end it with the lamp on.
             self._lamp_commander.request(True)
@@ -529,11 +547,11 @@ class FramePipeline:
             self._unranged(frame, "lamp off")
             return
         ambient = self._ambient if processing.lamp_off_interval else None
-        if tracker is not None and tracker.update(frame.data, ambient):
+        if tracker is not None and tracker.update(frame.data, ambient, estimator.exposure_shift):
             estimator.set_attenuation_differences(tracker.tracked)
         attenuation = tracker.tracked if tracker is not None else profile.array("attenuation_difference")
         if corrector is not None:
-            b = corrector.update(frame, attenuation, ambient)
+            b = corrector.update(frame, attenuation, ambient, estimator.exposure_shift)
             if b is not None and np.max(np.abs(b - estimator.log_constant)) > processing.reflectance.tolerance:
                 estimator.set_log_constants(b)
         if frame.lamp_on is not False:
@@ -541,6 +559,11 @@ class FramePipeline:
         transform = self._compensation(frame, processing, profile, estimator, ambient)
         result = range_frame(estimator, frame.data, processing.smoothing, processing.smoothing_stage, ambient,
                              processing.vehicle_mask, transform)
+        if exposure is not None:
+            wanted = exposure.update(frame.data, frame.exposures()[0], frame.lamp_on, profile.array("dark_level"),
+                                     estimator.floor, profile.saturation_level)
+            if wanted is not None:
+                self.camera.set_exposure(wanted)
         now = time.monotonic_ns()
         published = Published(self.processed + 1, frame, result, now, tuple(float(v) for v in attenuation),
                                tuple(float(v) for v in estimator.log_constant), ambient)
@@ -575,4 +598,14 @@ class FramePipeline:
             "reflectance": None if self.corrector is None else self.corrector.status(),
             "ambient_frames": self._ambient_frames,
             "backscatter": self.backscatter_status(),
+            "exposure": self.exposure_status(),
         }
+
+    def exposure_status(self) -> dict:
+        """The exposure controller's state, or where exposure control stands without it."""
+        exposure = self.exposure
+        if exposure is not None:
+            return exposure.status()
+        control = getattr(self.camera, "exposure_control", "")
+        return {"enabled": False, "control": control or None,
+                "state": "off" if control else "the camera's exposure cannot be set while streaming"}
