@@ -101,11 +101,6 @@ class RangeEstimator:
             b = b + np.log(rho_s / rho_s[0]) - np.log(profile.array("target_reflectance") / profile.array("target_reflectance")[0])
         self.log_constant = b
         self.exposure_shift = np.zeros(n)
-        self._floor0 = self.floor.copy()
-        # The part of the floor that is light (the black patch's backscatter), the rest being noise.
-        bs = profile.backscatter
-        self._floor_light = np.zeros(n) if bs is None else np.minimum(
-            [max(max(bs.levels[name]), 0.0) for name in names], self._floor0)
         """ln m_k: each channel's exposure × gain relative to the calibration's (see :meth:`set_exposure`)."""
         self._gain_ratio = np.ones(n)
         self.active = np.ones(n, dtype=bool)
@@ -161,10 +156,12 @@ class RangeEstimator:
         at calibration, so ln E_k is shifted by ln m_k: the estimator subtracts b_k + ln m_k, which
         is exact. Validity and noise stay in the sensor's own counts: the floor and saturation
         apply to the raw values, and the variance is that of the raw counts (E²/σ² is the same
-        for E and E/m). Gain also scales the noise in counts (read and shot noise, and the
-        floor, are amplified with the signal), so a gain change rebuilds the lookup tables; an
-        exposure change costs nothing. Where the profile did not record its exposure, only
-        ratios between channels count (a common factor does not move the range)."""
+        for E and E/m). The noise floor stays in counts as measured: a longer exposure lifts a
+        weak channel above it (light that is backscatter, not surface, is the compensation's to
+        remove: reason 3). Gain scales the noise in counts (read and shot noise, and the floor,
+        are amplified with the signal), so a gain change rebuilds the lookup tables; an exposure
+        change costs nothing. Where the profile did not record its exposure, only ratios between
+        channels count (a common factor does not move the range)."""
         n = self.n_channels
         cal_t, cal_g = self.profile.calibration_exposure()
         values = []
@@ -188,13 +185,9 @@ class RangeEstimator:
             else:  # the noise model was measured at an unknown gain: ratios between channels only, noise unscaled
                 shift += (g - np.mean(g)) * ln10
         self.exposure_shift = shift
-        # The floor is the black patch's backscatter (light: scales with exposure × gain, where the
-        # calibration's exposure is known) plus its noise (scales with gain).
-        light = (t / cal_t if t is not None and cal_t is not None else np.ones(n)) * ratio
-        floor = self._floor_light * light + (self._floor0 - self._floor_light) * ratio
-        if not (np.array_equal(ratio, self._gain_ratio) and np.array_equal(floor, self.floor)):
+        if not np.array_equal(ratio, self._gain_ratio):
             self._gain_ratio = ratio
-            self.floor = floor
+            self.floor = self.profile.array("noise_floor") * ratio
             self.read_noise = self.profile.array("read_noise") * ratio
             self.shot_gain = self.profile.array("shot_gain") * ratio
             self._tables = {}
