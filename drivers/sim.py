@@ -220,9 +220,12 @@ class SimulatedCamera(CameraDriver):
     _corrupt_next: set[str] = set()
 
     def __init__(self, rig: SimulatedRig | None = None, fps: float = 10.0, serial_number: str | None = "SIM-0001",
-                 **rig_options) -> None:
+                 one_exposure: bool = False, **rig_options) -> None:
+        """one_exposure: behave as a camera with one exposure for all channels (a Bayer sensor)
+        rather than a 3-chip camera exposing each channel apart."""
         if not fps > 0:
             raise ConfigurationError(f"sim camera fps must be positive, got {fps}")
+        self.exposure_control = "common" if one_exposure else "per-channel"
         self.rig = rig or SimulatedRig(**rig_options)
         self.fps = float(fps)
         self.serial_number = serial_number
@@ -274,7 +277,7 @@ class SimulatedCamera(CameraDriver):
         exposure = settings.channel_exposure_us or (
             None if settings.exposure_us is None else (settings.exposure_us,) * len(self.rig.exposure_us))
         if exposure is not None:
-            self.rig.set_exposure(exposure)
+            self.set_exposure(tuple(exposure))
             report.applied["exposure_us"] = list(self.rig.exposure_us)
         for name in ("gain_db", "channel_gain_db", "pixel_format", "region", "black_level"):
             if getattr(settings, name) is not None:
@@ -284,6 +287,8 @@ class SimulatedCamera(CameraDriver):
     def set_exposure(self, exposure_us: tuple[float, ...], gain_db: tuple[float, ...] | None = None) -> None:
         if gain_db is not None and any(g != 0 for g in gain_db):
             raise ConfigurationError("the simulated camera has a fixed gain (0 dB)")
+        if self.exposure_control == "common" and len(set(exposure_us)) > 1:
+            raise ConfigurationError(f"this simulated camera has one exposure for all channels, got {list(exposure_us)}")
         self.rig.set_exposure(exposure_us)
 
     def start(self) -> None:

@@ -200,3 +200,105 @@ def test_a_channel_pushed_below_its_floor_comes_back(sim_profile):
         assert history[-1][0][1:] == pytest.approx(settled[0][1:], rel=0.11)
     finally:
         camera.close()
+
+
+def test_a_multi_device_rig_sets_one_exposure_per_device():
+    from uwcam.drivers import registry
+
+    sensors = [{"driver": "sim", "serial_number": f"SIM-MULTI-{k}", "fps": 1000.0, "size": [32, 24], "seed": 3,
+                "material": "grey", "channel": k} for k in range(3)]
+    rig = registry.create("camera", "multi", sensors=sensors, channel_names=("R", "G", "B"))
+    assert rig.exposure_control == "per-channel"
+    rig.open()
+    rig.start()
+    try:
+        before = rig.read(1.0)
+        assert before.exposures()[0] == (10000.0,) * 3
+        rig.set_exposure((20000.0, 10000.0, 2500.0))
+        after = rig.read(1.0)
+        assert after.channel_exposure_us == (20000.0, 10000.0, 2500.0)
+        dark = CameraModel().dark_level_dn
+        ratio = (after.data.astype(float).mean(axis=(0, 1)) - dark) / (before.data.astype(float).mean(axis=(0, 1)) - dark)
+        np.testing.assert_allclose(ratio, [2.0, 1.0, 0.25], rtol=0.02)
+    finally:
+        rig.close()
+
+
+def test_hdr_takes_each_channel_from_its_longest_unsaturated_exposure():
+    from uwcam.hdr import merge_exposures
+
+    short = np.full((10, 10, 3), 1000, np.uint16)
+    long = np.full((10, 10, 3), 8000, np.uint16)
+    long[0, 0, 2] = 65535  # one clipped pixel in 100: blue saturates in the long frame
+    short[0, 0, 1] = long[0, 0, 1] = 65535  # green clipped in both: the shortest is taken
+    merged, exposure, chosen = merge_exposures([short, long], [(1000.0,) * 3, (8000.0,) * 3], 65535)
+    assert chosen == [1, 0, 0] and exposure == (8000.0, 1000.0, 1000.0)
+    assert merged[5, 5].tolist() == [8000, 1000, 1000] and merged.dtype == np.uint16
+    with pytest.raises(ValueError):
+        merge_exposures([short, long], [(1000.0,) * 3], 65535)
+
+
+def test_a_merged_bracket_ranges_exactly():
+    from uwcam.hdr import HdrMerger
+
+    profile = profile_with((1000.0,) * 3)
+    light, truth = scene(6.0)
+    light = light * (60000.0 / light[..., 2].max())  # blue fills the short exposure; red is ~100 times weaker
+    frames = [Frame(np.minimum(light * m + DARK, 65535.0), n, 0, 0.0, exposure_us=1000.0 * m, lamp_on=True)
+              for n, m in ((1, 1.0), (2, 64.0))]
+    merger = HdrMerger(65535.0)
+    assert merger(frames[0]) is frames[0]  # nothing to merge with yet
+    merged = merger(frames[1])
+    red, green, blue = merged.channel_exposure_us
+    assert red == 64000.0 and blue == 1000.0 and merger.merged == 1
+    assert green == (64000.0 if (light[..., 1] * 64 + DARK).max() < 65535 else 1000.0)
+    est = RangeEstimator(profile)
+    est.set_exposure(*merged.exposures())
+    np.testing.assert_allclose(est(merged.data).range, truth, rtol=1e-5)
+    # Not merged: across a dropped frame, or a lamp change.
+    assert merger(replace_frame(frames[0], sequence=4)).channel_exposure_us is None
+    assert merger(replace_frame(frames[1], sequence=5, lamp_on=False)).channel_exposure_us is None
+
+
+def replace_frame(frame: Frame, **changes) -> Frame:
+    from dataclasses import replace
+
+    return replace(frame, **changes)
+
+
+def test_one_exposure_cameras_bracket_and_a_weak_channel_comes_back(sim_profile):
+    from uwcam.hdr import HdrMerger
+
+    camera = SimulatedCamera(fps=1000.0, size=(64, 48), scene="seabed", distance=5.0, water="jerlov-IB", material="grey",
+                             one_exposure=True, serial_number="SIM-ONE")
+    assert camera.exposure_control == "common"
+    with pytest.raises(Exception, match="one exposure"):
+        camera.set_exposure((1000.0, 2000.0, 1000.0))
+    camera.set_exposure((25.0,) * 3)  # everything far too dark
+    camera.open()
+    camera.start()
+    try:
+        controller = ExposureController(ExposureConfig(), ("R", "G", "B"), camera.exposure_control)
+        assert controller.bracketing
+        merger, est = HdrMerger(sim_profile.saturation_level), RangeEstimator(sim_profile)
+        requests, states = [], []
+        for _ in range(24):
+            raw = camera.read(1.0)
+            frame = merger(raw)
+            est.set_exposure(*frame.exposures())
+            wanted = controller.update(frame.data, frame.exposures()[0], frame.lamp_on, est.dark, est.floor,
+                                       sim_profile.saturation_level, raw.exposures()[0])
+            states.append({k: v["state"] for k, v in controller.last.items()})
+            if wanted is not None:
+                assert len(set(wanted)) == 1  # one exposure for all channels, always
+                requests.append(wanted[0])
+                camera.set_exposure(wanted)
+        assert states[0]["R"] == "below floor"
+        assert all(s == "ok" for s in states[-1].values()), states[-1]
+        # Settled into a bracket: red's long exposure and blue's short one, alternating.
+        short, long = controller.bracket
+        assert long > 2 * short and sorted(set(round(r) for r in requests[-4:])) == [round(short), round(long)]
+        assert frame.channel_exposure_us[0] == pytest.approx(long) and frame.channel_exposure_us[2] == pytest.approx(short)
+        assert np.isfinite(est(frame.data).range).mean() > 0.9
+    finally:
+        camera.close()

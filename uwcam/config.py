@@ -145,6 +145,9 @@ class ExposureConfig(Strict):
     """Largest change of a channel's exposure from one frame to the next (a factor)."""
     tolerance: Annotated[Real, Field(ge=0, lt=1)] = 0.1
     """Dead band: a wanted change smaller than this fraction is not made."""
+    hdr: Flag = True
+    """On a camera with one exposure for all channels: alternate a short and a long exposure and
+    merge consecutive frames per channel (uwcam.hdr); false: one exposure, the strongest channel's."""
 
     @model_validator(mode="after")
     def _limits(self) -> "ExposureConfig":

@@ -97,11 +97,23 @@ class ExposureController:
     frames: int = 0
     state: str = "no frame yet"
     last: dict = field(default_factory=dict)
+    bracket: tuple[float, ...] | None = None
+    """Bracketing: the exposures (µs) alternated, short then long (one: no bracket needed)."""
+
+    @property
+    def bracketing(self) -> bool:
+        """True on a camera with one exposure when alternating exposures are merged (uwcam.hdr)."""
+        return self.control == "common" and self.config.hdr
 
     def update(self, data: NDArray, exposure_us: tuple[float, ...] | None, lamp_on: bool | None, dark: NDArray,
-               floor: NDArray, saturation_level: float) -> tuple[float, ...] | None:
+               floor: NDArray, saturation_level: float,
+               raw_exposure_us: tuple[float, ...] | None = None) -> tuple[float, ...] | None:
         """The exposure (µs per channel) to ask the camera for after this frame, or None to keep it.
-        floor: each channel's floor in this frame's counts (the estimator's, after its exposure)."""
+
+        data, exposure_us: the frame as ranged (merged from a bracket where the camera has one
+        exposure) and each channel's exposure in it; floor: each channel's floor in its counts
+        (the estimator's); raw_exposure_us: the exposure of the frame as the camera took it,
+        when it was merged (None: ``exposure_us``)."""
         if lamp_on is False:
             self.state = "waiting for a lamp-lit frame"
             return None
@@ -111,20 +123,28 @@ class ExposureController:
         self.frames += 1
         t = np.asarray(exposure_us, dtype=np.float64)
         metering = meter(data, dark, self.config)
-        new, states = next_exposure(metering, t, dark, floor, saturation_level, self.config,
-                                    per_channel=self.control == "per-channel")
+        per_channel = self.control == "per-channel" or self.bracketing
+        new, states = next_exposure(metering, t, dark, floor, saturation_level, self.config, per_channel=per_channel)
         self.last = {name: {"exposure_us": round(float(t[k]), 3), "next_exposure_us": round(float(new[k]), 3),
                             "high_dn": round(float(metering.high[k]), 1), "low_dn": round(float(metering.low[k]), 1),
                             "floor_dn": round(float(floor[k]), 1), "state": states[k]}
                      for k, name in enumerate(self.channel_names)}
-        weak = [n for n, s in zip(self.channel_names, states) if s != "ok"]
-        self.state = "all channels in range" if not weak else "out of range: " + ", ".join(
+        self.state = "all channels in range" if all(s == "ok" for s in states) else "out of range: " + ", ".join(
             f"{n} ({s})" for n, s in zip(self.channel_names, states) if s != "ok")
-        if np.allclose(new, t, rtol=1e-9, atol=0.0):
+        taken = t if raw_exposure_us is None else np.asarray(raw_exposure_us, dtype=np.float64)
+        if self.bracketing:
+            # Alternate the bracket's ends: the strongest channel's exposure and the weakest's.
+            short, long = float(np.min(new)), float(np.max(new))
+            single = long <= short * (1.0 + self.config.tolerance)
+            self.bracket = (short,) if single else (short, long)
+            target = short if single or abs(np.log(taken[0] / long)) < abs(np.log(taken[0] / short)) else long
+            new = np.full_like(new, target)
+        if np.allclose(new, taken, rtol=1e-9, atol=0.0):
             return None
         self.adjustments += 1
         return tuple(float(v) for v in new)
 
     def status(self) -> dict:
         return {"enabled": True, "control": self.control, "state": self.state, "frames_metered": self.frames,
-                "adjustments": self.adjustments, "channels": self.last or None}
+                "adjustments": self.adjustments, "channels": self.last or None,
+                "bracket_us": None if self.bracket is None else [round(v, 3) for v in self.bracket]}

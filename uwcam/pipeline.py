@@ -284,6 +284,9 @@ class FramePipeline:
             from uwcam.exposure import ExposureController
 
             exposure = ExposureController(processing.exposure, tuple(profile.channel_names), self.camera.exposure_control)
+        from uwcam.hdr import HdrMerger
+
+        hdr = HdrMerger(profile.saturation_level) if exposure is not None and exposure.bracketing else None
         # Compile or load the kernels and build lookup tables here, in the caller's thread (start-up
         # or an API request), not on the loop's first frame, which would stall it for seconds.
         estimator.warm_up(background=bool(processing.lamp_off_interval))
@@ -294,6 +297,7 @@ class FramePipeline:
             self.tracker = tracker
             self.corrector = corrector
             self.exposure = exposure
+            self._hdr = hdr
             self._compensator = None  # rebuilt for the new profile and settings on the next frame
 
     def check(self, processing: ProcessingConfig | None = None, profile: CalibrationProfile | None = None) -> None:
@@ -536,7 +540,10 @@ class FramePipeline:
             frame.lamp_on = None if last is None else bool(last.on)
         with self._lock:
             estimator, tracker, processing, corrector = self.estimator, self.tracker, self.processing, self.corrector
-            profile, exposure = self.profile, self.exposure
+            profile, exposure, hdr = self.profile, self.exposure, self._hdr
+        taken = frame.exposures()[0]
+        if hdr is not None:  # one exposure for all channels, bracketed: merged per channel with the frame before
+            frame = hdr(frame)
         # The frame's own exposure per channel: the estimator ranges it exactly whatever it was.
         estimator.set_exposure(*frame.exposures())
         if not processing.lamp_off_interval and self._cycle != "lit":
@@ -561,7 +568,7 @@ class FramePipeline:
                              processing.vehicle_mask, transform)
         if exposure is not None:
             wanted = exposure.update(frame.data, frame.exposures()[0], frame.lamp_on, profile.array("dark_level"),
-                                     estimator.floor, profile.saturation_level)
+                                     estimator.floor, profile.saturation_level, taken)
             if wanted is not None:
                 self.camera.set_exposure(wanted)
         now = time.monotonic_ns()
