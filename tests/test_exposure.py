@@ -302,3 +302,63 @@ def test_one_exposure_cameras_bracket_and_a_weak_channel_comes_back(sim_profile)
         assert np.isfinite(est(frame.data).range).mean() > 0.9
     finally:
         camera.close()
+
+
+class SfncNodeMap:
+    """A 3-chip camera's node map as SFNC describes it: ExposureTime and Gain each hold one value
+    per entry of their selector (ExposureTimeSelector: Red, Green, Blue; GainSelector: All only)."""
+
+    class Node:
+        def __init__(self, owner, name):
+            self.owner, self.name = owner, name
+
+        @property
+        def value(self):
+            return self.owner.read(self.name)
+
+        @value.setter
+        def value(self, v):
+            self.owner.write(self.name, v)
+
+        @property
+        def symbolics(self):
+            return self.owner.entries[self.name]
+
+    def __init__(self):
+        self.entries = {"ExposureTimeSelector": ["Red", "Green", "Blue"], "GainSelector": ["All"]}
+        self.selected = {"ExposureTimeSelector": "Red", "GainSelector": "All"}
+        self.values = {("ExposureTime", e): 1000.0 for e in self.entries["ExposureTimeSelector"]}
+        self.values[("Gain", "All")] = 0.0
+        for name in ("ExposureTime", "Gain", "ExposureTimeSelector", "GainSelector"):
+            setattr(self, name, SfncNodeMap.Node(self, name))
+
+    def _key(self, name):
+        return (name, self.selected["ExposureTimeSelector" if name == "ExposureTime" else "GainSelector"])
+
+    def read(self, name):
+        return self.selected[name] if name in self.selected else self.values[self._key(name)]
+
+    def write(self, name, v):
+        if name in self.selected:
+            assert v in self.entries[name]
+            self.selected[name] = v
+        else:
+            self.values[self._key(name)] = v
+
+
+def test_genicam_sets_each_sensors_exposure_through_the_selector():
+    from uwcam.drivers.genicam import GenTLCamera, channel_selectors
+
+    nm = SfncNodeMap()
+    assert channel_selectors(nm, "ExposureTimeSelector", ("R", "G", "B")) == ["Red", "Green", "Blue"]
+    assert channel_selectors(nm, "GainSelector", ("R", "G", "B")) is None  # "All" only: one gain
+    assert channel_selectors(nm, "ExposureTimeSelector", ("NIR", "G", "B")) is None
+    driver = GenTLCamera.__new__(GenTLCamera)
+    driver.channel_names = ("R", "G", "B")
+    driver._nodes = lambda: nm
+    driver._selectors = {"ExposureTime": ["Red", "Green", "Blue"], "Gain": None}
+    driver.set_exposure((4000.0, 1000.0, 500.0), (6.0, 6.0, 6.0))
+    assert [nm.values[("ExposureTime", e)] for e in ("Red", "Green", "Blue")] == [4000.0, 1000.0, 500.0]
+    assert driver._channel_exposure == (4000.0, 1000.0, 500.0) and driver._gain_db == 6.0
+    with pytest.raises(Exception, match="one Gain for all channels"):
+        driver.set_exposure((1.0, 1.0, 1.0), (0.0, 6.0, 0.0))
