@@ -103,6 +103,8 @@ def test_guided_calibration_validated_accepted_and_activated(tank):
     assert after["tank-1"] is True and set(after) == set(before) | {"tank-1"}
     assert tank.daemon.profile_name == "tank-1"
     assert tank.daemon.profiles["tank-1"].covariance is not None
+    # The profile records the per-channel exposure it was made at (the simulated camera's, 10 ms).
+    assert tank.daemon.profiles["tank-1"].calibration_exposure()[0].tolist() == [10000.0] * 3
     assert tank.http.get(URL).status_code == 404  # the session ended
 
 
