@@ -362,3 +362,26 @@ def test_genicam_sets_each_sensors_exposure_through_the_selector():
     assert driver._channel_exposure == (4000.0, 1000.0, 500.0) and driver._gain_db == 6.0
     with pytest.raises(Exception, match="one Gain for all channels"):
         driver.set_exposure((1.0, 1.0, 1.0), (0.0, 6.0, 0.0))
+
+
+def test_the_daemon_brackets_a_one_exposure_camera_and_ranges_the_merged_frames():
+    from tests.served import Server
+    from tests.waiting import wait_for
+    from uwcam.config import CameraConfig, DaemonConfig
+
+    config = DaemonConfig(
+        camera=CameraConfig(driver="sim", options={"fps": 20.0, "serial_number": "SIM-HDR", "one_exposure": True}),
+        simulation={"scene": "seabed", "distance": 6.0, "size": [64, 48], "water": "jerlov-IB", "material": "grey"},
+        processing=ProcessingConfig(exposure=ExposureConfig(max_step=4.0)),
+    )
+    with Server(config) as s:
+        def bracketed() -> bool:
+            latest = s.daemon.pipeline.latest
+            exposure = None if latest is None else latest.frame.channel_exposure_us
+            return exposure is not None and exposure[0] > 2 * exposure[2]  # red merged from the long exposure
+
+        assert wait_for(bracketed, timeout_s=60), s.http.get("/api/v1/status").json()["exposure"]
+        status = s.http.get("/api/v1/status").json()["exposure"]
+        assert status["enabled"] and status["control"] == "common" and len(status["bracket_us"]) == 2
+        latest = s.daemon.pipeline.latest
+        assert np.isfinite(latest.result.range).mean() > 0.5
