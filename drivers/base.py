@@ -133,6 +133,14 @@ class Frame:
 
         return per_channel(self.channel_exposure_us, self.exposure_us), per_channel(self.channel_gain_db, self.gain_db)
 
+    def light_gathered(self) -> NDArray[np.float64] | None:
+        """Per channel, exposure × linear gain (µs): what the signal in counts is proportional to;
+        None where the frame does not say its exposure (gain unknown counts as 0 dB)."""
+        exposure, gain = self.exposures()
+        if exposure is None:
+            return None
+        return np.asarray(exposure, dtype=np.float64) * 10.0 ** (np.asarray(gain or 0.0, dtype=np.float64) / 20.0)
+
 
 @dataclass(frozen=True)
 class CameraSettings:

@@ -359,6 +359,13 @@ class FramePipeline:
         if request is None:
             return
         light = frame.data.astype(np.float32) if ambient is None else frame.data.astype(np.float32) - ambient
+        gathered = frame.light_gathered()
+        if gathered is not None:
+            if request.get("exposure") is None:
+                request["exposure"] = gathered
+            elif not np.array_equal(gathered, request["exposure"]):  # the exposure moved: to the first frame's
+                dark = self.profile.array("dark_level").astype(np.float32)
+                light = dark + (light - dark) * (request["exposure"] / gathered).astype(np.float32)
         request["sum"] = light if request["sum"] is None else request["sum"] + light
         request["count"] += 1
         total, count = request["sum"], request["count"]
@@ -366,6 +373,8 @@ class FramePipeline:
             return
         info = {"source": source, "frames": count, "wall_time": frame.wall_time, "monotonic": time.monotonic(),
                 "shape": list(frame.data.shape)}
+        if request.get("exposure") is not None:
+            info["exposure"] = [float(v) for v in request["exposure"]]  # per channel, exposure × gain (µs)
         mean = total / count
         self.set_open_water(mean, info)
         with self._lock:
@@ -391,10 +400,18 @@ class FramePipeline:
                                           path_length_bounds=processing.path_length_bounds)
             self._compensator = comp
 
+        # The modelled backscatter is in the counts of the light it came from: scaled to this frame's exposure.
+        scale, gathered = None, frame.light_gathered()
+        made_at = self.open_water_info.get("exposure") if comp.open_water else None
+        if gathered is not None and made_at is not None and len(made_at) == gathered.size:
+            scale = gathered / np.asarray(made_at, dtype=np.float64)
+        elif gathered is not None and not comp.open_water and profile.calibration_exposure()[0] is not None:
+            scale = np.exp(estimator.exposure_shift)
+
         def transform(data: NDArray, samples: NDArray | None) -> RangeResult:
             started = time.perf_counter()
             # The loop's attenuation differences (centred: only differences matter) and log constants.
-            result = comp.range(data, estimator.attenuation, estimator.effective_log_constant, ambient, samples)
+            result = comp.range(data, estimator.attenuation, estimator.effective_log_constant, ambient, samples, scale)
             self._compensation_ms.append((time.perf_counter() - started) * 1e3)
             return result
 
