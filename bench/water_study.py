@@ -52,6 +52,15 @@ RANGES = [1.0, 3.0, 5.0, 7.0, 10.0]
 WAVELENGTHS = [675.0, 575.0, 475.0]
 BOUNDS = (0.0, 100.0)  # accepted path lengths, m: the daemon's default (processing.path_length_bounds)
 PAIRS = [("B", "R"), ("G", "R")]
+EXPOSURE_NOTE = (
+    "Per-channel exposure removes the limit of one exposure for all channels: gated, where the "
+    "water's own light does not swamp the surface's, red comes back above its floor at every range "
+    "(with one exposure, set by blue, B/R and G/R are gone by 7 m). It cannot help where red's "
+    "surface light is within the uncertainty of the backscatter beside it (compensated, beyond 5 m): "
+    "exposure scales both alike. Raw ranges stay valid but wrong: the raw signal is mostly backscatter. "
+    "The simulator has no frame time: far out, red asks for 10⁴–10⁶ times the exposure of a calibration "
+    "at 1–2 m (the controller's limit here is 10⁶), which a real camera at 30 frames/s gives only with "
+    "more lamp power or gain.")
 # Why a B/R, G/R goal is missed, by kind and exposure.
 WHY = {"raw": {"one exposure": "red below its floor", "per channel": "red below its floor"},
        "compensated": {"one exposure": "far out, red's surface light is within the backscatter's uncertainty (reason 3)",
@@ -225,6 +234,7 @@ def main() -> None:
                         row = [f"{100 * c['pairs'][mode][kind][pair]['valid']:.0f} / {pct(c['pairs'][mode][kind][pair]['median'])}"
                                for c in cells.values()]
                         lines.append(f"| {water} | {offset:g} m | {mode} | {pair} | " + " | ".join(row) + " |")
+        lines.append("\n" + EXPOSURE_NOTE)
         lines.append("\nExposure per channel (R, G, B), relative to the calibration's:\n\n| water | lamp offset | scene | "
                      + " | ".join(f"{d:g} m" for d in ranges) + " |")
         lines.append("|---|---|---|" + "---|" * len(ranges))
