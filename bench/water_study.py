@@ -13,7 +13,15 @@ Each with 3×3 mean smoothing of the range map. Per cell: the median of the rela
 rms over valid pixels, and the valid fraction, over the image's inner 80 % (the border, where
 the lamp barely reaches, is reported apart). The issue's goals are printed with pass/fail.
 
-    python3 bench/water_study.py [--quick] [--size 320x240] [--frames 4] [--out bench/accuracy/WATER.md]
+Every channel in range: the pairs B/R and G/R alone (red is the channel that leaves the sensor's
+range first), each with one exposure for all channels (the scene's auto-exposure, set by its
+brightest channel) and with per-channel exposure set by uwcam's exposure controller
+(:mod:`uwcam.exposure`, run on the scene's frames until it settles), ranged with each channel's
+exposure (:meth:`uwcam.ranging.RangeEstimator.set_exposure`). Exposures are in units where the
+calibration's is 100 µs.
+
+    python3 bench/water_study.py [--quick] [--size 320x240] [--frames 4] [--waters jerlov-IB]
+                                 [--offsets 0.3,0.6] [--out bench/accuracy/WATER.md]
 
 At 160×120 with 2 calibration frames per distance the calibration's own noise shifts the
 compensated cells beyond 5 m by tens of per cent (the red channel carries little light there,
@@ -32,6 +40,8 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 from uwcam.backscatter_loop import BackscatterCompensator  # noqa: E402
+from uwcam.config import ExposureConfig  # noqa: E402
+from uwcam.exposure import ExposureController  # noqa: E402
 from uwcam.ranging import RangeEstimator, smooth_range_map  # noqa: E402
 from uwcam.simulation import CameraModel, Lamp, SimulatedWorld, water_preset  # noqa: E402
 from uwcam.simulation.tank import calibrate_in_simulation  # noqa: E402
@@ -41,6 +51,26 @@ OFFSETS = [0.0, 0.3, 0.6]
 RANGES = [1.0, 3.0, 5.0, 7.0, 10.0]
 WAVELENGTHS = [675.0, 575.0, 475.0]
 BOUNDS = (0.0, 100.0)  # accepted path lengths, m: the daemon's default (processing.path_length_bounds)
+PAIRS = [("B", "R"), ("G", "R")]
+EXPOSURE_NOTE = (
+    "Per-channel exposure removes the limit of one exposure for all channels: gated, where the "
+    "water's own light does not swamp the surface's, red comes back above its floor at every range "
+    "(with one exposure, set by blue, B/R and G/R are gone by 7 m). It cannot help where red's "
+    "surface light is within the uncertainty of the backscatter beside it (compensated, beyond 5 m): "
+    "exposure scales both alike. Raw ranges stay valid but wrong: the raw signal is mostly backscatter. "
+    "The simulator has no frame time: far out, red asks for 10⁴–10⁶ times the exposure of a calibration "
+    "at 1–2 m (the controller's limit here is 10⁶), which a real camera at 30 frames/s gives only with "
+    "more lamp power or gain.")
+# Why a B/R, G/R goal is missed, by kind and exposure.
+WHY = {"raw": {"one exposure": "red below its floor", "per channel": "red below its floor"},
+       "compensated": {"one exposure": "far out, red's surface light is within the backscatter's uncertainty (reason 3)",
+                       "per channel": "far out, red's surface light is within the backscatter's uncertainty (reason 3): "
+                                      "exposure cannot change a ratio of light to light"},
+       "gated": {"one exposure": "red below its floor: one exposure, set by blue, leaves red thousands of times too dark",
+                 "per channel": "red below its floor even at the longest exposure"}}
+CALIBRATION_EXPOSURE_US = 100.0  # the unit of the study's exposures: the calibration's
+# The controller as in the daemon, with room for the exposures that 10 m of water asks for.
+EXPOSURE = ExposureConfig(max_step=4.0, min_exposure_us=1e-3, max_exposure_us=1e8)
 
 
 def statistics(range_m: np.ndarray, truth: np.ndarray, region: np.ndarray) -> dict:
@@ -52,13 +82,63 @@ def statistics(range_m: np.ndarray, truth: np.ndarray, region: np.ndarray) -> di
             "valid": float(valid.sum() / region.sum())}
 
 
-def run_cell(water_name: str, offset: float, size: tuple[int, int], ranges: list[float], frames: int) -> dict:
+def in_study_units(profile):
+    """The profile with its recorded exposure (the simulator's unit) replaced by CALIBRATION_EXPOSURE_US,
+    and the factor from the simulator's unit to the study's µs."""
+    unit = CALIBRATION_EXPOSURE_US / profile.channels[0].exposure_us
+    channels = [c.model_copy(update={"exposure_us": CALIBRATION_EXPOSURE_US}) for c in profile.channels]
+    return profile.model_copy(update={"channels": channels}), unit
+
+
+def settle_exposure(world: SimulatedWorld, profile, unit: float, frames: int = 30) -> np.ndarray:
+    """Run the exposure controller on ``world``'s frames until it asks for no change; the
+    per-channel exposures (µs) it settled at, left set on ``world``."""
+    controller = ExposureController(EXPOSURE, tuple(profile.channel_names), "per-channel")
+    est = RangeEstimator(profile)
+    scale = np.ones(len(profile.channels))
+    for k in range(frames):
+        world.set_exposure_scale(tuple(scale))
+        exposure = unit * world.exposure * scale
+        est.set_exposure(exposure)
+        wanted = controller.update(world.frame(100 + k), tuple(exposure), True, est.dark, est.floor, profile.saturation_level)
+        if wanted is None:
+            break
+        scale = np.asarray(wanted) / (unit * world.exposure)
+    world.set_exposure_scale(tuple(scale))
+    return unit * world.exposure * scale
+
+
+def pair_cells(world: SimulatedWorld, profile, unit: float, truth: np.ndarray, region: np.ndarray,
+               open_water: SimulatedWorld | None) -> dict:
+    """B/R and G/R statistics for ``world`` at its present exposure (raw, or compensated with ``open_water``)."""
+    frame = world.frame(0)
+    exposure = unit * world.exposure * (np.ones(3) if world.exposure_scale is None else np.asarray(world.exposure_scale))
+    out = {}
+    for pair in PAIRS:
+        est = RangeEstimator(profile, pair=pair, path_length_bounds=BOUNDS)
+        est.set_exposure(exposure)
+        if open_water is None:
+            result = est(frame)
+        else:
+            open_water.set_exposure_scale(world.exposure_scale)  # taken at the scene's exposure
+            comp = BackscatterCompensator(profile, truth.shape, 2, open_water.frame(0), pair=pair, path_length_bounds=BOUNDS)
+            result = comp.range(frame, est.attenuation, est.effective_log_constant)
+        out["/".join(pair)] = statistics(smooth_range_map(result, "mean").range, truth, region)
+    out["exposure"] = [float(v) for v in exposure]
+    return out
+
+
+def run_cell(water_name: str, offset: float, size: tuple[int, int], ranges: list[float], frames: int,
+             pairs: bool = True) -> dict:
     water = water_preset(water_name, WAVELENGTHS)
     lamp = Lamp(position=(offset, 0.0, 0.0))
     camera = CameraModel()
-    profile = calibrate_in_simulation(water, lamp, size, camera, frames_per_distance=frames)
+    # The recorded exposure is a common factor for all channels: it changes none of the fused cells.
+    profile, unit = in_study_units(calibrate_in_simulation(water, lamp, size, camera, frames_per_distance=frames,
+                                                           record_exposure=True))
     gate = 0.5
-    gated_profile = calibrate_in_simulation(water, lamp, size, camera, gate_width=gate, frames_per_distance=frames)
+    gated_profile, gated_unit = in_study_units(calibrate_in_simulation(water, lamp, size, camera, gate_width=gate,
+                                                                       frames_per_distance=frames, record_exposure=True))
     h, w = size[1], size[0]
     inner = np.zeros((h, w), bool)
     inner[h // 10 : h - h // 10, w // 10 : w - w // 10] = True
@@ -78,6 +158,18 @@ def run_cell(water_name: str, offset: float, size: tuple[int, int], ranges: list
         gated = smooth_range_map(RangeEstimator(gated_profile, path_length_bounds=BOUNDS)(gated_scene.frame(0)), "mean")
         out[d] = {name: {"inner": statistics(r.range, truth, inner), "border": statistics(r.range, truth, ~inner)}
                   for name, r in (("raw", raw), ("compensated", fixed), ("gated", gated))}
+        if pairs:
+            water_view = SimulatedWorld(scene="open-water", distance=d, size=size, water=water, lamp=lamp, camera=camera,
+                                        fixed_exposure=scene.exposure, seed=6)
+            cells = {}
+            for mode in ("one exposure", "per channel"):
+                if mode == "per channel":
+                    settle_exposure(scene, profile, unit)
+                    settle_exposure(gated_scene, gated_profile, gated_unit)
+                cells[mode] = {"raw": pair_cells(scene, profile, unit, truth, inner, None),
+                               "compensated": pair_cells(scene, profile, unit, truth, inner, water_view),
+                               "gated": pair_cells(gated_scene, gated_profile, gated_unit, truth, inner, None)}
+            out[d]["pairs"] = cells
     return out
 
 
@@ -90,17 +182,28 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="one water, one offset, two ranges, tiny frames: a smoke run")
     parser.add_argument("--size", default="320x240")
     parser.add_argument("--frames", type=int, default=4, help="calibration frames per distance")
-    parser.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "accuracy", "WATER.md"))
+    parser.add_argument("--waters", default=",".join(WATERS), help="comma-separated waters (default: all)")
+    parser.add_argument("--offsets", default=",".join(map(str, OFFSETS)), help="comma-separated lamp offsets, m")
+    parser.add_argument("--no-pairs", action="store_true", help="leave out the B/R, G/R per-channel exposure cells")
+    parser.add_argument("--out", default=None, help="where to write the tables (default: bench/accuracy/WATER.md "
+                                                    "for a run over every water and offset, nowhere otherwise)")
     args = parser.parse_args()
     size = tuple(int(v) for v in args.size.split("x"))
-    waters, offsets, ranges = (["jerlov-II"], [0.3], [3.0, 5.0]) if args.quick else (WATERS, OFFSETS, RANGES)
+    waters = [w for w in args.waters.split(",") if w]
+    offsets = [float(v) for v in args.offsets.split(",") if v]
+    unknown = [w for w in waters if w not in WATERS]
+    if unknown:
+        parser.error(f"unknown water {unknown}; choose from {WATERS}")
+    ranges = RANGES
+    full = waters == WATERS and offsets == OFFSETS and not args.no_pairs
     if args.quick:
-        size = (64, 48)
+        waters, offsets, ranges, size = ["jerlov-II"], [0.3], [3.0, 5.0], (64, 48)
+    out_path = args.out or (os.path.join(os.path.dirname(__file__), "accuracy", "WATER.md") if full and not args.quick else None)
     started = time.monotonic()
     results = {}
     for water in waters:
         for offset in offsets:
-            results[(water, offset)] = run_cell(water, offset, size, ranges, args.frames)
+            results[(water, offset)] = run_cell(water, offset, size, ranges, args.frames, pairs=not args.no_pairs)
             print(f"{water} lamp offset {offset} m done ({time.monotonic() - started:.0f} s)", flush=True)
     lines = [f"# Range accuracy in Jerlov waters\n\nMade by `python3 bench/water_study.py` in {time.monotonic() - started:.0f} s "
              f"({size[0]}×{size[1]} frames, grey seabed square to the camera, 3×3 mean). Each cell: median relative "
@@ -117,6 +220,29 @@ def main() -> None:
     for (water, offset), cells in results.items():
         row = [f"{pct(c['compensated']['border']['median'])} / {100 * c['compensated']['border']['valid']:.0f}" for c in cells.values()]
         lines.append(f"| {water} | {offset:g} m | " + " | ".join(row) + " |")
+    if not args.no_pairs:
+        lines.append("\n## Every channel in range: B/R and G/R, one exposure and per channel\n\nValid % / median error % "
+                     "over the inner 80 %, 3×3 mean; per channel: each channel's exposure set by uwcam's exposure "
+                     "controller on the scene. Exposures relative to the calibration's (R, G, B), raw and compensated "
+                     "scene / gated scene.")
+        for kind in ("raw", "compensated", "gated"):
+            lines.append(f"\n### {kind}\n\n| water | lamp offset | exposure | pair | " + " | ".join(f"{d:g} m" for d in ranges) + " |")
+            lines.append("|---|---|---|---|" + "---|" * len(ranges))
+            for (water, offset), cells in results.items():
+                for mode in ("one exposure", "per channel"):
+                    for pair in ("B/R", "G/R"):
+                        row = [f"{100 * c['pairs'][mode][kind][pair]['valid']:.0f} / {pct(c['pairs'][mode][kind][pair]['median'])}"
+                               for c in cells.values()]
+                        lines.append(f"| {water} | {offset:g} m | {mode} | {pair} | " + " | ".join(row) + " |")
+        lines.append("\n" + EXPOSURE_NOTE)
+        lines.append("\nExposure per channel (R, G, B), relative to the calibration's:\n\n| water | lamp offset | scene | "
+                     + " | ".join(f"{d:g} m" for d in ranges) + " |")
+        lines.append("|---|---|---|" + "---|" * len(ranges))
+        for (water, offset), cells in results.items():
+            for kind in ("raw", "gated"):
+                row = [" / ".join(f"{v / CALIBRATION_EXPOSURE_US:.3g}" for v in c["pairs"]["per channel"][kind]["exposure"])
+                       for c in cells.values()]
+                lines.append(f"| {water} | {offset:g} m | {'gated' if kind == 'gated' else 'ungated'} | " + " | ".join(row) + " |")
     lines.append("\n## Goals\n")
     for d in (3.0, 5.0, 7.0):
         for offset in (0.3, 0.6):
@@ -130,11 +256,26 @@ def main() -> None:
             lines.append(f"- jerlov-II, lamp {offset:g} m, compensated, {d:g} m: median {pct(c['median'])} %, rms "
                          f"{100 * c['rms']:.1f} %, valid {100 * c['valid']:.0f} % (goal |median| ≤ 2 %, rms ≤ 5 %, ≥ 85 % "
                          f"valid): {verdict}")
+    for (water, offset), cells in results.items():
+        if water != "jerlov-IB" or args.no_pairs:
+            continue
+        for kind in ("raw", "compensated", "gated"):
+            for mode in ("one exposure", "per channel"):
+                worst = {pair: min(c["pairs"][mode][kind][pair]["valid"] for c in cells.values()) for pair in ("B/R", "G/R")}
+                bias = max(abs(c["pairs"][mode][kind][pair]["median"]) if c["pairs"][mode][kind][pair]["valid"] > 0 else np.inf
+                           for c in cells.values() for pair in ("B/R", "G/R"))
+                valid = min(worst.values()) >= 0.85
+                ok = valid and bias <= 0.02
+                why = ("met" if ok else "NOT met: valid but wrong (the raw signal is mostly backscatter)" if valid
+                       else "NOT met: " + WHY[kind][mode])
+                lines.append(f"- jerlov-IB, lamp {offset:g} m, {kind}, {mode}: B/R and G/R valid in ≥ "
+                             f"{100 * min(worst.values()):.0f} % of pixels at every range to {max(ranges):g} m, largest |median| "
+                             f"{pct(bias) if np.isfinite(bias) else '—'} % (goal: ≥ 85 % valid with |median| ≤ 2 % to 10 m): {why}")
     text = "\n".join(lines) + "\n"
     print(text)
-    if not args.quick:
-        os.makedirs(os.path.dirname(args.out), exist_ok=True)
-        with open(args.out, "w") as fh:
+    if out_path:
+        os.makedirs(os.path.dirname(out_path) or ".", exist_ok=True)
+        with open(out_path, "w") as fh:
             fh.write(text)
 
 

@@ -107,14 +107,39 @@ class Frame:
     device_timestamp_ns: int | None = None
     """The camera's own (PTP or free-running) timestamp, where it has one."""
     exposure_us: float | None = None
+    """One exposure time (µs) for every channel; see :attr:`channel_exposure_us`."""
     gain_db: float | None = None
     lamp_on: bool | None = None
     channel_names: tuple[str, ...] = ("R", "G", "B")
     bit_depth: int | None = None
+    channel_exposure_us: tuple[float, ...] | None = None
+    """Exposure time (µs) of each channel, where channels are exposed apart (a 3-chip camera's
+    sensors, a multi-device rig, a merged high-dynamic-range frame); None: ``exposure_us`` for all."""
+    channel_gain_db: tuple[float, ...] | None = None
+    """Analogue gain (dB) of each channel; None: ``gain_db`` for all."""
 
     @property
     def age_s(self) -> float:
         return (time.monotonic_ns() - self.host_monotonic_ns) / 1e9
+
+    def exposures(self) -> tuple[tuple[float, ...] | None, tuple[float, ...] | None]:
+        """(exposure µs, gain dB) per channel, each None where the frame does not say."""
+        n = len(self.channel_names) if self.data.ndim < 3 else self.data.shape[-1]
+
+        def per_channel(values: tuple[float, ...] | None, common: float | None) -> tuple[float, ...] | None:
+            if values is not None:
+                return tuple(float(v) for v in values)
+            return None if common is None else (float(common),) * n
+
+        return per_channel(self.channel_exposure_us, self.exposure_us), per_channel(self.channel_gain_db, self.gain_db)
+
+    def light_gathered(self) -> NDArray[np.float64] | None:
+        """Per channel, exposure × linear gain (µs): what the signal in counts is proportional to;
+        None where the frame does not say its exposure (gain unknown counts as 0 dB)."""
+        exposure, gain = self.exposures()
+        if exposure is None:
+            return None
+        return np.asarray(exposure, dtype=np.float64) * 10.0 ** (np.asarray(gain or 0.0, dtype=np.float64) / 20.0)
 
 
 @dataclass(frozen=True)
@@ -127,6 +152,10 @@ class CameraSettings:
     region: tuple[int, int, int, int] | None = None  # x, y, width, height
     black_level: float | None = None
     frame_rate: float | None = None
+    channel_exposure_us: tuple[float, ...] | None = None
+    """Exposure (µs) per channel, for cameras that expose channels apart (overrides exposure_us)."""
+    channel_gain_db: tuple[float, ...] | None = None
+    """Gain (dB) per channel (overrides gain_db)."""
 
 
 @dataclass
@@ -176,6 +205,16 @@ class CameraDriver(ABC):
     @abstractmethod
     def close(self) -> None:
         """Release the device; safe to call twice and after a failure."""
+
+    #: How exposure can be set while streaming: "per-channel" (each channel its own, e.g. a
+    #: 3-chip camera's sensors), "common" (one for all channels) or "" (not at all).
+    exposure_control: str = ""
+
+    def set_exposure(self, exposure_us: tuple[float, ...], gain_db: tuple[float, ...] | None = None) -> None:
+        """Change exposure (µs) and gain (dB) per channel while streaming, from the next frame on.
+        With ``exposure_control`` "common", all values must be equal. The supervisor calls this
+        between reads (drivers are not thread-safe)."""
+        raise ConfigurationError(f"camera driver '{self.name}' cannot change exposure while streaming")
 
 
 def to_channels(data: NDArray, channels: int) -> NDArray:

@@ -105,6 +105,29 @@ def component_array(component) -> np.ndarray:
     return data
 
 
+# Entries of SFNC's ExposureTimeSelector / GainSelector that name one sensor of a multi-sensor
+# (3-chip) camera, by channel name; the channel's own name is tried too.
+CHANNEL_SELECTOR_VALUES = {"R": ("Red",), "G": ("Green",), "B": ("Blue",)}
+
+
+def channel_selectors(node_map, selector: str, channel_names: tuple[str, ...]) -> list[str] | None:
+    """The entry of ``selector`` for each channel, or None when the camera has no such selector
+    or it does not name every channel (then one value serves all channels)."""
+    if not hasattr(node_map, selector):
+        return None
+    try:
+        options = list(getattr(node_map, selector).symbolics)
+    except Exception:
+        return None
+    picked = []
+    for name in channel_names:
+        match = next((v for v in (*CHANNEL_SELECTOR_VALUES.get(name, ()), name) if v in options), None)
+        if match is None:
+            return None
+        picked.append(match)
+    return picked
+
+
 class GenTLCamera(CameraDriver):
     class Options(DriverOptions):
         cti: str | None = None
@@ -127,6 +150,10 @@ class GenTLCamera(CameraDriver):
         self._acquirer = None
         self._exposure_us: float | None = None
         self._gain_db: float | None = None
+        self._channel_exposure: tuple[float, ...] | None = None
+        self._channel_gain: tuple[float, ...] | None = None
+        self._selectors: dict[str, list[str] | None] = {}
+        self.exposure_control = ""
 
     @classmethod
     def list_devices(cls, cti: str | None = None, **_) -> list[DeviceInfo]:
@@ -210,9 +237,67 @@ class GenTLCamera(CameraDriver):
             except Exception as exc:
                 report.unsupported.append(f"{node} ({exc})")
         refuse_monochrome(nm.PixelFormat.value)  # fail at start, clearly, not on the first frame
+        # Per-channel exposure and gain where the camera selects its sensors (SFNC ExposureTimeSelector,
+        # GainSelector: 3-chip cameras); one value for all otherwise; none where there is no such node.
+        self._selectors = {node: channel_selectors(nm, selector, self.channel_names) if hasattr(nm, node) else None
+                           for node, selector in (("ExposureTime", "ExposureTimeSelector"), ("Gain", "GainSelector"))}
+        self.exposure_control = ("per-channel" if self._selectors["ExposureTime"] else
+                                 "common" if hasattr(nm, "ExposureTime") else "")
+        if settings.channel_exposure_us is not None or settings.channel_gain_db is not None:
+            exposure = settings.channel_exposure_us or self._read_per_channel("ExposureTime")
+            if exposure is not None:
+                try:
+                    self.set_exposure(tuple(exposure), settings.channel_gain_db)
+                    report.applied["channel_exposure_us"] = list(self._channel_exposure or ())
+                except ConfigurationError as exc:
+                    report.unsupported.append(f"channel_exposure_us ({exc})")
+        self._read_back()
+        return report
+
+    def _read_per_channel(self, node: str) -> tuple[float, ...] | None:
+        """``node``'s value for each channel (through its selector), or its one value repeated; None if absent."""
+        nm = self._nodes()
+        if not hasattr(nm, node):
+            return None
+        selectors = self._selectors.get(node)
+        if not selectors:
+            return (float(getattr(nm, node).value),) * len(self.channel_names)
+        selector = getattr(nm, "ExposureTimeSelector" if node == "ExposureTime" else "GainSelector")
+        values = []
+        for entry in selectors:
+            selector.value = entry
+            values.append(float(getattr(nm, node).value))
+        return tuple(values)
+
+    def _read_back(self) -> None:
+        nm = self._nodes()
         self._exposure_us = float(nm.ExposureTime.value) if hasattr(nm, "ExposureTime") else None
         self._gain_db = float(nm.Gain.value) if hasattr(nm, "Gain") else None
-        return report
+        self._channel_exposure = self._read_per_channel("ExposureTime") if self._selectors.get("ExposureTime") else None
+        self._channel_gain = self._read_per_channel("Gain") if self._selectors.get("Gain") else None
+
+    def set_exposure(self, exposure_us: tuple[float, ...], gain_db: tuple[float, ...] | None = None) -> None:
+        """Write ExposureTime (and Gain) per channel through the selectors, or one value for all."""
+        nm = self._nodes()
+        for node, values in (("ExposureTime", exposure_us), ("Gain", gain_db)):
+            if values is None:
+                continue
+            if not hasattr(nm, node):
+                raise ConfigurationError(f"the camera has no {node} node")
+            selectors = self._selectors.get(node)
+            if len(values) != len(self.channel_names):
+                raise ConfigurationError(f"need one {node} per channel {self.channel_names}, got {list(values)}")
+            if not selectors:
+                if len(set(values)) > 1:
+                    raise ConfigurationError(f"the camera has one {node} for all channels (no selector names "
+                                             f"{', '.join(self.channel_names)}), got {list(values)}")
+                getattr(nm, node).value = float(values[0])
+                continue
+            selector = getattr(nm, "ExposureTimeSelector" if node == "ExposureTime" else "GainSelector")
+            for entry, value in zip(selectors, values):
+                selector.value = entry
+                getattr(nm, node).value = float(value)
+        self._read_back()
 
     def start(self) -> None:
         try:
@@ -248,7 +333,8 @@ class GenTLCamera(CameraDriver):
             raise DeviceLost(f"GenTL acquisition failed: {exc}") from None
         return Frame(data=data, sequence=sequence, host_monotonic_ns=received, wall_time=time.time(),
                      device_timestamp_ns=device_ts, exposure_us=self._exposure_us, gain_db=self._gain_db,
-                     channel_names=self.channel_names[: data.shape[-1]], bit_depth=bits)
+                     channel_names=self.channel_names[: data.shape[-1]], bit_depth=bits,
+                     channel_exposure_us=self._channel_exposure, channel_gain_db=self._channel_gain)
 
     def stop(self) -> None:
         if self._acquirer is not None:

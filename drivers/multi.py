@@ -9,6 +9,7 @@ turn and matched in time: a sensor whose frame is older than the newest by more 
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -61,6 +62,21 @@ class MultiSensorCamera(CameraDriver):
             raise ConfigurationError(f"{len(self.parts)} sensors but {len(self.channel_names)} channel names")
         self.max_skew_ns = int(max_skew_ms * 1e6)
         self._sequence = 0
+        self._part_channels: list[int | None] = [None] * len(self.parts)
+
+    @property
+    def exposure_control(self) -> str:  # type: ignore[override]
+        """One exposure per sensor: per channel, where every sensor's exposure can be set."""
+        return "per-channel" if all(getattr(d, "exposure_control", "") for d, _ in self.parts) else ""
+
+    def set_exposure(self, exposure_us: tuple[float, ...], gain_db: tuple[float, ...] | None = None) -> None:
+        if len(exposure_us) != len(self.parts) or (gain_db is not None and len(gain_db) != len(self.parts)):
+            raise ConfigurationError(f"need one exposure (and gain) per sensor, {len(self.parts)}, got {list(exposure_us)}")
+        for k, (driver, _) in enumerate(self.parts):
+            n = self._part_channels[k]
+            if n is None:
+                raise ConfigurationError(f"no frame yet from sensor {k}: its exposure is set after the first frame")
+            driver.set_exposure((float(exposure_us[k]),) * n, None if gain_db is None else (float(gain_db[k]),) * n)
 
     @property
     def serial_number(self) -> str | None:  # type: ignore[override]
@@ -88,7 +104,13 @@ class MultiSensorCamera(CameraDriver):
     def configure(self, settings: CameraSettings) -> ConfigureReport:
         merged = ConfigureReport()
         for k, (driver, _) in enumerate(self.parts):
-            report = driver.configure(settings)
+            own = settings
+            if settings.channel_exposure_us is not None or settings.channel_gain_db is not None:
+                # Per channel: sensor k takes channel k's exposure and gain.
+                own = replace(settings, channel_exposure_us=None, channel_gain_db=None,
+                              exposure_us=settings.exposure_us if settings.channel_exposure_us is None else settings.channel_exposure_us[k],
+                              gain_db=settings.gain_db if settings.channel_gain_db is None else settings.channel_gain_db[k])
+            report = driver.configure(own)
             merged.applied.update({f"sensor{k}.{key}": value for key, value in report.applied.items()})
             merged.unsupported += [f"sensor{k}.{item}" for item in report.unsupported]
             merged.radiometry_not_disabled += [f"sensor{k}.{item}" for item in report.radiometry_not_disabled]
@@ -115,10 +137,17 @@ class MultiSensorCamera(CameraDriver):
             raise CorruptFrame(f"sensor images differ in size or type: {[(p.shape, str(p.dtype)) for p in planes]}")
         self._sequence += 1
         first = frames[0]
+        self._part_channels = [1 if f.data.ndim == 2 else f.data.shape[-1] for f in frames]
+        # Each channel was exposed by its own sensor: its exposure and gain are that sensor's.
+        own = [f.exposures() for f in frames]
+        exposure = [None if e is None else e[ch] for (e, _), (_, ch) in zip(own, self.parts)]
+        gain = [None if g is None else g[ch] for (_, g), (_, ch) in zip(own, self.parts)]
         return Frame(data=np.stack(planes, axis=-1), sequence=self._sequence,
                      host_monotonic_ns=max(f.host_monotonic_ns for f in frames), wall_time=time.time(),
                      device_timestamp_ns=first.device_timestamp_ns, exposure_us=first.exposure_us, gain_db=first.gain_db,
-                     channel_names=self.channel_names, bit_depth=first.bit_depth)
+                     channel_names=self.channel_names, bit_depth=first.bit_depth,
+                     channel_exposure_us=None if None in exposure else tuple(exposure),
+                     channel_gain_db=None if None in gain else tuple(gain))
 
     def stop(self) -> None:
         for driver, _ in self.parts:

@@ -161,11 +161,13 @@ class ReplayCamera(CameraDriver):
         self._pending = None
         m = rf.metadata
         first = (lambda v: None if not v else float(v[0]))
+        each = (lambda v: None if not v else tuple(float(x) for x in v))  # recorded per channel
         return Frame(data=rf.data, sequence=int(m["sequence"]), host_monotonic_ns=time.monotonic_ns(),
                      wall_time=time.time(), device_timestamp_ns=m.get("device_timestamp_ns"),
                      exposure_us=first(m.get("exposure_us")), gain_db=first(m.get("gain_db")), lamp_on=m.get("lamp_on"),
                      channel_names=tuple(m.get("channel_names") or self.channel_names[: rf.data.shape[-1]]),
-                     bit_depth=m.get("bit_depth"))
+                     bit_depth=m.get("bit_depth"), channel_exposure_us=each(m.get("exposure_us")),
+                     channel_gain_db=each(m.get("gain_db")))
 
     def _next_image(self) -> np.ndarray:
         if self.files:

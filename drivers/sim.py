@@ -33,12 +33,20 @@ from uwcam.simulation._jit import set_threads
 from uwcam.simulation.survey import SurveyMotion, SurveyWorld
 
 
+# The simulated sensor's exposure time at which it has the world's auto-exposure (µs).
+NOMINAL_EXPOSURE_US = 10000.0
+# Exposure limits of the simulated sensor (µs).
+EXPOSURE_RANGE_US = (10.0, 1e6)
+
+
 class RigState(NamedTuple):
-    """What a frame is rendered from, read once: lamp lit, its level 0–1, survey time (s)."""
+    """What a frame is rendered from, read once: lamp lit, its level 0–1, survey time (s),
+    and each channel's exposure time (µs)."""
 
     lit: bool
     level: float
     t: float
+    exposure_us: tuple[float, ...] = (NOMINAL_EXPOSURE_US,) * 3
 
 
 @dataclass
@@ -72,6 +80,9 @@ class SimulatedRig:
     """Survey time source (s); the survey starts when the world is built."""
     plate_rig: str | None = None
     """Built-in rig (e.g. "charuco-plate") drawn by the "plate" scene; None: the grey plate."""
+    exposure_us: tuple[float, ...] = (NOMINAL_EXPOSURE_US,) * 3
+    """Exposure time of each channel's sensor (µs), as a 3-chip camera sets them apart;
+    NOMINAL_EXPOSURE_US is the world's auto-exposure, electrons scale with the time."""
     _exposure: float | None = field(default=None, repr=False)
     _world: SimulatedWorld | SurveyWorld | None = field(default=None, repr=False)
     _t0: float = field(default=0.0, repr=False)
@@ -132,14 +143,25 @@ class SimulatedRig:
         t = self.now()
         with self._lamp_lock:
             on = self.lamp_on and self.lamp_intensity > 0
-            return RigState(on, round(self.lamp_intensity, 2) if on else 0.0, t)
+            return RigState(on, round(self.lamp_intensity, 2) if on else 0.0, t, tuple(self.exposure_us))
+
+    def set_exposure(self, exposure_us: tuple[float, ...]) -> None:
+        """Each channel's exposure time (µs), within EXPOSURE_RANGE_US; from the next frame on."""
+        values = tuple(float(v) for v in exposure_us)
+        low, high = EXPOSURE_RANGE_US
+        if len(values) != len(self.exposure_us) or not all(low <= v <= high for v in values):
+            raise ConfigurationError(f"the simulated camera needs {len(self.exposure_us)} exposure times from "
+                                     f"{low:g} to {high:g} µs, got {list(values)}")
+        with self._lamp_lock:
+            self.exposure_us = values
 
     def render(self, state: RigState, index: int) -> NDArray:
         """Frame number ``index`` (the noise counter) of the rig in ``state``, (H, W, 3)."""
         world = self.world
+        scale = np.asarray(state.exposure_us, np.float64) / NOMINAL_EXPOSURE_US
         if isinstance(world, SurveyWorld):
-            return world.frame(state.t, index, state.level)
-        mean, std = self.expected((state.lit, state.level))
+            return world.frame(state.t, index, state.level, exposure_scale=None if np.all(scale == 1) else scale)
+        mean, std = self.expected((state.lit, state.level), state.exposure_us)
         return world.camera.digitise(mean, std, world.seed, index)
 
     def set_lamp(self, on: bool | None = None, intensity: float | None = None) -> None:
@@ -150,13 +172,17 @@ class SimulatedRig:
             if intensity is not None:
                 self.lamp_intensity = float(intensity)
 
-    def expected(self, state: tuple[bool, float] | None = None) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-        """Static scenes: mean and σ (DN) for a lamp state (lit, level; default: the present one);
-        lamp light scales with its level."""
+    def expected(self, state: tuple[bool, float] | None = None,
+                 exposure_us: tuple[float, ...] | None = None) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Static scenes: mean and σ (DN) for a lamp state (lit, level; default: the present one)
+        and each channel's exposure time (µs; default: the present ones); lamp light scales with
+        its level, electrons with the exposure time."""
         if state is None:
             state = self.snapshot()[:2]
+        if exposure_us is None:
+            exposure_us = tuple(self.exposure_us)
         on, level = state
-        key = (on, level)
+        key = (on, level, tuple(exposure_us))
         cache = self._cache  # place() swaps in a new dict: a world being replaced cannot write into it
         if key not in cache:
             w = self.world
@@ -166,7 +192,10 @@ class SimulatedRig:
                 radiance = ambient + level * (lit.total - ambient)
             else:
                 radiance = w.components(False).total
-            cache[key] = w.camera.expected(radiance, w.exposure)
+            if len(cache) > 16:  # an exposure controller walks through many exposures
+                cache.clear()
+            scale = np.asarray(exposure_us, np.float64) / NOMINAL_EXPOSURE_US
+            cache[key] = w.camera.expected(radiance, w.exposure * scale)
         return cache[key]
 
     def true_range(self) -> float:
@@ -184,15 +213,19 @@ class SimulatedCamera(CameraDriver):
     """Frames of a :class:`SimulatedRig` at ``fps``, paced on the monotonic clock."""
 
     name = "sim"
+    exposure_control = "per-channel"
     # Fault injection, per serial number: shared so a test can unplug "the" device.
     _unplugged: set[str] = set()
     _stalled: set[str] = set()
     _corrupt_next: set[str] = set()
 
     def __init__(self, rig: SimulatedRig | None = None, fps: float = 10.0, serial_number: str | None = "SIM-0001",
-                 **rig_options) -> None:
+                 one_exposure: bool = False, **rig_options) -> None:
+        """one_exposure: behave as a camera with one exposure for all channels (a Bayer sensor)
+        rather than a 3-chip camera exposing each channel apart."""
         if not fps > 0:
             raise ConfigurationError(f"sim camera fps must be positive, got {fps}")
+        self.exposure_control = "common" if one_exposure else "per-channel"
         self.rig = rig or SimulatedRig(**rig_options)
         self.fps = float(fps)
         self.serial_number = serial_number
@@ -241,10 +274,22 @@ class SimulatedCamera(CameraDriver):
         if settings.frame_rate:
             self.fps = float(settings.frame_rate)
             report.applied["frame_rate"] = self.fps
-        for name in ("exposure_us", "gain_db", "pixel_format", "region", "black_level"):
+        exposure = settings.channel_exposure_us or (
+            None if settings.exposure_us is None else (settings.exposure_us,) * len(self.rig.exposure_us))
+        if exposure is not None:
+            self.set_exposure(tuple(exposure))
+            report.applied["exposure_us"] = list(self.rig.exposure_us)
+        for name in ("gain_db", "channel_gain_db", "pixel_format", "region", "black_level"):
             if getattr(settings, name) is not None:
-                report.unsupported.append(name)  # the simulated sensor has fixed settings
+                report.unsupported.append(name)  # the simulated sensor has fixed gain and format
         return report
+
+    def set_exposure(self, exposure_us: tuple[float, ...], gain_db: tuple[float, ...] | None = None) -> None:
+        if gain_db is not None and any(g != 0 for g in gain_db):
+            raise ConfigurationError("the simulated camera has a fixed gain (0 dB)")
+        if self.exposure_control == "common" and len(set(exposure_us)) > 1:
+            raise ConfigurationError(f"this simulated camera has one exposure for all channels, got {list(exposure_us)}")
+        self.rig.set_exposure(exposure_us)
 
     def start(self) -> None:
         self._check_present()
@@ -277,9 +322,9 @@ class SimulatedCamera(CameraDriver):
         world = self.rig.world
         return Frame(
             data=data, sequence=self._sequence, host_monotonic_ns=time.monotonic_ns(), wall_time=time.time(),
-            device_timestamp_ns=None, exposure_us=None, gain_db=None,
-            lamp_on=state.lit, channel_names=("R", "G", "B"),
-            bit_depth=world.camera.bits,
+            device_timestamp_ns=None, exposure_us=state.exposure_us[0] if len(set(state.exposure_us)) == 1 else None,
+            gain_db=0.0, lamp_on=state.lit, channel_names=("R", "G", "B"),
+            bit_depth=world.camera.bits, channel_exposure_us=state.exposure_us, channel_gain_db=(0.0,) * len(state.exposure_us),
         )
 
     def stop(self) -> None:

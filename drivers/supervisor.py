@@ -22,7 +22,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from uwcam.drivers.base import (
     CameraDriver,
@@ -86,6 +86,10 @@ class SupervisedCamera:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._connected = False
+        self._exposure_lock = threading.Lock()
+        self._pending_exposure: tuple[tuple[float, ...], tuple[float, ...] | None] | None = None
+        self.exposure_error: str | None = None
+        """Why the last exposure change failed (None: it did not)."""
 
     # -- consumer side -------------------------------------------------------------------
     @property
@@ -98,6 +102,34 @@ class SupervisedCamera:
             if not self._queue:
                 self._ready.wait_for(lambda: bool(self._queue) or self._stop.is_set(), timeout=timeout_s)
             return self._queue.popleft() if self._queue else None
+
+    @property
+    def exposure_control(self) -> str:
+        """"per-channel", "common" or "" (see :attr:`CameraDriver.exposure_control`)."""
+        return getattr(self.driver, "exposure_control", "")
+
+    def set_exposure(self, exposure_us: tuple[float, ...], gain_db: tuple[float, ...] | None = None) -> None:
+        """Ask for new per-channel exposure (µs) and gain (dB); the acquisition thread applies them
+        before its next read (the driver is not thread-safe) and keeps them for reconnections.
+        Returns at once; a later request replaces one not yet applied."""
+        with self._exposure_lock:
+            self._pending_exposure = (tuple(float(v) for v in exposure_us), None if gain_db is None else tuple(map(float, gain_db)))
+
+    def _apply_exposure(self) -> None:
+        with self._exposure_lock:
+            pending, self._pending_exposure = self._pending_exposure, None
+        if pending is None:
+            return
+        exposure, gain = pending
+        try:
+            self.driver.set_exposure(exposure, gain)
+        except Exception as exc:  # a value the device refuses: keep streaming at the old exposure
+            self.exposure_error = f"{type(exc).__name__}: {exc}"
+            log.warning("exposure change to %s µs refused: %s", list(exposure), exc)
+            return
+        self.exposure_error = None
+        self.settings = replace(self.settings, channel_exposure_us=exposure,
+                                channel_gain_db=gain if gain is not None else self.settings.channel_gain_db)
 
     def status(self) -> dict:
         return {
@@ -185,6 +217,7 @@ class SupervisedCamera:
                     delay = min(delay * 2, self.backoff_s[1])
                     continue
             try:
+                self._apply_exposure()
                 frame = self.driver.read(self.read_timeout_s)
             except CorruptFrame as exc:
                 self.stats.corrupt += 1

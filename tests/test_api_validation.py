@@ -79,6 +79,10 @@ def patch(s: Server, body):
     ({"patch": {"region": [0, 0, 0, 4], "path_length_m": 1.0}}, "greater than 0"),
     ({"patch": {"region": [0, 0, 4, 4], "path_length_m": -1.0}}, "greater than 0"),
     ({"colour": 1}, "colour"),
+    ({"exposure": {"target": 2.0}}, "target"),
+    ({"exposure": {"max_step": float("nan")}}, "max_step"),
+    ({"exposure": {"min_exposure_us": 100.0, "max_exposure_us": 10.0}}, "min_exposure_us must be less"),
+    ({"exposure": {"auto": True}}, "auto"),
 ])
 def test_bad_processing_settings_are_refused_with_the_reason(server, body, message):
     before = server.http.get("/api/v1/config").json()
@@ -106,6 +110,20 @@ def test_good_processing_settings_apply_and_restore(server):
     finally:
         patch(server, {k: v for k, v in before.items() if k in ("smoothing", "smoothing_stage", "path_length_bounds",
                                                                 "lamp_off_interval")} | {"fuse": True})
+
+
+def test_exposure_control_switches_on_live_and_reports_in_the_status(server):
+    try:
+        r = patch(server, {"exposure": {"max_step": 4.0}})
+        assert r.status_code == 200 and r.json()["exposure"]["max_step"] == 4.0, r.text
+        assert wait_for(lambda: server.http.get("/api/v1/status").json()["exposure"]["frames_metered"] > 2, timeout_s=30)
+        status = server.http.get("/api/v1/status").json()["exposure"]
+        assert status["enabled"] and status["control"] == "per-channel" and set(status["channels"]) == {"R", "G", "B"}
+        r = patch(server, {"exposure": None})
+        assert r.status_code == 200 and r.json()["exposure"] is None
+        assert server.http.get("/api/v1/status").json()["exposure"]["enabled"] is False
+    finally:
+        patch(server, {"exposure": None})
 
 
 @pytest.mark.parametrize("name, status", [

@@ -60,7 +60,7 @@ def test_guided_calibration_validated_accepted_and_activated(tank):
     assert live["rangefinder_m"] == pytest.approx(1.0, abs=0.05) and live["rangefinder_agrees"]
     assert all(ch["above_floor"] for ch in live["channels"].values())
     assert 0.2 < live["coverage"] < 0.9 and live["saturated_fraction"] == 0
-    assert status["session"]["exposure"]["locked"] is False and "manual" in status["session"]["exposure"]["how"]
+    assert status["session"]["exposure"]["locked"] is False and "reports its exposure" in status["session"]["exposure"]["how"]
 
     # A wrong distance is refused with the markers' figure and changes nothing.
     bad = tank.http.post(URL + "/captures", json={"distance_m": 1.5})
@@ -103,6 +103,8 @@ def test_guided_calibration_validated_accepted_and_activated(tank):
     assert after["tank-1"] is True and set(after) == set(before) | {"tank-1"}
     assert tank.daemon.profile_name == "tank-1"
     assert tank.daemon.profiles["tank-1"].covariance is not None
+    # The profile records the per-channel exposure it was made at (the simulated camera's, 10 ms).
+    assert tank.daemon.profiles["tank-1"].calibration_exposure()[0].tolist() == [10000.0] * 3
     assert tank.http.get(URL).status_code == 404  # the session ended
 
 

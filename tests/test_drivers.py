@@ -186,6 +186,8 @@ def test_genicam_streams_from_the_gentl_simulator():
     assert report.applied["PixelFormat"] == "RGBa8"
     assert f.exposure_us is None and f.gain_db is None  # the simulator has neither node
     assert "ExposureTime" in report.unsupported  # the simulator has no exposure node, and we say so
+    # Nor exposure selectors: no per-channel exposure, and no exposure control at all (nor HDR).
+    assert driver.exposure_control == "" and f.channel_exposure_us is None
 
 
 def test_genicam_refuses_mono_and_missing_producers(monkeypatch, tmp_path):

@@ -98,10 +98,12 @@ class BackscatterCompensator:
         return cv2.resize(small, size, interpolation=cv2.INTER_LINEAR).reshape(size[1], size[0], -1)
 
     def range(self, frame: NDArray, attenuation_differences: NDArray, log_constants: NDArray,
-              ambient: NDArray | None = None, samples: NDArray | None = None) -> RangeResult:
+              ambient: NDArray | None = None, samples: NDArray | None = None,
+              background_scale: NDArray | None = None) -> RangeResult:
         """Range ``frame`` with backscatter subtracted, with these attenuation differences and log
         constants (the loop's); samples: as for :class:`RangeEstimator` (a frame smoothed before
-        the transform).
+        the transform); background_scale: (N,) the frame's exposure × gain over that of the light
+        the model came from (the open-water frame's, or the calibration's), per channel; None: 1.
 
         All passes but the last only find the depths the backscatter is evaluated at: they run on
         the frame at half resolution (2×2 means), the first with the ambient light alone, without
@@ -115,12 +117,13 @@ class BackscatterCompensator:
         small_ambient = None if ambient is None else cv2.resize(ambient, half, interpolation=cv2.INTER_AREA)
         zeros = np.zeros(small.shape, np.float32) if small_ambient is None else small_ambient
         result = self._half(small, background=zeros)
+        scale = 1.0 if background_scale is None else np.asarray(background_scale, np.float32)
         for _ in range(self.iterations - 1):
-            background = self.level(result.range, half=True)
+            background = self.level(result.range, half=True) * scale
             if small_ambient is not None:
                 background += small_ambient
             result = self._half(small, background=background)
-        background = self.level(result.range)
+        background = self.level(result.range) * scale
         if ambient is not None:
             background += ambient
         return self.estimator(frame, background=background, samples=samples)

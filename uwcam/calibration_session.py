@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import threading
 import uuid
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -126,7 +126,7 @@ class CalibrationSession:
 
     # -- captures ------------------------------------------------------------------------------
     def capture(self, frames: list[NDArray], distance_m: float, held_back: bool, rangefinder_m: float | None,
-                exposures: list[float | None]) -> Capture:
+                exposures: list[float | None], channel_exposures: list[tuple[float, ...] | None] | None = None) -> Capture:
         """Check N frames taken at ``distance_m`` and keep them; SessionError (nothing kept) when they are unusable."""
         if self.state not in ("positioning", "fitted"):
             raise SessionError(409, f"the session is {self.state}; start a new one")
@@ -136,6 +136,11 @@ class CalibrationSession:
         if known and (max(known) - min(known) > 1e-6 * max(known) or
                       (self.exposure.get("exposure_us") is not None and abs(known[0] - self.exposure["exposure_us"]) > 1e-6 * known[0])):
             raise SessionError(409, "the camera's exposure changed during the session; fix the exposure and start again")
+        per_channel = [tuple(e) for e in (channel_exposures or []) if e is not None]
+        first = self.exposure.get("channel_exposure_us")
+        if per_channel and (len(set(per_channel)) > 1 or (first is not None and tuple(first) != per_channel[0])):
+            raise SessionError(409, "the camera's exposure changed during the session (is the exposure controller on? "
+                                    "switch it off while calibrating); fix the exposure and start again")
         stack = np.asarray(frames)
         mean = stack.astype(np.float64).mean(axis=0)
         pose = locate_plate(mean, self.rig, self.intrinsics)
@@ -170,6 +175,8 @@ class CalibrationSession:
         self.captures.append(cap)
         if self.exposure.get("exposure_us") is None and known:
             self.exposure["exposure_us"] = known[0]
+        if first is None and per_channel:
+            self.exposure["channel_exposure_us"] = list(per_channel[0])
         # New data: any earlier fit no longer describes the captures.
         self.state, self.details, self.validation, self._plots = "positioning", None, [], {}
         return cap
@@ -202,6 +209,11 @@ class CalibrationSession:
             details = calibrate_with_details(frames, at, inputs)
         except UserInputError as exc:
             raise SessionError(422, f"the fit failed: {exc}") from None
+        exposure = self.exposure.get("channel_exposure_us")
+        if exposure is not None and len(exposure) == len(details.profile.channels):
+            # The profile records the exposure it was made at, so frames at other exposures range exactly.
+            channels = [c.model_copy(update={"exposure_us": float(t)}) for c, t in zip(details.profile.channels, exposure)]
+            details = replace(details, profile=details.profile.model_copy(update={"channels": channels}))
         self.details, self._plots = details, {}
         self.validation = [self._validate(c, details.profile) for c in self.captures if c.held_back]
         self.state = "fitted"

@@ -142,6 +142,34 @@ class OrientationConfig(Strict):
     (the camera's z axis); None: a uniform beam."""
 
 
+class ExposureConfig(Strict):
+    """The radiometric exposure controller (uwcam.exposure; docs/exposure.md): per channel where
+    the camera allows, one exposure otherwise. Never the camera's own auto-exposure."""
+
+    target: Annotated[Real, Field(gt=0.05, le=0.98)] = 0.8
+    """Each channel's high percentile is brought to this fraction of the saturation level."""
+    high_percentile: Annotated[Real, Field(ge=50, le=100)] = 99.5
+    """Percentile of a channel's raw values that stands for its brightest useful pixels."""
+    low_percentile: Annotated[Real, Field(ge=0, lt=50)] = 10.0
+    """Percentile that stands for its weakest useful pixels, checked against the noise floor."""
+    min_exposure_us: Annotated[Real, Field(gt=0, le=1e8)] = 10.0
+    max_exposure_us: Annotated[Real, Field(gt=0, le=1e8)] = 100000.0
+    """Longest exposure (µs): at 30 frames/s no more than 33 000 keeps the frame rate."""
+    max_step: Annotated[Real, Field(gt=1, le=100)] = 2.0
+    """Largest change of a channel's exposure from one frame to the next (a factor)."""
+    tolerance: Annotated[Real, Field(ge=0, lt=1)] = 0.1
+    """Dead band: a wanted change smaller than this fraction is not made."""
+    hdr: Flag = True
+    """On a camera with one exposure for all channels: alternate a short and a long exposure and
+    merge consecutive frames per channel (uwcam.hdr); false: one exposure, the strongest channel's."""
+
+    @model_validator(mode="after")
+    def _limits(self) -> "ExposureConfig":
+        if self.min_exposure_us >= self.max_exposure_us:
+            raise ValueError("min_exposure_us must be less than max_exposure_us")
+        return self
+
+
 class ProcessingConfig(Strict):
     pair: tuple[str, str] | None = None
     """Two channel names for single-pair ranging; None fuses all channels."""
@@ -161,6 +189,8 @@ class ProcessingConfig(Strict):
     """Subtract the water's own light (backscatter) in the loop; None: do not."""
     orientation: OrientationConfig | None = None
     """Surface incidence angles (Kirlin) in the loop; None: off."""
+    exposure: ExposureConfig | None = None
+    """Radiometric exposure control, per channel where the camera allows; None: the exposure stays as set."""
     vehicle_mask: Annotated[list[Box], Field(max_length=64)] = []
     """Regions (x, y, width, height in pixels) where the vehicle itself is in view: the patch's
     bracket, skids, a manipulator. They get no range (reason 6, "vehicle"), so that the page's

@@ -420,6 +420,7 @@ class Daemon:
                             "reflectance": stats.get("reflectance")},
             "backscatter": stats.get("backscatter"),
             "orientation": stats.get("orientation"),
+            "exposure": stats.get("exposure"),
             "rangefinder": rf,
             "lamp": lamp,
             "recording": self.recorder.status() if self.recorder else None,

@@ -110,8 +110,9 @@ class PatchTracker:
         x0, y0 = max(int(round(x)), 0), max(int(round(y)), 0)
         return x0, y0, max(int(round(w)), 1), max(int(round(h)), 1)
 
-    def update(self, data: NDArray, background: NDArray | None = None) -> bool:
-        """background: light (DN) not from the lamp, e.g. the ambient frame, subtracted first."""
+    def update(self, data: NDArray, background: NDArray | None = None, exposure_shift: NDArray | None = None) -> bool:
+        """background: light (DN) not from the lamp, e.g. the ambient frame, subtracted first;
+        exposure_shift: ln m_k of the frame's exposure against the calibration's (the estimator's)."""
         region = self.locate(data)
         if region is None:
             self.last_reason = f"marker {self.config.marker.id} not found (occluded, dark or out of view?)"
@@ -135,6 +136,8 @@ class PatchTracker:
             self.last_reason = "patch below the noise floor (occluded or lamp off?)"
             self.rejected += 1
             return False
+        if exposure_shift is not None:
+            e = e * np.exp(-np.asarray(exposure_shift))  # as if at the calibration's exposure
         estimate = (self.log_constant - (np.log(e) - np.log(e[self.ref]))) / self.config.path_length_m
         estimate[self.ref] = 0.0
         if self.accepted and np.max(np.abs(estimate - self.tracked)) > self.config.max_step:
@@ -217,8 +220,10 @@ class ReflectanceCorrector:
         mean = inside.astype(np.float64).mean(axis=0)
         self.normal = mean / np.linalg.norm(mean)
 
-    def update(self, frame: Frame, attenuation_differences: NDArray, background: NDArray | None = None) -> NDArray[np.float64] | None:
-        """background: light (DN) not from the lamp, e.g. the ambient frame, subtracted first."""
+    def update(self, frame: Frame, attenuation_differences: NDArray, background: NDArray | None = None,
+               exposure_shift: NDArray | None = None) -> NDArray[np.float64] | None:
+        """background: light (DN) not from the lamp, e.g. the ambient frame, subtracted first;
+        exposure_shift: ln m_k of the frame's exposure against the calibration's (the estimator's)."""
         rf = self.rangefinder
         health = rf.health
         reading = rf.latest()
@@ -257,13 +262,15 @@ class ReflectanceCorrector:
                 cos = np.abs(facing)
                 self.incidence_deg = float(np.degrees(np.arccos(min(abs(float(centre @ self.normal)), 1.0))))
         path = path_length_from_camera_range(camera_range, self.profile.lamp_position_m, rays)
-        estimate = surface_log_constant(e[ok], path, attenuation_differences, self.profile.reference_index)
+        # The light at the calibration's exposure: estimates from frames at any exposure agree.
+        light = e[ok] if exposure_shift is None else e[ok] * np.exp(-np.asarray(exposure_shift))
+        estimate = surface_log_constant(light, path, attenuation_differences, self.profile.reference_index)
         a = 1.0 if self.log_constant is None else self.config.smoothing
         self.log_constant = estimate if self.log_constant is None else (1 - a) * self.log_constant + a * estimate
         if self.attenuation is not None and rays is not None and self.normal is not None:
             # Only with the surface's normal: an absolute scale divides by cos γ.
             beam = beam_pattern(rays, self.beam_half_angle_deg)
-            log_scale = np.log(surface_scale(e[ok], camera_range, self.attenuation, cos, self.profile.lamp_radius_m or 0.0, beam))
+            log_scale = np.log(surface_scale(light, camera_range, self.attenuation, cos, self.profile.lamp_radius_m or 0.0, beam))
             self.scale = np.exp(log_scale if self.scale is None else (1 - a) * np.log(self.scale) + a * log_scale)
         self.used += 1
         self.state = "correcting"
@@ -324,8 +331,10 @@ class OrientationEstimator:
         return self._beam[1]
 
     def estimate(self, data: NDArray, result: RangeResult, corrector: ReflectanceCorrector | None,
-                 background: NDArray | None = None) -> NDArray[np.float32] | None:
-        """(H // block, W // block) incidence in degrees for this frame, or None (``state`` says why)."""
+                 background: NDArray | None = None, exposure_shift: NDArray | None = None) -> NDArray[np.float32] | None:
+        """(H // block, W // block) incidence in degrees for this frame, or None (``state`` says why);
+        exposure_shift: ln m_k of the frame's exposure against the calibration's (the estimator's):
+        the scale, measured in the calibration's exposure, is taken to the frame's raw counts."""
         why = self.unavailable(corrector)
         if why is not None:
             self.state = why
@@ -351,6 +360,8 @@ class OrientationEstimator:
             irradiance_var = pixel_var / count[..., None]
             range_var = (variance - common) / count + common
         scale = corrector.scale * self.beam(seed.shape)[..., None]
+        if exposure_shift is not None:
+            scale = scale * np.exp(np.asarray(exposure_shift, np.float64))
         _, incidence = incidence_from_blocks(irradiance, seed, self.attenuation, scale, p.lamp_radius_m or 0.0,
                                              self.config.iterations, irradiance_variance=irradiance_var,
                                              range_variance=range_var)
@@ -422,6 +433,10 @@ class FramePipeline:
                              f"'{profile.name}' (calibrate with a rig that has a black patch, e.g. grey-plate)")
         if processing.pair is not None and any(p not in profile.channel_names for p in processing.pair):
             raise ValueError(f"pair {list(processing.pair)} is not two of the profile's channels {profile.channel_names}")
+        control = getattr(self.camera, "exposure_control", "")
+        if processing.exposure is not None and control not in ("per-channel", "common"):
+            raise ValueError("exposure control needs a camera whose exposure can be set while streaming "
+                             f"(driver '{getattr(getattr(self.camera, 'driver', None), 'name', '?')}' cannot)")
         estimator = RangeEstimator(profile, pair=processing.pair, path_length_bounds=processing.path_length_bounds)
         tracker = PatchTracker(processing.patch, profile) if processing.patch else None
         beam = processing.orientation.beam_half_angle_deg if processing.orientation else None
@@ -432,6 +447,14 @@ class FramePipeline:
     def _apply(self, processing: ProcessingConfig, profile: CalibrationProfile | None = None) -> None:
         profile = profile or self.profile
         estimator, tracker, corrector, orientation = self._build(processing, profile)
+        exposure = None
+        if processing.exposure is not None:
+            from uwcam.exposure import ExposureController
+
+            exposure = ExposureController(processing.exposure, tuple(profile.channel_names), self.camera.exposure_control)
+        from uwcam.hdr import HdrMerger
+
+        hdr = HdrMerger(profile.saturation_level) if exposure is not None and exposure.bracketing else None
         # Compile or load the kernels and build lookup tables here, in the caller's thread (start-up
         # or an API request), not on the loop's first frame, which would stall it for seconds.
         estimator.warm_up(background=bool(processing.lamp_off_interval))
@@ -442,6 +465,8 @@ class FramePipeline:
             self.tracker = tracker
             self.corrector = corrector
             self.orientation = orientation
+            self.exposure = exposure
+            self._hdr = hdr
             self._compensator = None  # rebuilt for the new profile and settings on the next frame
 
     def check(self, processing: ProcessingConfig | None = None, profile: CalibrationProfile | None = None) -> None:
@@ -503,6 +528,13 @@ class FramePipeline:
         if request is None:
             return
         light = frame.data.astype(np.float32) if ambient is None else frame.data.astype(np.float32) - ambient
+        gathered = frame.light_gathered()
+        if gathered is not None:
+            if request.get("exposure") is None:
+                request["exposure"] = gathered
+            elif not np.array_equal(gathered, request["exposure"]):  # the exposure moved: to the first frame's
+                dark = self.profile.array("dark_level").astype(np.float32)
+                light = dark + (light - dark) * (request["exposure"] / gathered).astype(np.float32)
         request["sum"] = light if request["sum"] is None else request["sum"] + light
         request["count"] += 1
         total, count = request["sum"], request["count"]
@@ -510,6 +542,8 @@ class FramePipeline:
             return
         info = {"source": source, "frames": count, "wall_time": frame.wall_time, "monotonic": time.monotonic(),
                 "shape": list(frame.data.shape)}
+        if request.get("exposure") is not None:
+            info["exposure"] = [float(v) for v in request["exposure"]]  # per channel, exposure × gain (µs)
         mean = total / count
         self.set_open_water(mean, info)
         with self._lock:
@@ -535,10 +569,18 @@ class FramePipeline:
                                           path_length_bounds=processing.path_length_bounds)
             self._compensator = comp
 
+        # The modelled backscatter is in the counts of the light it came from: scaled to this frame's exposure.
+        scale, gathered = None, frame.light_gathered()
+        made_at = self.open_water_info.get("exposure") if comp.open_water else None
+        if gathered is not None and made_at is not None and len(made_at) == gathered.size:
+            scale = gathered / np.asarray(made_at, dtype=np.float64)
+        elif gathered is not None and not comp.open_water and profile.calibration_exposure()[0] is not None:
+            scale = np.exp(estimator.exposure_shift)
+
         def transform(data: NDArray, samples: NDArray | None) -> RangeResult:
             started = time.perf_counter()
             # The loop's attenuation differences (centred: only differences matter) and log constants.
-            result = comp.range(data, estimator.attenuation, estimator.log_constant, ambient, samples)
+            result = comp.range(data, estimator.attenuation, estimator.effective_log_constant, ambient, samples, scale)
             self._compensation_ms.append((time.perf_counter() - started) * 1e3)
             return result
 
@@ -693,7 +735,12 @@ class FramePipeline:
             frame.lamp_on = None if last is None else bool(last.on)
         with self._lock:
             estimator, tracker, processing, corrector = self.estimator, self.tracker, self.processing, self.corrector
-            profile, orientation = self.profile, self.orientation
+            profile, orientation, exposure, hdr = self.profile, self.orientation, self.exposure, self._hdr
+        taken = frame.exposures()[0]
+        if hdr is not None:  # one exposure for all channels, bracketed: merged per channel with the frame before
+            frame = hdr(frame)
+        # The frame's own exposure per channel: the estimator ranges it exactly whatever it was.
+        estimator.set_exposure(*frame.exposures())
         if not processing.lamp_off_interval and self._cycle != "lit":
             # The cycle was switched off halfway (lamp possibly off): end it with the lamp on.
             self._lamp_commander.request(True)
@@ -702,11 +749,11 @@ class FramePipeline:
             self._unranged(frame, "lamp off")
             return
         ambient = self._ambient if processing.lamp_off_interval else None
-        if tracker is not None and tracker.update(frame.data, ambient):
+        if tracker is not None and tracker.update(frame.data, ambient, estimator.exposure_shift):
             estimator.set_attenuation_differences(tracker.tracked)
         attenuation = tracker.tracked if tracker is not None else profile.array("attenuation_difference")
         if corrector is not None:
-            b = corrector.update(frame, attenuation, ambient)
+            b = corrector.update(frame, attenuation, ambient, estimator.exposure_shift)
             if b is not None and np.max(np.abs(b - estimator.log_constant)) > processing.reflectance.tolerance:
                 estimator.set_log_constants(b)
         if frame.lamp_on is not False:
@@ -714,12 +761,17 @@ class FramePipeline:
         transform = self._compensation(frame, processing, profile, estimator, ambient)
         result = range_frame(estimator, frame.data, processing.smoothing, processing.smoothing_stage, ambient,
                              processing.vehicle_mask, transform)
+        if exposure is not None:
+            wanted = exposure.update(frame.data, frame.exposures()[0], frame.lamp_on, profile.array("dark_level"),
+                                     estimator.floor, profile.saturation_level, taken)
+            if wanted is not None:
+                self.camera.set_exposure(wanted)
         incidence = None
         if frame.lamp_on is not False:
             if corrector is not None:
                 corrector.observe(result.range)  # the normal at the footprint, for the next reading
             if orientation is not None:
-                incidence = orientation.estimate(frame.data, result, corrector, ambient)
+                incidence = orientation.estimate(frame.data, result, corrector, ambient, estimator.exposure_shift)
         now = time.monotonic_ns()
         published = Published(self.processed + 1, frame, result, now, tuple(float(v) for v in attenuation),
                                tuple(float(v) for v in estimator.log_constant), ambient, incidence,
@@ -756,4 +808,14 @@ class FramePipeline:
             "ambient_frames": self._ambient_frames,
             "backscatter": self.backscatter_status(),
             "orientation": {"enabled": False} if self.orientation is None else self.orientation.status(),
+            "exposure": self.exposure_status(),
         }
+
+    def exposure_status(self) -> dict:
+        """The exposure controller's state, or where exposure control stands without it."""
+        exposure = self.exposure
+        if exposure is not None:
+            return exposure.status()
+        control = getattr(self.camera, "exposure_control", "")
+        return {"enabled": False, "control": control or None,
+                "state": "off" if control else "the camera's exposure cannot be set while streaming"}

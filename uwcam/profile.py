@@ -64,6 +64,11 @@ class ChannelCalibration(Strict):
     """Pixel response non-uniformity: relative rms of the fixed pattern (0.01 = 1 %), variance (fixed_pattern·E)²."""
     noise_floor: NonNegative = 0.0
     """Dark-corrected signal in DN at or below which the channel carries no surface signal (0: not measured)."""
+    exposure_us: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
+    """Exposure time (µs) of this channel in the calibration frames; None: not recorded (then
+    every channel is taken to have had the same exposure)."""
+    gain_db: Annotated[float, Field(ge=-100, le=100, allow_inf_nan=False)] | None = None
+    """Analogue gain (dB) of this channel in the calibration frames; None: not recorded (0 dB)."""
 
 
 class Provenance(Strict):
@@ -203,6 +208,13 @@ class CalibrationProfile(Strict):
         """One per-channel field as a float64 array of shape (N,)."""
         return np.array([getattr(c, field) for c in self.channels], dtype=np.float64)
 
+    def calibration_exposure(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """(exposure µs, gain dB) per channel in the calibration frames, (N,) each, or None
+        where not recorded for every channel."""
+        exposure = None if any(c.exposure_us is None for c in self.channels) else self.array("exposure_us")
+        gain = None if any(c.gain_db is None for c in self.channels) else self.array("gain_db")
+        return exposure, gain
+
     def camera_intrinsics(self) -> Intrinsics | None:
         return None if self.intrinsics is None else Intrinsics(**self.intrinsics)
 
@@ -282,6 +294,10 @@ def load_profile(path: str | os.PathLike[str]) -> CalibrationProfile:
 
 def profile_to_yaml(profile: CalibrationProfile) -> str:
     data = profile.model_dump(mode="json")
+    for channel in data["channels"]:  # not recorded: left out, as files made before they existed
+        for key in ("exposure_us", "gain_db"):
+            if channel.get(key) is None:
+                channel.pop(key, None)
     return yaml.safe_dump(data, sort_keys=False, allow_unicode=True)
 
 

@@ -100,6 +100,9 @@ class RangeEstimator:
             # U_ij(surface) = U_ij(target)·(ρ_j/ρ_i)(surface)/(ρ_j/ρ_i)(target)  (docs/physics.md §3)
             b = b + np.log(rho_s / rho_s[0]) - np.log(profile.array("target_reflectance") / profile.array("target_reflectance")[0])
         self.log_constant = b
+        self.exposure_shift = np.zeros(n)
+        """ln m_k: each channel's exposure × gain relative to the calibration's (see :meth:`set_exposure`)."""
+        self._gain_ratio = np.ones(n)
         self.active = np.ones(n, dtype=bool)
         if pair is not None:
             unknown = [p for p in pair if p not in names]
@@ -140,6 +143,55 @@ class RangeEstimator:
         f = (1.0 / intr.fx, 1.0 / intr.fy, intr.cx, intr.cy) if intr else (1.0, 1.0, 0.0, 0.0)
         return np.array([mode, *s, np.linalg.norm(s), *f], dtype=np.float64)
 
+    @property
+    def effective_log_constant(self) -> NDArray[np.float64]:
+        """b_k + ln m_k: the log constants for raw values at the present exposure and gain."""
+        return self.log_constant + self.exposure_shift
+
+    def set_exposure(self, exposure_us: Sequence[float] | None, gain_db: Sequence[float] | None = None) -> None:
+        """Range frames whose channels were exposed ``exposure_us`` (µs, (N,)) with analogue gain
+        ``gain_db`` (dB, (N,)); None: as in the calibration.
+
+        Channel k then holds m_k = (t_k/t_k,cal)·10^((g_k − g_k,cal)/20) times the signal it had
+        at calibration, so ln E_k is shifted by ln m_k: the estimator subtracts b_k + ln m_k, which
+        is exact. Validity and noise stay in the sensor's own counts: the floor and saturation
+        apply to the raw values, and the variance is that of the raw counts (E²/σ² is the same
+        for E and E/m). The noise floor stays in counts as measured: a longer exposure lifts a
+        weak channel above it (light that is backscatter, not surface, is the compensation's to
+        remove: reason 3). Gain scales the noise in counts (read and shot noise, and the floor,
+        are amplified with the signal), so a gain change rebuilds the lookup tables; an exposure
+        change costs nothing. Where the profile did not record its exposure, only ratios between
+        channels count (a common factor does not move the range)."""
+        n = self.n_channels
+        cal_t, cal_g = self.profile.calibration_exposure()
+        values = []
+        for name, v in (("exposure_us", exposure_us), ("gain_db", gain_db)):
+            v = None if v is None else np.asarray(v, dtype=np.float64)
+            if v is not None and (v.shape != (n,) or not np.all(np.isfinite(v))):
+                raise ValueError(f"need {n} finite values of {name}, got {v}")
+            values.append(v)
+        t, g = values
+        if t is not None and np.any(t <= 0):
+            raise ValueError(f"exposure times must be positive, got {t}")
+        shift = np.zeros(n)
+        if t is not None:  # without the calibration's exposure, only ratios between channels: the mean is removed
+            shift += np.log(t / cal_t) if cal_t is not None else np.log(t) - np.mean(np.log(t))
+        ratio = np.ones(n)
+        if g is not None:
+            ln10 = np.log(10.0) / 20.0
+            if cal_g is not None:
+                ratio = 10.0 ** ((g - cal_g) / 20.0)
+                shift += np.log(ratio)
+            else:  # the noise model was measured at an unknown gain: ratios between channels only, noise unscaled
+                shift += (g - np.mean(g)) * ln10
+        self.exposure_shift = shift
+        if not np.array_equal(ratio, self._gain_ratio):
+            self._gain_ratio = ratio
+            self.floor = self.profile.array("noise_floor") * ratio
+            self.read_noise = self.profile.array("read_noise") * ratio
+            self.shot_gain = self.profile.array("shot_gain") * ratio
+            self._tables = {}
+
     def channel_terms(self, raw: NDArray, background: NDArray | None = None,
                       samples: NDArray | None = None) -> tuple[NDArray, NDArray, NDArray]:
         """y = ln E − b, weight E²/σ² and ChannelState for raw values (any shape (..., N)).
@@ -169,7 +221,7 @@ class RangeEstimator:
         ok = state == ChannelState.USABLE
         with np.errstate(divide="ignore", invalid="ignore"):
             weight = np.where(ok, e * e / var, 0.0)
-            y = np.where(ok, np.log(np.where(ok, e, 1.0)) - self.log_constant, 0.0)
+            y = np.where(ok, np.log(np.where(ok, e, 1.0)) - self.effective_log_constant, 0.0)
         return y, weight, state.astype(np.uint8)
 
     def _noise_terms(self) -> NDArray[np.float64]:
@@ -178,7 +230,7 @@ class RangeEstimator:
         the compiled background kernel (b follows :meth:`set_log_constants`)."""
         q = float(np.asarray(self.profile.quantisation_step, dtype=np.float64))
         return np.stack([self.dark, self.read_noise**2, self.shot_gain, self.fixed_pattern,
-                         np.full(self.n_channels, q**2 / 12.0), self.floor, self.log_constant,
+                         np.full(self.n_channels, q**2 / 12.0), self.floor, self.effective_log_constant,
                          self.active.astype(np.float64), np.full(self.n_channels, self.background_uncertainty)],
                         axis=1).astype(np.float64)
 
@@ -194,7 +246,7 @@ class RangeEstimator:
         if bits not in self._tables:
             codes = np.arange(2**bits, dtype=np.float64)[:, None].repeat(self.n_channels, axis=1)
             y, w, state = self.channel_terms(codes)
-            ln_e = np.where(w > 0, y + self.log_constant, 0.0)
+            ln_e = np.where(w > 0, y + self.effective_log_constant, 0.0)
             # A common offset of ln E changes nothing; removing it keeps float32 digits for differences.
             offset = float(np.median(ln_e[w > 0])) if np.any(w > 0) else 0.0
             pairs = kernels.pack_pairs(ln_e - offset, w, state, ChannelState.SATURATED, ChannelState.BACKSCATTER_ONLY)
@@ -243,7 +295,7 @@ class RangeEstimator:
         common = (self._geo, self.bounds, out.range, out.variance, out.reasons)
         if background is None and samples is None and frame.dtype in (np.uint8, np.uint16):
             table, offset = self._lookup_tables(frame.dtype)
-            b = tuple(float(v) for v in self.log_constant - offset)
+            b = tuple(float(v) for v in self.effective_log_constant - offset)
             kernels.fuse_lookup(frame, table, self._c, b, *common)
         elif background is not None and samples is None and kernels.fuse_background is not None and (
                 np.issubdtype(frame.dtype, np.integer) or np.issubdtype(frame.dtype, np.floating)):
@@ -296,7 +348,7 @@ class RangeEstimator:
             usable = (ek > max(self.floor[k], 0.0)) & (raw[k] < self.profile.saturation_level) & bool(self.active[k])
             with np.errstate(divide="ignore", invalid="ignore"):
                 weight.append(np.where(usable, ek * ek / np.where(var > 0, var, 1.0), 0.0))
-                y.append(np.where(usable, np.log(np.where(usable, ek, 1.0)) - self.log_constant[k], 0.0))
+                y.append(np.where(usable, np.log(np.where(usable, ek, 1.0)) - self.effective_log_constant[k], 0.0))
         c = self.attenuation
         with np.errstate(divide="ignore", invalid="ignore"):
             sw = sum(weight)

@@ -149,11 +149,16 @@ def process_part(part: Part, profile_yaml: str | None = None, kernel_threads: in
                 ambient = rec.decode_raw_image(decoded).astype(np.float64)
                 break
         images: dict[int, NDArray] = {}
+        exposures: dict[int, tuple] = {}
         for _s, channel, message, decoded in reader.iter_decoded_messages(
-                topics=[rec.IMAGE, rec.AMBIENT, rec.RANGING], starting_at=part.start_ns, ending_before=part.end_ns):
+                topics=[rec.IMAGE, rec.IMAGE_METADATA, rec.AMBIENT, rec.RANGING], starting_at=part.start_ns,
+                ending_before=part.end_ns):
             t = message.log_time
             if channel.topic == rec.IMAGE:
                 images[t] = rec.decode_raw_image(decoded)
+                continue
+            if channel.topic == rec.IMAGE_METADATA:
+                exposures[t] = (decoded.get("exposure_us"), decoded.get("gain_db"))  # per channel, or None
                 continue
             if channel.topic == rec.AMBIENT:
                 ambient = rec.decode_raw_image(decoded).astype(np.float64)
@@ -177,6 +182,8 @@ def process_part(part: Part, profile_yaml: str | None = None, kernel_threads: in
             v, b = _corrected(profile, was, record)
             est.set_attenuation_differences(v)
             est.set_log_constants(b)
+            exposure, gain = exposures.pop(t, (None, None))
+            est.set_exposure(exposure, gain)  # each channel's exposure when it was taken: exact whatever it was
             # Recordings made before the vehicle mask existed have none.
             result = range_frame(est, raw, proc["smoothing"], proc["smoothing_stage"],
                                  ambient if record["ambient_subtracted"] else None, proc.get("vehicle_mask") or ())

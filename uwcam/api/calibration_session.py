@@ -182,7 +182,7 @@ def capture(body: CaptureRequest, request: Request, d: Daemon = Depends(get_daem
     with session.lock:
         try:
             cap = session.capture([f.data for f in frames], body.distance_m, body.held_back, _rangefinder(d),
-                                  [f.exposure_us for f in frames])
+                                  [f.exposure_us for f in frames], [f.exposures()[0] for f in frames])
         except SessionError as exc:
             raise _refuse(exc) from None
         return {"capture": cap.summary(), "session": session.summary()}

@@ -8,7 +8,7 @@ from fastapi import APIRouter, Depends, HTTPException
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from uwcam.api.common import get_daemon
-from uwcam.config import BackscatterConfig, Box, Flag, OrientationConfig, PatchConfig, ProcessingConfig, Real, Whole
+from uwcam.config import BackscatterConfig, Box, ExposureConfig, Flag, OrientationConfig, PatchConfig, ProcessingConfig, Real, Whole
 from uwcam.daemon import Daemon
 
 router = APIRouter(prefix="/api/v1/config", tags=["config"])
@@ -30,6 +30,8 @@ class ProcessingPatch(BaseModel):
     lamp_off_interval: Annotated[Whole, Field(ge=0, le=100000)] | None = None
     backscatter: BackscatterConfig | None = None
     """Backscatter compensation in the loop ({"iterations": 2}); null switches it off."""
+    exposure: ExposureConfig | None = None
+    """Radiometric exposure control ({} for the defaults); null switches it off (the exposure stays where it is)."""
     vehicle_mask: Annotated[list[Box], Field(max_length=64)] | None = None
     """Regions [x, y, width, height] where the vehicle is in view: no range there."""
     orientation: OrientationConfig | None = None

@@ -328,12 +328,11 @@ class Recorder:
     def _frame_messages(self, frame: Frame, t: int, ranged: str, number: int | None) -> None:
         f = self._file
         f.write(rec.IMAGE, "foxglove.RawImage", rec.raw_image(frame.data, t), t)
-        c = frame.data.shape[-1]
-        per_channel = (lambda v: None if v is None else [float(v)] * c)  # one exposure/gain for all channels
+        exposure, gain = frame.exposures()  # per channel: one value each, alike where the camera has one
         f.write_json(rec.IMAGE_METADATA, {
             "sequence": frame.sequence, "device_timestamp_ns": frame.device_timestamp_ns,
             "host_monotonic_ns": frame.host_monotonic_ns, "wall_time": frame.wall_time,
-            "exposure_us": per_channel(frame.exposure_us), "gain_db": per_channel(frame.gain_db),
+            "exposure_us": None if exposure is None else list(exposure), "gain_db": None if gain is None else list(gain),
             "lamp_on": frame.lamp_on, "channel_names": list(frame.channel_names), "bit_depth": frame.bit_depth,
             "dtype": frame.data.dtype.name, "ranged": ranged, "number": number}, t)
 

@@ -753,12 +753,17 @@ class SurveyWorld:
             self._exposure = self.camera.exposure_for(np.where(self._marker_plate[..., None], 0.0, radiance))
         return self._exposure
 
-    def frame(self, t: float, index: int, level: float = 1.0, out: NDArray | None = None) -> NDArray:
-        """Frame ``index`` (noise counter) at time t (s) with the lamp at ``level`` (0: off), (H, W, N)."""
+    def frame(self, t: float, index: int, level: float = 1.0, out: NDArray | None = None,
+              exposure_scale: NDArray | None = None) -> NDArray:
+        """Frame ``index`` (noise counter) at time t (s) with the lamp at ``level`` (0: off), (H, W, N).
+        exposure_scale: (N,) each channel's exposure relative to :attr:`exposure` (None: 1)."""
         w, h = self.size
         n = len(self.channel_names)
         lamp_rad, amb_rad, _ = self.shade(t)
-        radiance = upsample(np.float32(level) * lamp_rad + amb_rad, self.size, self.step, self.use_numba).reshape(-1)
+        grid = np.float32(level) * lamp_rad + amb_rad
+        if exposure_scale is not None:
+            grid = grid * np.asarray(exposure_scale, np.float32)  # (hs, ws, N) × (N,): electrons ∝ exposure time
+        radiance = upsample(grid, self.size, self.step, self.use_numba).reshape(-1)
         cam = self.camera
         if out is None:
             out = np.empty((h, w, n), dtype=cam.dtype)

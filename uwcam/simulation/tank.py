@@ -29,6 +29,7 @@ def calibrate_in_simulation(
     channels: Channels | None = None,
     name: str = "simulated tank calibration",
     frames_per_distance: int = 1,
+    record_exposure: bool = False,
 ) -> CalibrationProfile:
     """A calibration profile from the grey plate at ``distances`` (m) in ``water``.
 
@@ -37,6 +38,9 @@ def calibrate_in_simulation(
     attenuation needs that). noise_free: use expected values instead of noisy frames.
     Frame k at distance d uses seed ``seed_base + int(d)``. frames_per_distance: noisy frames
     taken at each distance (averaged by the calibration, their differences give the temporal noise).
+    record_exposure: record the held exposure in the profile as each channel's ``exposure_us``,
+    in the simulator's unit (electrons per unit radiance, the unit of :attr:`SimulatedWorld.exposure`):
+    frames of worlds exposed differently are then ranged with their exposure in the same unit.
     """
     if frames_per_distance < 1:
         raise ValueError(f"frames_per_distance must be at least 1, got {frames_per_distance}")
@@ -55,7 +59,7 @@ def calibrate_in_simulation(
             at.append(d)
     intr, patch = world.intrinsics, plate.plate.black_patch
     n = len(channels.names)
-    return calibrate(frames, at, CalibrationInputs(
+    profile = calibrate(frames, at, CalibrationInputs(
         channel_names=list(channels.names), wavelengths_nm=list(channels.wavelengths_nm),
         target_reflectance=np.full(n, 0.18), black_reflectance=np.full(n, 0.03),
         lamp_position_m=tuple(lamp.position), intrinsics=intr,
@@ -64,3 +68,7 @@ def calibrate_in_simulation(
         dark_level=np.full(n, world.camera.dark_level_dn), saturation_level=2**camera.bits - 1,
         lamp_radius_m=lamp.effective_radius, name=name, target_description="grey plate in the simulated water",
     ))
+    if not record_exposure:
+        return profile
+    return profile.model_copy(update={"channels": [c.model_copy(update={"exposure_us": float(exposure)})
+                                                   for c in profile.channels]})

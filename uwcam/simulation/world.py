@@ -59,6 +59,9 @@ class SimulatedWorld:
     fixed_exposure: float | None = None
     """Electrons per unit radiance; None: auto-exposure on the lamp-lit scene. Fix it to keep
     several frames radiometrically comparable (absolute attenuation needs that)."""
+    exposure_scale: tuple[float, ...] | None = None
+    """Each channel's exposure relative to :attr:`exposure` (a 3-chip camera's sensors, exposed
+    apart); None: 1 for all. Change it with :meth:`set_exposure_scale`."""
 
     def __post_init__(self) -> None:
         w, h = self.size
@@ -76,6 +79,8 @@ class SimulatedWorld:
         self._components: dict[bool, Components] = {}
         self._expected: dict[bool, tuple[NDArray[np.float32], NDArray[np.float32]]] = {}
         self._exposure: float | None = self.fixed_exposure
+        if self.exposure_scale is not None:
+            self.set_exposure_scale(self.exposure_scale)
 
     @property
     def camera_range(self) -> NDArray[np.float64]:
@@ -101,10 +106,18 @@ class SimulatedWorld:
             self._exposure = self.camera.exposure_for(self.components(True).total)
         return self._exposure
 
+    def set_exposure_scale(self, scale: tuple[float, ...] | None) -> None:
+        """Expose channel k ``scale[k]`` times :attr:`exposure` from the next frame on (None: 1)."""
+        if scale is not None and (len(scale) != len(self.channels.names) or not all(np.isfinite(scale)) or min(scale) <= 0):
+            raise UserInputError(f"need {len(self.channels.names)} positive exposure factors, got {scale}")
+        self.exposure_scale = None if scale is None else tuple(float(v) for v in scale)
+        self._expected = {}
+
     def expected(self, lamp_on: bool = True) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
         """Per-pixel mean and standard deviation in DN (H, W, N)."""
         if lamp_on not in self._expected:
-            self._expected[lamp_on] = self.camera.expected(self.components(lamp_on).total, self.exposure)
+            exposure = self.exposure if self.exposure_scale is None else self.exposure * np.asarray(self.exposure_scale)
+            self._expected[lamp_on] = self.camera.expected(self.components(lamp_on).total, exposure)
         return self._expected[lamp_on]
 
     def frame(self, index: int = 0, lamp_on: bool = True, out: NDArray | None = None) -> NDArray:
