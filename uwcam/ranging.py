@@ -301,8 +301,10 @@ class RangeEstimator:
                 np.issubdtype(frame.dtype, np.integer) or np.issubdtype(frame.dtype, np.floating)):
             # Compiled: the per-channel terms of channel_terms, computed row by row in the kernel.
             bg = np.ascontiguousarray(np.broadcast_to(background, frame.shape), dtype=np.float32)
-            kernels.fuse_background(frame, bg, self._noise_terms(), self._open_water_levels, float(self.profile.saturation_level),
-                                    self._c, *common)
+            # The kernel reads rows as contiguous runs of values (a strided view, e.g. channels
+            # reordered, is copied once here).
+            kernels.fuse_background(np.ascontiguousarray(frame), bg, self._noise_terms(), self._open_water_levels,
+                                    float(self.profile.saturation_level), self._c, *common)
         elif np.issubdtype(frame.dtype, np.integer) or np.issubdtype(frame.dtype, np.floating):
             y, weight, state = self.channel_terms(frame, background, samples)  # y already has b subtracted
             pairs = kernels.pack_pairs(y, weight, state, ChannelState.SATURATED, ChannelState.BACKSCATTER_ONLY)
