@@ -140,12 +140,13 @@ class BackscatterModel:
         y0 = np.minimum(gy.astype(int), gh - 2)
         x0 = np.minimum(gx.astype(int), gw - 2)
         fy, fx = gy - y0, gx - x0
-        out = np.zeros((*z.shape, n))
-        for dy, wy in ((0, 1 - fy), (1, fy)):
-            for dx, wx in ((0, 1 - fx), (1, fx)):
-                base = ((y0 + dy) * gw + (x0 + dx)) * n_depths + i0
-                out += (wy * wx * (1 - f))[..., None] * flat[base] + (wy * wx * f)[..., None] * flat[base + 1]
-        return out
+        # Bilinear in the pixel grid, linear in log depth: eight table rows per pixel, taken in one
+        # gather (one numpy call rather than eight: the grid is small, the calls were the cost).
+        corners = np.stack([((y0 + dy) * gw + (x0 + dx)) * n_depths + i0 for dy in (0, 1) for dx in (0, 1)])
+        spatial = np.stack([wy * wx for wy in (1 - fy, fy) for wx in (1 - fx, fx)])
+        index = np.concatenate([corners, corners + 1])
+        weight = np.concatenate([spatial * (1 - f), spatial * f])
+        return np.einsum("q...,q...n->...n", weight, flat[index])
 
     def level(self, depth: NDArray) -> NDArray[np.float64]:
         """Backscatter (DN, dark-corrected) for surfaces at ``depth`` (H, W) metres → (H, W, N)."""
