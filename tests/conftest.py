@@ -1,9 +1,15 @@
 """Shared test fixtures: no test and no test module may leave a thread of its own running."""
 
+import os
+import tempfile
 import threading
 import time
 
 import pytest
+
+# What uwcam keeps between runs (the simulated calibration) goes into a folder of this test run,
+# never the user's ~/.cache: tests start from nothing, and the daemons they start see the same.
+os.environ["UWCAM_CACHE_DIR"] = tempfile.mkdtemp(prefix="uwcam-test-cache-")
 
 # Worker threads of the thread pools that a server's event loop keeps: anyio's for sync handlers,
 # asyncio's default executor for asyncio.to_thread (parsing uploads, encoding the page's view).

@@ -42,19 +42,60 @@ CALIBRATION_WIDTH = 640
 physics does not depend on the pixel count, and start-up stays short."""
 
 
+def cache_dir() -> str:
+    """Where uwcam keeps what it can compute again: $UWCAM_CACHE_DIR, else $XDG_CACHE_HOME/uwcam,
+    else ~/.cache/uwcam."""
+    if os.environ.get("UWCAM_CACHE_DIR"):
+        return os.environ["UWCAM_CACHE_DIR"]
+    return os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "uwcam")
+
+
+def simulated_calibration_key(rig: SimulatedRig) -> str:
+    """What a simulated calibration depends on: the rig's water, lamp, image size and bit depth,
+    and uwcam's own code and built-in rig files (a changed simulator never reuses an old result)."""
+    import hashlib
+
+    import uwcam
+    from uwcam.rig import builtin_rig_path
+
+    digest = hashlib.sha256(json.dumps({"water": rig.water, "lamp": [float(v) for v in rig.lamp_offset],
+                                        "size": [int(v) for v in rig.size], "bits": int(rig.bits),
+                                        "width": CALIBRATION_WIDTH}).encode())
+    package = os.path.dirname(os.path.abspath(uwcam.__file__))
+    sources = sorted(glob.glob(os.path.join(package, "**", "*.py"), recursive=True))
+    sources += sorted(glob.glob(os.path.join(os.path.dirname(builtin_rig_path("grey-plate")), "*.yaml")))
+    for path in sources:
+        with open(path, "rb") as fh:
+            digest.update(os.path.relpath(path, package).encode() + b"\0" + fh.read())
+    return digest.hexdigest()[:24]
+
+
 def simulated_calibration(rig: SimulatedRig) -> CalibrationProfile:
     """Calibrate in the rig's simulated water: grey plate with black patch at 1 m and 2 m, with
     the rig's lamp, four frames at each distance as a crew would take (their differences give the
-    temporal noise, so the reported σ is honest); the profile's intrinsics are the rig camera's."""
+    temporal noise, so the reported σ is honest); the profile's intrinsics are the rig camera's.
+
+    The calibration takes seconds and gives the same profile every time for the same rig and
+    code, so it is kept in :func:`cache_dir` (keyed by :func:`simulated_calibration_key`) and the
+    next start loads it: the embedded default ranges within a second or two of starting."""
     from uwcam.simulation import Lamp, water_preset
     from uwcam.simulation.camera import CameraModel
     from uwcam.simulation.tank import calibrate_in_simulation
 
-    water = water_preset(rig.water, [675.0, 575.0, 475.0])
-    w, h = rig.size
-    factor = max(1, -(-w // CALIBRATION_WIDTH))
-    profile = calibrate_in_simulation(water, Lamp(position=tuple(rig.lamp_offset)), (max(w // factor, 2), max(h // factor, 2)),
-                                      CameraModel(bits=rig.bits), seed_base=11, frames_per_distance=4)
+    path = os.path.join(cache_dir(), f"simulated-calibration-{simulated_calibration_key(rig)}.yaml")
+    try:
+        profile = load_profile(path)
+    except UserInputError:  # not there yet, or unreadable: calibrate (again) and keep it
+        water = water_preset(rig.water, [675.0, 575.0, 475.0])
+        w, h = rig.size
+        factor = max(1, -(-w // CALIBRATION_WIDTH))
+        profile = calibrate_in_simulation(water, Lamp(position=tuple(rig.lamp_offset)), (max(w // factor, 2), max(h // factor, 2)),
+                                          CameraModel(bits=rig.bits), seed_base=11, frames_per_distance=4)
+        try:
+            os.makedirs(os.path.dirname(path), exist_ok=True)
+            save_profile(profile, path)
+        except OSError as exc:  # a read-only home: calibrate at every start, as before
+            log.info("cannot keep the simulated calibration in %s (%s)", path, exc.strerror)
     intr = rig.world.intrinsics
     return profile.model_copy(update={"intrinsics": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy}})
 
