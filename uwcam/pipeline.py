@@ -2,7 +2,8 @@
 
 Acquisition runs in the camera's own supervisor thread; processing runs here, in one thread
 that ranges queued frames in order while they are fresh and skips to the newest when it falls
-behind (skipped frames are counted, never the newest; see QUEUED_FRAME_BUDGET_S), tracks the attenuation difference live from a calibration patch in view
+behind (skipped frames are counted, never the newest; see QUEUED_FRAME_BUDGET_S), tracks the
+attenuation difference live from a calibration patch in view
 (docs/physics.md §6) and publishes immutable results. Readers (the API) never block the loop:
 they read the latest published result or are called back with it.
 """
@@ -185,7 +186,7 @@ class ReflectanceCorrector:
     """The lamp's beam pattern (see :func:`uwcam.optics.orientation.beam_pattern`), for the scale."""
     log_constant: NDArray[np.float64] | None = None
     scale: NDArray[np.float64] | None = None
-    """(N,) absolute scale s_k (DN, at the frame's exposure) of the surface at the footprint, or None."""
+    """(N,) absolute scale s_k (DN, at the calibration's exposure) of the surface at the footprint, or None."""
     normal: NDArray[np.float64] | None = None
     """(3,) unit surface normal at the footprint (camera frame), from the range map; None: unknown."""
     incidence_deg: float | None = None
