@@ -289,3 +289,42 @@ def test_config_file_refuses_bad_orientation_settings(tmp_path, orientation, key
         load_config(path)
     path.write_text(yaml.safe_dump({"version": 1, "processing": {"orientation": {"block": 32}}}))
     assert load_config(path).processing.orientation.block == 32
+
+
+def test_the_footprints_scale_and_reflectance_do_not_depend_on_the_frames_exposure():
+    """The same tilted footprint exposed 0.5×, 0.8× and 0.65× per channel: with the frame's exposure
+    shift ln m_k given, the surface's log constants and absolute scale are those of the frame at
+    the calibration's exposure (both are kept at the calibration's exposure)."""
+    from types import SimpleNamespace
+
+    from uwcam.config import ReflectanceConfig
+    from uwcam.drivers.base import Frame, Health, HealthState
+    from uwcam.drivers.rangefinder import RangeReading
+    from uwcam.pipeline import ReflectanceCorrector
+    from uwcam.simulation.render import Lamp
+    from uwcam.simulation.tank import calibrate_in_simulation
+    from uwcam.simulation.water import water_preset
+    from uwcam.simulation.world import SimulatedWorld
+
+    water = water_preset("ideal", [675.0, 575.0, 475.0])
+    lamp = Lamp(position=(0.0, 0.0, 0.0))
+    size = (160, 120)
+    profile = calibrate_in_simulation(water, lamp, size, noise_free=True)
+    world = SimulatedWorld(scene="tilted-plane", distance=2.0, size=size, water=water, lamp=lamp)
+    w, h = size
+    now = 10**12
+    reading = RangeReading(float(world.camera_range[h // 2, w // 2]), 0.97, now, 0.0)
+    rf = SimpleNamespace(health=Health(HealthState.OK, "reading"), latest=lambda: reading)
+    dark = profile.array("dark_level")
+    light = world.noise_free_frame().astype(np.float64) - dark
+    m = np.array([0.5, 0.8, 0.65])  # shorter: the frame is exposed near the top code already
+    found = []
+    for gain, shift in ((np.ones(3), None), (m, np.log(m))):
+        corrector = ReflectanceCorrector(ReflectanceConfig(footprint=(w // 2 - 4, h // 2 - 4, 9, 9)), profile, rf,
+                                         beam_half_angle_deg=lamp.beam_half_angle_deg)
+        frame = Frame(data=(light * gain + dark).astype(np.float32), sequence=1, host_monotonic_ns=now, wall_time=0.0)
+        corrector.observe(world.camera_range)
+        b = corrector.update(frame, profile.array("attenuation_difference"), exposure_shift=shift)
+        found.append((b, corrector.scale))
+    np.testing.assert_allclose(found[1][0], found[0][0], rtol=1e-6, atol=1e-6)  # the frames are float32
+    np.testing.assert_allclose(found[1][1], found[0][1], rtol=1e-5)
