@@ -26,9 +26,12 @@ def put_lamp(s: Server, body) -> "object":
 
 @pytest.mark.parametrize("intensity", [0, 0.0, 37.5, 100, 100.0])
 def test_lamp_intensity_accepted_from_0_to_100_percent(server, intensity):
-    r = put_lamp(server, {"intensity": intensity})
-    assert r.status_code == 200, r.text
-    assert r.json()["intensity"] == round(intensity)
+    try:
+        r = put_lamp(server, {"intensity": intensity})
+        assert r.status_code == 200, r.text
+        assert r.json()["intensity"] == round(intensity)
+    finally:
+        put_lamp(server, {"on": True, "intensity": 100})  # the module's other tests expect lit frames
 
 
 @pytest.mark.parametrize("body", [
@@ -114,6 +117,7 @@ def test_good_processing_settings_apply_and_restore(server):
 
 def test_exposure_control_switches_on_live_and_reports_in_the_status(server):
     try:
+        assert put_lamp(server, {"on": True, "intensity": 100}).status_code == 200  # the controller meters lit frames only
         r = patch(server, {"exposure": {"max_step": 4.0}})
         assert r.status_code == 200 and r.json()["exposure"]["max_step"] == 4.0, r.text
         assert wait_for(lambda: server.http.get("/api/v1/status").json()["exposure"]["frames_metered"] > 2, timeout_s=30)
