@@ -81,3 +81,11 @@ def test_the_cache_folder_follows_the_environment(monkeypatch, tmp_path):
     assert daemon.cache_dir() == str(tmp_path / "uwcam")
     monkeypatch.delenv("XDG_CACHE_HOME")
     assert daemon.cache_dir() == os.path.expanduser("~/.cache/uwcam")
+
+
+def test_only_the_newest_calibrations_are_kept(counted, monkeypatch, tmp_path):
+    monkeypatch.setattr(daemon, "SIMULATED_CALIBRATIONS_KEPT", 2)
+    for water in ("jerlov-IA", "jerlov-IB", "jerlov-II"):
+        simulated_calibration(rig(water=water))
+    kept = sorted(os.listdir(tmp_path / "cache"))
+    assert len(kept) == 2 and f"simulated-calibration-{simulated_calibration_key(rig(water='jerlov-II'))}.yaml" in kept

@@ -42,6 +42,10 @@ CALIBRATION_WIDTH = 640
 physics does not depend on the pixel count, and start-up stays short."""
 
 
+SIMULATED_CALIBRATIONS_KEPT = 8
+"""Simulated calibrations kept in the cache folder (other rigs, other versions), newest first."""
+
+
 def cache_dir() -> str:
     """Where uwcam keeps what it can compute again: $UWCAM_CACHE_DIR, else $XDG_CACHE_HOME/uwcam,
     else ~/.cache/uwcam."""
@@ -94,6 +98,11 @@ def simulated_calibration(rig: SimulatedRig) -> CalibrationProfile:
         try:
             os.makedirs(os.path.dirname(path), exist_ok=True)
             save_profile(profile, path)
+            # Each new version of uwcam (or rig) keys its own file: keep only the newest few.
+            kept = sorted(glob.glob(os.path.join(os.path.dirname(path), "simulated-calibration-*.yaml")),
+                          key=os.path.getmtime, reverse=True)
+            for old in kept[SIMULATED_CALIBRATIONS_KEPT:]:
+                os.remove(old)
         except OSError as exc:  # a read-only home: calibrate at every start, as before
             log.info("cannot keep the simulated calibration in %s (%s)", path, exc.strerror)
     intr = rig.world.intrinsics
