@@ -14,7 +14,11 @@ Model:
   interpolated between the backscatter measured at the calibration plate's black patch at
   each plate distance (0 at the camera) and held beyond the last.
 * S_k(p): the open-water backscatter, from a lamp-lit frame of open water (nothing in range)
-  smoothed; without one, the patch measurements scaled by F.
+  smoothed; without one, the patch measurements scaled by F. Given several open-water frames,
+  also each pixel's own response relative to its neighbours (the sensor's photo-response
+  non-uniformity, 1 % or so, which a smoothed pattern loses: 1 % of a backscatter twenty times the
+  surface's light is a fifth of that light), estimated from their mean and shrunk by the noise
+  that their spread shows (see :func:`pixel_response`).
 
 Ranging then iterates: range → backscatter at that range → subtract → range, starting from the
 uncompensated range. Pixels still without a range use the open-water (or plateau) level.
@@ -43,6 +47,27 @@ _GRID_STEP = 16
 _PORT = 0.05  # water starts at the camera port, metres
 
 
+def pixel_response(frames: NDArray, smooth: NDArray) -> NDArray[np.float64]:
+    """Each pixel's response relative to the smoothed level, from K ≥ 2 frames of a smooth scene.
+
+    frames: (K, H, W, N) dark-corrected DN; smooth: (H, W, N) the smoothed mean. The relative
+    residual q = mean/smooth − 1 of each pixel holds its response g − 1 (variance σ_g², one value
+    per channel) and the noise of a K-frame mean (variance σ_n²/K, from the frames' spread about
+    their mean); the estimate is the shrunk q · σ_g²/(σ_g² + σ_n²/K) (the Wiener weight, with
+    σ_g² = var q − σ_n²/K, 0 when negative). Returns (H, W, N) g ≥ 0, 1 on average.
+    """
+    k = frames.shape[0]
+    mean = frames.mean(axis=0)
+    safe = np.where(smooth > 0, smooth, 1.0)
+    q = np.where(smooth > 0, mean / safe - 1.0, 0.0)
+    noise = np.where(smooth > 0, frames.var(axis=0, ddof=1) / safe**2, 0.0) / k  # (H, W, N) variance of q's noise
+    noise_var = noise.reshape(-1, noise.shape[-1]).mean(axis=0)
+    total_var = (q**2).reshape(-1, q.shape[-1]).mean(axis=0)
+    response_var = np.maximum(total_var - noise_var, 0.0)
+    weight = np.where(total_var > 0, response_var / np.where(total_var > 0, total_var, 1.0), 0.0)
+    return np.maximum(1.0 + q * weight, 0.0)
+
+
 def _column_shares(rays: NDArray, lamp: NDArray, radius: float, attenuation: NDArray, depths: NDArray) -> NDArray:
     """(P, T, N) share of each ray's lit-column backscatter closer than each depth (T,)."""
     z = np.geomspace(_PORT, max(depths[-1], _PORT * 2), _DEPTH_SAMPLES * 4)
@@ -68,14 +93,19 @@ class BackscatterModel:
     shares: NDArray[np.float64]
     """(gh, gw, T, N) F at the grid points, or (1, 1, T, N) when uniform over the image."""
     pattern: NDArray[np.float64]
-    """(H, W, N) open-water backscatter in DN, or (1, 1, N)."""
+    """(H, W, N) open-water backscatter in DN, smoothed, or (1, 1, N)."""
     grid_step: int
+    response: NDArray[np.float64] | None = None
+    """(H, W, N) each pixel's response relative to the smoothed pattern (from several open-water
+    frames), or None (1 everywhere)."""
 
     @classmethod
     def from_profile(cls, profile: CalibrationProfile, open_water: NDArray | None = None,
                      shape: tuple[int, int] | None = None) -> "BackscatterModel":
-        """From the profile's backscatter measurements and an optional lamp-lit open-water frame (H, W, N) raw.
-        shape: (H, W) of the frames to be ranged, when no open-water frame gives it."""
+        """From the profile's backscatter measurements and an optional lamp-lit open-water frame (H, W, N) raw,
+        or several of them (K, H, W, N): their mean is the frame, and with K ≥ 2 each pixel's own response
+        is estimated too (:func:`pixel_response`). shape: (H, W) of the frames to be ranged, when no
+        open-water frame gives it."""
         if profile.backscatter is None:
             raise UserInputError(
                 "the calibration profile has no backscatter measurements; calibrate with a rig that has a black patch "
@@ -93,9 +123,9 @@ class BackscatterModel:
         intr = profile.camera_intrinsics()
         physical = c is not None and profile.lamp_radius_m is not None and intr is not None
         if open_water is not None:
-            if open_water.ndim != 3 or open_water.shape[-1] != n:
+            if open_water.ndim not in (3, 4) or open_water.shape[-1] != n or open_water.shape[0] == 0:
                 raise UserInputError(f"the open-water frame must have {n} channels like the profile")
-            shape = open_water.shape[:2]
+            shape = open_water.shape[-3:-1]
         depths = np.geomspace(_PORT, 200.0, _DEPTH_SAMPLES)
         if physical:
             h, w = shape if shape is not None else (int(2 * intr.cy + 1), int(2 * intr.cx + 1))
@@ -112,9 +142,11 @@ class BackscatterModel:
             step = 0
         model = cls(depths, shares, np.ones((1, 1, n)), step)
         if open_water is not None:
-            water = open_water.astype(np.float64) - profile.array("dark_level")
+            frames = open_water.astype(np.float64).reshape(-1, *open_water.shape[-3:]) - profile.array("dark_level")
+            water = frames.mean(axis=0)
             pattern = np.maximum(cv2.blur(water, (OPEN_WATER_SMOOTHING, OPEN_WATER_SMOOTHING), borderType=cv2.BORDER_REFLECT), 0.0)
-            return cls(depths, shares, pattern, step)
+            response = pixel_response(frames, pattern) if frames.shape[0] >= 2 else None
+            return cls(depths, shares, pattern, step, response)
         # No open-water frame: scale F so the model meets the last patch measurement, uniform in space.
         x, y = patches[-1]
         at_patch = model.fraction(np.array([[measured_depths[-1]]]), np.array([[y]]), np.array([[x]]))[0, 0]
@@ -149,7 +181,8 @@ class BackscatterModel:
 
     def level(self, depth: NDArray) -> NDArray[np.float64]:
         """Backscatter (DN, dark-corrected) for surfaces at ``depth`` (H, W) metres → (H, W, N)."""
-        return self.pattern * self.fraction(depth)
+        level = self.pattern * self.fraction(depth)
+        return level if self.response is None else level * self.response
 
 
 def compensated_range(
