@@ -68,16 +68,63 @@ def pixel_response(frames: NDArray, smooth: NDArray) -> NDArray[np.float64]:
     return np.maximum(1.0 + q * weight, 0.0)
 
 
-def _column_shares(rays: NDArray, lamp: NDArray, radius: float, attenuation: NDArray, depths: NDArray) -> NDArray:
-    """(P, T, N) share of each ray's lit-column backscatter closer than each depth (T,)."""
-    z = np.geomspace(_PORT, max(depths[-1], _PORT * 2), _DEPTH_SAMPLES * 4)
+# The column's attenuation and the lamp's beam, fitted to an open-water frame: the grids searched.
+_FIT_ATTENUATIONS = np.geomspace(0.01, 2.0, 64)  # 1/m
+_FIT_BEAM_SCALES = np.linspace(0.0, 8.0, 33)  # k in the beam pattern exp(−k·(1 − cos θ))
+_FIT_DEPTH_SAMPLES = 160
+_FIT_MARGIN = 2 * OPEN_WATER_SMOOTHING  # pixels kept clear of the image border (the smoothing's edge)
+
+
+def _column_geometry(rays: NDArray, lamp: NDArray, radius: float, z: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+    """Along each ray (P, 3) at depths z (Z,): the light path ds + t (m), the cosine of the angle
+    off the beam's axis (camera z) as seen from the lamp, and the spreading × dt (P, Z) each."""
     t = z[None, :] / rays[:, 2:3]  # (P, Z) distance along each ray
-    ds = np.linalg.norm(t[..., None] * rays[:, None, :] - lamp, axis=-1)
-    spread = (radius / (ds + radius)) ** 2
-    dt = np.gradient(t, axis=1)
+    offset = t[..., None] * rays[:, None, :] - lamp
+    ds = np.linalg.norm(offset, axis=-1)
+    spread = (radius / (ds + radius)) ** 2 * np.gradient(t, axis=1)
+    return ds + t, offset[..., 2] / np.maximum(ds, 1e-12), spread
+
+
+def fit_column(level: NDArray, rays: NDArray, lamp: NDArray, radius: float) -> tuple[NDArray, NDArray]:
+    """The column attenuation c (1/m) and beam k of :func:`_column_shares` that best give the
+    open-water backscatter's shape across the view.
+
+    level: (P, N) smoothed open-water backscatter (DN) along rays (P, 3). The open-water level of a
+    ray is ∫ exp(−k(1 − cos θ)) (r/(d_s + r))² exp(−c (d_s + t)) dt: how it changes across the view
+    (toward the lamp and away from it, toward the beam's edge) depends on c and k, its scale not.
+    Least squares in log level, up to a constant per channel, over grids of c and k. Returns (N,), (N,).
+    """
+    z = np.geomspace(_PORT, 200.0, _FIT_DEPTH_SAMPLES)
+    path, cos_beam, spread = _column_geometry(rays, lamp, radius, z)
+    decay = np.exp(-_FIT_ATTENUATIONS[:, None, None] * path[None])  # (C, P, Z)
+    target = np.log(np.maximum(level, 1e-30))  # (P, N)
+    target = target - target.mean(axis=0)
+    best = np.full(level.shape[1], np.inf)
+    c_best = np.zeros(level.shape[1])
+    k_best = np.zeros(level.shape[1])
+    for k in _FIT_BEAM_SCALES:
+        model = np.log(np.einsum("cpz,pz->cp", decay, spread * np.exp(-k * (1.0 - cos_beam))))  # (C, P)
+        model -= model.mean(axis=1, keepdims=True)
+        cost = ((model[:, :, None] - target[None]) ** 2).mean(axis=1)  # (C, N)
+        i = cost.argmin(axis=0)
+        better = cost[i, np.arange(len(i))] < best
+        best = np.where(better, cost[i, np.arange(len(i))], best)
+        c_best = np.where(better, _FIT_ATTENUATIONS[i], c_best)
+        k_best = np.where(better, k, k_best)
+    return c_best, k_best
+
+
+def _column_shares(rays: NDArray, lamp: NDArray, radius: float, attenuation: NDArray, depths: NDArray,
+                   beam: NDArray | None = None) -> NDArray:
+    """(P, T, N) share of each ray's lit-column backscatter closer than each depth (T,); beam: (N,)
+    k of the beam pattern exp(−k(1 − cos θ)) per channel (None: an even beam)."""
+    z = np.geomspace(_PORT, max(depths[-1], _PORT * 2), _DEPTH_SAMPLES * 4)
+    path, cos_beam, spread = _column_geometry(rays, lamp, radius, z)
     shares = []
-    for c in attenuation:
-        f = spread * np.exp(-c * (ds + t)) * dt
+    for j, c in enumerate(attenuation):
+        f = spread * np.exp(-c * path)
+        if beam is not None:
+            f = f * np.exp(-beam[j] * (1.0 - cos_beam))
         cum = np.cumsum(f, axis=1)
         cum /= cum[:, -1:]
         shares.append(np.stack([np.interp(depths, z, row) for row in cum]))
@@ -127,13 +174,36 @@ class BackscatterModel:
                 raise UserInputError(f"the open-water frame must have {n} channels like the profile")
             shape = open_water.shape[-3:-1]
         depths = np.geomspace(_PORT, 200.0, _DEPTH_SAMPLES)
+        pattern = None
+        if open_water is not None:
+            frames = open_water.astype(np.float64).reshape(-1, *open_water.shape[-3:]) - profile.array("dark_level")
+            water = frames.mean(axis=0)
+            pattern = np.maximum(cv2.blur(water, (OPEN_WATER_SMOOTHING, OPEN_WATER_SMOOTHING), borderType=cv2.BORDER_REFLECT), 0.0)
+        beam = None
+        if physical and pattern is not None:
+            # The open-water frame's shape across the view gives the column's attenuation and the
+            # beam (the calibration's c is that of the plate's light, which a lamp beside the
+            # camera biases: each pixel sees the plate at another angle off the beam at each distance).
+            h, w = shape
+            m = min(_FIT_MARGIN, (h - 1) // 2, (w - 1) // 2)
+            fy = np.unique(np.linspace(m, h - 1 - m, 12).round().astype(int))
+            fx = np.unique(np.linspace(m, w - 1 - m, 16).round().astype(int))
+            fit_rays = pixel_rays(intr, h, w)[np.ix_(fy, fx)].reshape(-1, 3)
+            fit_level = pattern[np.ix_(fy, fx)].reshape(-1, n)
+            usable = np.all(fit_level > 0, axis=0)
+            if usable.any():
+                c_fit, k_fit = fit_column(fit_level[:, usable], fit_rays, np.array(profile.lamp_position_m), profile.lamp_radius_m)
+                c = c.copy()
+                c[usable] = c_fit
+                beam = np.zeros(n)
+                beam[usable] = k_fit
         if physical:
             h, w = shape if shape is not None else (int(2 * intr.cy + 1), int(2 * intr.cx + 1))
             gy = np.minimum(np.arange(0, h + _GRID_STEP, _GRID_STEP), h - 1)
             gx = np.minimum(np.arange(0, w + _GRID_STEP, _GRID_STEP), w - 1)
             rays = pixel_rays(intr, h, w)[np.ix_(gy, gx)].reshape(-1, 3)
             lamp = np.array(profile.lamp_position_m)
-            shares = _column_shares(rays, lamp, profile.lamp_radius_m, c, depths).reshape(len(gy), len(gx), len(depths), n)
+            shares = _column_shares(rays, lamp, profile.lamp_radius_m, c, depths, beam).reshape(len(gy), len(gx), len(depths), n)
             step = _GRID_STEP
         else:
             at = np.concatenate([[0.0], measured_depths])
@@ -141,10 +211,7 @@ class BackscatterModel:
                                if levels[-1, k] > 0 else np.zeros_like(depths) for k in range(n)], axis=-1)[None, None]
             step = 0
         model = cls(depths, shares, np.ones((1, 1, n)), step)
-        if open_water is not None:
-            frames = open_water.astype(np.float64).reshape(-1, *open_water.shape[-3:]) - profile.array("dark_level")
-            water = frames.mean(axis=0)
-            pattern = np.maximum(cv2.blur(water, (OPEN_WATER_SMOOTHING, OPEN_WATER_SMOOTHING), borderType=cv2.BORDER_REFLECT), 0.0)
+        if pattern is not None:
             response = pixel_response(frames, pattern) if frames.shape[0] >= 2 else None
             return cls(depths, shares, pattern, step, response)
         # No open-water frame: scale F so the model meets the last patch measurement, uniform in space.
