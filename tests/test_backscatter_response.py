@@ -120,3 +120,27 @@ def test_the_columns_share_in_front_of_the_seabed_matches_the_simulators():
     f_calibration = np.median(from_calibration.fraction(depth)[centre].reshape(-1, 3), axis=0)
     assert np.all(np.abs(f_fitted - true_f) < 0.007), (f_fitted, true_f)
     assert np.abs(f_calibration - true_f)[2] > 0.02, (f_calibration, true_f)  # the bias the fit removes
+
+
+def test_too_murky_pixels_are_marked_invalid_rather_than_wrong():
+    """Jerlov III, lamp 0.6 m aside, grey seabed at 5 m: the seabed's light left after the
+    subtraction is within the noise; without a limit on the range's own uncertainty a tenth of the
+    pixels came out valid and hundreds of per cent long. Now they have no range, reason 3."""
+    from uwcam.optics.validity import Reason
+
+    size = (320, 240)
+    water, lamp, camera = water_preset("jerlov-III", WAVELENGTHS), Lamp(position=(0.6, 0.0, 0.0)), CameraModel()
+    profile = calibrate_in_simulation(water, lamp, size, camera, frames_per_distance=4, record_exposure=True)
+    scene = SimulatedWorld(scene="seabed", distance=5.0, size=size, water=water, lamp=lamp, camera=camera,
+                           material="grey", seed=5)
+    water_world = SimulatedWorld(scene="open-water", distance=5.0, size=size, water=water, lamp=lamp, camera=camera,
+                                 fixed_exposure=scene.exposure, seed=6)
+    comp = BackscatterCompensator(profile, (240, 320), 2, np.stack([water_world.frame(i) for i in range(8)]),
+                                  path_length_bounds=(0.0, 100.0))
+    est = RangeEstimator(profile, path_length_bounds=(0.0, 100.0))
+    result = comp.range(scene.frame(0), est.attenuation, est.log_constant)
+    error = np.abs(result.range - scene.camera_range) / scene.camera_range
+    wrong = np.isfinite(error) & (error > 0.2)
+    assert wrong.mean() < 0.01
+    assert (result.reasons == Reason.BACKSCATTER_ONLY).mean() > 0.02  # the murky pixels say why
+    assert np.all(np.isnan(result.variance[~np.isfinite(result.range)]))

@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 
 from uwcam.backscatter import BackscatterModel
 from uwcam.optics.geometry import pixel_rays
+from uwcam.optics.validity import Reason
 from uwcam.profile import CalibrationProfile
 from uwcam.ranging import RangeEstimator, RangeResult
 
@@ -31,6 +32,13 @@ MODEL_UNCERTAINTY = 0.05
 as (0.05·B)², so a pixel whose own light is not well above the backscatter's uncertainty has
 no range (reason 3) instead of a wrong one, and the variance of the rest says how much the
 model can be trusted."""
+
+
+MAX_RELATIVE_SD = 2.0
+"""A compensated range whose standard deviation exceeds this many times the range itself is not
+a range: what is left of the surface's light after the subtraction is within the noise and the
+model's uncertainty (reason 3), the transform's log of it anything. Murky water then leaves
+pixels without a range instead of ranges hundreds of per cent out."""
 
 
 class BackscatterCompensator:
@@ -136,4 +144,10 @@ class BackscatterCompensator:
         background = self.level(result.range, scale=scale)
         if ambient is not None:
             background += ambient
-        return self.estimator(frame, background=background, samples=samples)
+        result = self.estimator(frame, background=background, samples=samples)
+        with np.errstate(invalid="ignore"):
+            lost = result.variance > np.float32(MAX_RELATIVE_SD**2) * result.range * result.range
+        result.range[lost] = np.nan
+        result.variance[lost] = np.nan
+        result.reasons[lost] = Reason.BACKSCATTER_ONLY
+        return result
