@@ -144,3 +144,26 @@ def test_too_murky_pixels_are_marked_invalid_rather_than_wrong():
     assert wrong.mean() < 0.01
     assert (result.reasons == Reason.BACKSCATTER_ONLY).mean() > 0.02  # the murky pixels say why
     assert np.all(np.isnan(result.variance[~np.isfinite(result.range)]))
+
+
+def test_with_the_lamp_at_the_camera_the_calibrations_column_stands():
+    """Jerlov IB, lamp at the camera, grey seabed at 5 m, 3×3 mean: every ray's column is lit
+    alike, so the open water's shape across the view does not tell the column's attenuation; a
+    fit left free there picked blue's c fifty times too low or ten times too high, and the ranges
+    30 % short."""
+    size = (320, 240)
+    water, lamp, camera = water_preset("jerlov-IB", WAVELENGTHS), Lamp(position=(0.0, 0.0, 0.0)), CameraModel()
+    profile = calibrate_in_simulation(water, lamp, size, camera, frames_per_distance=4, record_exposure=True)
+    scene = SimulatedWorld(scene="seabed", distance=5.0, size=size, water=water, lamp=lamp, camera=camera,
+                           material="grey", seed=5)
+    water_world = SimulatedWorld(scene="open-water", distance=5.0, size=size, water=water, lamp=lamp, camera=camera,
+                                 fixed_exposure=scene.exposure, seed=6)
+    comp = BackscatterCompensator(profile, (240, 320), 2, np.stack([water_world.frame(i) for i in range(16)]),
+                                  path_length_bounds=(0.0, 100.0))
+    est = RangeEstimator(profile, path_length_bounds=(0.0, 100.0))
+    r = smooth_range_map(comp.range(scene.frame(0), est.attenuation, est.log_constant), "mean").range
+    h, w = r.shape
+    e = ((r - scene.camera_range) / scene.camera_range)[h // 10 : h - h // 10, w // 10 : w - w // 10]
+    valid = np.isfinite(e)
+    assert valid.mean() > 0.85
+    assert abs(np.median(e[valid])) < 0.02 and np.sqrt(np.mean(e[valid] ** 2)) < 0.05

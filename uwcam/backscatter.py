@@ -73,6 +73,10 @@ _FIT_ATTENUATIONS = np.geomspace(0.01, 2.0, 64)  # 1/m
 _FIT_BEAM_SCALES = np.linspace(0.0, 8.0, 33)  # k in the beam pattern exp(−k·(1 − cos θ))
 _FIT_DEPTH_SAMPLES = 160
 _FIT_MARGIN = 2 * OPEN_WATER_SMOOTHING  # pixels kept clear of the image border (the smoothing's edge)
+FIT_TOLERANCE = 0.002
+"""rms in log level (0.2 %) within which column shapes are not told apart: the model's own
+simplifications (one c for the light's way out and back, forward scatter folded into it) depart
+from real columns by about that much."""
 
 
 def _column_geometry(rays: NDArray, lamp: NDArray, radius: float, z: NDArray) -> tuple[NDArray, NDArray, NDArray]:
@@ -85,33 +89,40 @@ def _column_geometry(rays: NDArray, lamp: NDArray, radius: float, z: NDArray) ->
     return ds + t, offset[..., 2] / np.maximum(ds, 1e-12), spread
 
 
-def fit_column(level: NDArray, rays: NDArray, lamp: NDArray, radius: float) -> tuple[NDArray, NDArray]:
+def fit_column(level: NDArray, rays: NDArray, lamp: NDArray, radius: float,
+               prior: NDArray | None = None) -> tuple[NDArray, NDArray]:
     """The column attenuation c (1/m) and beam k of :func:`_column_shares` that best give the
     open-water backscatter's shape across the view.
 
     level: (P, N) smoothed open-water backscatter (DN) along rays (P, 3). The open-water level of a
     ray is ∫ exp(−k(1 − cos θ)) (r/(d_s + r))² exp(−c (d_s + t)) dt: how it changes across the view
     (toward the lamp and away from it, toward the beam's edge) depends on c and k, its scale not.
-    Least squares in log level, up to a constant per channel, over grids of c and k. Returns (N,), (N,).
+    Least squares in log level, up to a constant per channel, over grids of c and k. Where the shape
+    does not tell c (a lamp at the camera: every ray's column is lit alike), every c whose best
+    fit is within :data:`FIT_TOLERANCE` of the best is as good: then the one nearest (in log) to
+    ``prior`` (N,), the calibration's c. Returns (N,), (N,).
     """
     z = np.geomspace(_PORT, 200.0, _FIT_DEPTH_SAMPLES)
     path, cos_beam, spread = _column_geometry(rays, lamp, radius, z)
     decay = np.exp(-_FIT_ATTENUATIONS[:, None, None] * path[None])  # (C, P, Z)
     target = np.log(np.maximum(level, 1e-30))  # (P, N)
     target = target - target.mean(axis=0)
-    best = np.full(level.shape[1], np.inf)
-    c_best = np.zeros(level.shape[1])
-    k_best = np.zeros(level.shape[1])
+    costs = []
     for k in _FIT_BEAM_SCALES:
         model = np.log(np.einsum("cpz,pz->cp", decay, spread * np.exp(-k * (1.0 - cos_beam))))  # (C, P)
         model -= model.mean(axis=1, keepdims=True)
-        cost = ((model[:, :, None] - target[None]) ** 2).mean(axis=1)  # (C, N)
-        i = cost.argmin(axis=0)
-        better = cost[i, np.arange(len(i))] < best
-        best = np.where(better, cost[i, np.arange(len(i))], best)
-        c_best = np.where(better, _FIT_ATTENUATIONS[i], c_best)
-        k_best = np.where(better, k, k_best)
-    return c_best, k_best
+        costs.append(((model[:, :, None] - target[None]) ** 2).mean(axis=1))  # (C, N)
+    cost = np.array(costs)  # (K, C, N)
+    profile = cost.min(axis=0)  # (C, N): each c with its best beam
+    n = level.shape[1]
+    if prior is None:
+        pick = profile.argmin(axis=0)
+    else:
+        allowed = profile <= profile.min(axis=0) + FIT_TOLERANCE**2
+        distance = np.abs(np.log(_FIT_ATTENUATIONS)[:, None] - np.log(np.maximum(np.asarray(prior, np.float64), _FIT_ATTENUATIONS[0])))
+        pick = np.where(allowed, distance, np.inf).argmin(axis=0)
+    beam = cost[:, pick, np.arange(n)].argmin(axis=0)
+    return _FIT_ATTENUATIONS[pick], _FIT_BEAM_SCALES[beam]
 
 
 def _column_shares(rays: NDArray, lamp: NDArray, radius: float, attenuation: NDArray, depths: NDArray,
@@ -192,7 +203,8 @@ class BackscatterModel:
             fit_level = pattern[np.ix_(fy, fx)].reshape(-1, n)
             usable = np.all(fit_level > 0, axis=0)
             if usable.any():
-                c_fit, k_fit = fit_column(fit_level[:, usable], fit_rays, np.array(profile.lamp_position_m), profile.lamp_radius_m)
+                c_fit, k_fit = fit_column(fit_level[:, usable], fit_rays, np.array(profile.lamp_position_m),
+                                          profile.lamp_radius_m, prior=c[usable])
                 c = c.copy()
                 c[usable] = c_fit
                 beam = np.zeros(n)
