@@ -145,9 +145,12 @@ class BackscatterCompensator:
         if ambient is not None:
             background += ambient
         result = self.estimator(frame, background=background, samples=samples)
+        limit = np.multiply(result.range, result.range)
+        limit *= np.float32(MAX_RELATIVE_SD**2)
         with np.errstate(invalid="ignore"):
-            lost = result.variance > np.float32(MAX_RELATIVE_SD**2) * result.range * result.range
-        result.range[lost] = np.nan
-        result.variance[lost] = np.nan
-        result.reasons[lost] = Reason.BACKSCATTER_ONLY
+            lost = np.greater(result.variance, limit)
+        if lost.any():
+            np.copyto(result.range, np.float32(np.nan), where=lost)
+            np.copyto(result.variance, np.float32(np.nan), where=lost)
+            np.copyto(result.reasons, np.uint8(Reason.BACKSCATTER_ONLY), where=lost)
         return result
