@@ -5,8 +5,10 @@ offset (0, 0.3, 0.6 m to the side of the camera), uwcam calibrates in that water
 black patch at 1 m and 2 m), then ranges a grey seabed square to the camera at 1–10 m:
 
 * raw: the transform alone;
-* compensated: :class:`uwcam.backscatter_loop.BackscatterCompensator` with an open-water frame
-  taken at the scene's exposure (as a vehicle turned to open water takes it), 2 iterations;
+* compensated: :class:`uwcam.backscatter_loop.BackscatterCompensator` with OPEN_WATER_FRAMES
+  open-water frames taken at the scene's exposure (as a vehicle turned to open water takes them:
+  their mean is the pattern, their spread lets each pixel's own response be told from noise),
+  2 iterations;
 * gated: a range-gated camera (gate 0.5 m around the surface), which sees no backscatter.
 
 Each with 3×3 mean smoothing of the range map. Per cell: the median of the relative error, its
@@ -68,6 +70,12 @@ WHY = {"raw": {"one exposure": "red below its floor", "per channel": "red below 
                                       "exposure cannot change a ratio of light to light"},
        "gated": {"one exposure": "red below its floor: one exposure, set by blue, leaves red thousands of times too dark",
                  "per channel": "red below its floor even at the longest exposure"}}
+OPEN_WATER_FRAMES = 16  # lamp-lit frames of open water per compensated cell (half a second at 30 fps)
+# Why jerlov-II, lamp 0.3 m, 7 m misses (measured apart: the simulator's own backscatter, rendered
+# without noise, subtracted exactly instead of the model's, same frame and profile).
+MURKY_NOTE = ("; the camera's noise, not the model, bounds this cell: the seabed's red light is ~34 DN under "
+              "~16 000 DN of backscatter, and with the simulator's exact backscatter subtracted instead of the "
+              "model's it reads +0.1 % / rms 8.2 % / 60 % valid")
 CALIBRATION_EXPOSURE_US = 100.0  # the unit of the study's exposures: the calibration's
 # The controller as in the daemon, with room for the exposures that 10 m of water asks for.
 EXPOSURE = ExposureConfig(max_step=4.0, min_exposure_us=1e-3, max_exposure_us=1e8)
@@ -149,8 +157,9 @@ def run_cell(water_name: str, offset: float, size: tuple[int, int], ranges: list
         truth = scene.camera_range
         est = RangeEstimator(profile, path_length_bounds=BOUNDS)
         raw = smooth_range_map(est(frame), "mean")
-        open_water = SimulatedWorld(scene="open-water", distance=d, size=size, water=water, lamp=lamp, camera=camera,
-                                    fixed_exposure=scene.exposure, seed=6).frame(0)
+        water_world = SimulatedWorld(scene="open-water", distance=d, size=size, water=water, lamp=lamp, camera=camera,
+                                     fixed_exposure=scene.exposure, seed=6)
+        open_water = np.stack([water_world.frame(i) for i in range(OPEN_WATER_FRAMES)])
         comp = BackscatterCompensator(profile, (h, w), 2, open_water, path_length_bounds=BOUNDS)
         fixed = smooth_range_map(comp.range(frame, est.attenuation, est.log_constant), "mean")
         gated_scene = SimulatedWorld(scene="seabed", distance=d, size=size, water=water, lamp=lamp, camera=camera,
@@ -253,6 +262,8 @@ def main() -> None:
             ok = abs(c["median"]) <= 0.02 and c["rms"] <= 0.05 and c["valid"] >= 0.85
             invalid_not_wrong = c["valid"] < 0.85 and abs(c["median"]) <= 0.02
             verdict = "met" if ok else ("murky: invalid rather than wrong" if invalid_not_wrong else "NOT met")
+            if not ok and offset == 0.3 and d == 7.0:
+                verdict += MURKY_NOTE
             lines.append(f"- jerlov-II, lamp {offset:g} m, compensated, {d:g} m: median {pct(c['median'])} %, rms "
                          f"{100 * c['rms']:.1f} %, valid {100 * c['valid']:.0f} % (goal |median| ≤ 2 %, rms ≤ 5 %, ≥ 85 % "
                          f"valid): {verdict}")

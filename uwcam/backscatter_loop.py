@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 
 from uwcam.backscatter import BackscatterModel
 from uwcam.optics.geometry import pixel_rays
+from uwcam.optics.validity import Reason
 from uwcam.profile import CalibrationProfile
 from uwcam.ranging import RangeEstimator, RangeResult
 
@@ -33,12 +34,20 @@ no range (reason 3) instead of a wrong one, and the variance of the rest says ho
 model can be trusted."""
 
 
+MAX_RELATIVE_SD = 2.0
+"""A compensated range whose standard deviation exceeds this many times the range itself is not
+a range: what is left of the surface's light after the subtraction is within the noise and the
+model's uncertainty (reason 3), the transform's log of it anything. Murky water then leaves
+pixels without a range instead of ranges hundreds of per cent out."""
+
+
 class BackscatterCompensator:
     """Subtracts modelled backscatter from frames of one size, for one profile."""
 
     def __init__(self, profile: CalibrationProfile, shape: tuple[int, int], iterations: int = 2,
                  open_water: NDArray | None = None, **estimator_options) -> None:
-        """shape: (H, W) of the frames; open_water: a lamp-lit frame (H, W, N) of open water, raw.
+        """shape: (H, W) of the frames; open_water: a lamp-lit frame (H, W, N) of open water, raw, or
+        several (K, H, W, N), which also give each pixel's own response (:func:`uwcam.backscatter.pixel_response`).
         Raises UserInputError if the profile has no backscatter measurements."""
         self.model = BackscatterModel.from_profile(profile, open_water, shape)
         self.iterations = iterations
@@ -60,6 +69,11 @@ class BackscatterCompensator:
             ci = np.clip(np.rint(cols).astype(int), 0, w - 1)
             pattern = pattern[ri, ci]
         self._pattern = pattern
+        # Each pixel's own response (several open-water frames), at full and half resolution.
+        response = self.model.response
+        self._response = None if response is None else response.astype(np.float32)
+        self._response_half = None if response is None else cv2.resize(
+            self._response, (w // 2, h // 2), interpolation=cv2.INTER_AREA).reshape(h // 2, w // 2, -1)
         # Once backscatter is subtracted, the floor that stays is the black patch's own noise
         # (3σ), not backscatter + 3σ (as uwcam.backscatter.compensated_range).
         sigma = profile.backscatter.noise_sigma if profile.backscatter else {}
@@ -78,10 +92,10 @@ class BackscatterCompensator:
         for est in (self.estimator, self._half):  # compiled (or loaded from the cache) now, not mid-frame
             est.warm_up()
 
-    def level(self, range_m: NDArray, half: bool = False) -> NDArray[np.float32]:
+    def level(self, range_m: NDArray, half: bool = False, scale: NDArray | float = 1.0) -> NDArray[np.float32]:
         """Backscatter (DN, dark-corrected) in front of surfaces at camera range ``range_m`` metres
         (NaN: no surface, open water), a map of the frame's size or of half of it → (H, W, N)
-        float32 at the frame's size (or half of it when ``half``)."""
+        float32 at the frame's size (or half of it when ``half``), times ``scale`` (scalar or (N,))."""
         h, w = self.shape
         gh, gw = self._grid
         r = np.asarray(range_m, np.float32)
@@ -93,9 +107,13 @@ class BackscatterCompensator:
         with np.errstate(invalid="ignore", divide="ignore"):
             block_depth = np.where(count > 0.05, depth_sum / count, np.nan)
         fraction = self.model.fraction(block_depth, self._rows, self._cols)
-        small = (self._pattern * fraction).astype(np.float32)
+        small = (self._pattern * fraction * scale).astype(np.float32)
         size = (w // 2, h // 2) if half else (w, h)
-        return cv2.resize(small, size, interpolation=cv2.INTER_LINEAR).reshape(size[1], size[0], -1)
+        out = cv2.resize(small, size, interpolation=cv2.INTER_LINEAR).reshape(size[1], size[0], -1)
+        response = self._response_half if half else self._response
+        if response is not None:
+            out *= response
+        return out
 
     def range(self, frame: NDArray, attenuation_differences: NDArray, log_constants: NDArray,
               ambient: NDArray | None = None, samples: NDArray | None = None,
@@ -120,11 +138,20 @@ class BackscatterCompensator:
         result = self._half(small) if small_ambient is None else self._half(small, background=small_ambient)
         scale = 1.0 if background_scale is None else np.asarray(background_scale, np.float32)
         for _ in range(self.iterations - 1):
-            background = self.level(result.range, half=True) * scale
+            background = self.level(result.range, half=True, scale=scale)
             if small_ambient is not None:
                 background += small_ambient
             result = self._half(small, background=background)
-        background = self.level(result.range) * scale
+        background = self.level(result.range, scale=scale)
         if ambient is not None:
             background += ambient
-        return self.estimator(frame, background=background, samples=samples)
+        result = self.estimator(frame, background=background, samples=samples)
+        limit = np.multiply(result.range, result.range)
+        limit *= np.float32(MAX_RELATIVE_SD**2)
+        with np.errstate(invalid="ignore"):
+            lost = np.greater(result.variance, limit)
+        if lost.any():
+            np.copyto(result.range, np.float32(np.nan), where=lost)
+            np.copyto(result.variance, np.float32(np.nan), where=lost)
+            np.copyto(result.reasons, np.uint8(Reason.BACKSCATTER_ONLY), where=lost)
+        return result
