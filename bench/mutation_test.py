@@ -83,9 +83,12 @@ TARGETS: dict[str, Target] = {
                                           "tests/test_smoothing.py tests/test_independent_validity.py "
                                           "tests/test_estimator.py tests/test_statistics.py tests/test_calibration_statistics.py "
                                           "tests/test_backscatter_terms.py tests/test_calibration_variance_edges.py "
-                                          "tests/test_vehicle_mask.py::test_range_frame_masks_before_smoothing_so_the_vehicle_lends_no_range",
+                                          "tests/test_vehicle_mask.py::test_range_frame_masks_before_smoothing_so_the_vehicle_lends_no_range "
+                                          "tests/test_vehicle_mask.py::test_mask_marks_its_boxes_clipped_to_the_image_and_nothing_else "
+                                          "tests/test_ranging_contracts.py tests/test_calibration_variance_weights.py",
                      exclude=("RangeEstimator.warm_up",)),
-    "calibration": Target("uwcam/calibration.py", "tests/test_independent_calibration.py tests/test_calibration_closed_forms.py "
+    "calibration": Target("uwcam/calibration.py", "tests/test_calibration_helpers.py tests/test_independent_calibration.py "
+                                                  "tests/test_calibration_closed_forms.py "
                                                   "tests/test_calibration.py tests/test_calibration_statistics.py"),
     "api.security": Target("uwcam/api/security.py", "tests/test_auth.py", annotations_inert=False),
     "api.session": Target("uwcam/api/session.py", "tests/test_auth.py", annotations_inert=False),
