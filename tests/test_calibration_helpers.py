@@ -118,3 +118,41 @@ def test_results_are_immutable():
     assert isinstance(line, LineFit)
     with pytest.raises(dataclasses.FrozenInstanceError):
         line.slope = np.zeros(1)  # type: ignore[misc]
+
+
+def test_attenuation_fit_checks_its_shapes_and_needs_two_different_paths():
+    from uwcam.calibration import fit_attenuation_differences
+
+    ln_e = np.log(np.array([[900.0, 700.0, 400.0], [500.0, 450.0, 300.0]]))
+    with pytest.raises(ValueError, match="n ≥ 2"):
+        fit_attenuation_differences(ln_e[:1], [1.0])  # one distance, three channels
+    with pytest.raises(ValueError, match="n ≥ 2"):
+        fit_attenuation_differences(np.vstack([ln_e, ln_e[:1]]), [1.0, 2.0])  # three rows, two paths
+    with pytest.raises(ValueError, match="n ≥ 2"):
+        fit_attenuation_differences(ln_e[0], [1.0, 2.0, 3.0])  # not (n, N)
+    with pytest.raises(UserInputError, match="all path lengths are equal"):
+        fit_attenuation_differences(ln_e, [2.0, 2.0])
+    fit = fit_attenuation_differences(ln_e, [1.0, 1.5])  # half a metre apart is enough
+    v = (ln_e[0, 0] - ln_e[1, 0] - (ln_e[0] - ln_e[1])) / (1.0 - 1.5)
+    np.testing.assert_allclose(fit.attenuation_difference, v, rtol=1e-12)
+
+
+def test_attenuation_fit_residuals_are_observed_minus_fitted_log_ratios():
+    """Three channels, four distances, noisy: GLS; the residuals are ln(E_k/E_ref) − (b_k − V_k d)."""
+    from uwcam.calibration import fit_attenuation_differences
+
+    d = np.array([1.0, 2.0, 3.5, 5.0])
+    c = np.array([0.46, 0.11, 0.06])
+    rng = np.random.default_rng(2)
+    ln_e = 9.0 - d[:, None] * c + rng.normal(0.0, 0.01, size=(4, 3))
+    fit = fit_attenuation_differences(ln_e, d, log_variance=np.full((4, 3), 1e-4))
+    ratio = ln_e - ln_e[:, :1]
+    expected = ratio - (fit.log_constant - np.outer(d, fit.attenuation_difference))
+    np.testing.assert_allclose(fit.residuals, expected, atol=1e-12)
+    assert np.abs(fit.residuals[:, 1:]).max() > 1e-3  # noisy: the residuals are not all 0
+    # Ordinary least squares per channel on the ratios gives the same V when all variances are equal
+    # within a distance (the reference's shared noise is the same for every ratio of that distance).
+    for k in (1, 2):
+        slope, intercept = np.polyfit(d, ratio[:, k], 1)
+        assert fit.attenuation_difference[k] == pytest.approx(-slope, rel=1e-9)
+        assert fit.log_constant[k] == pytest.approx(intercept, rel=1e-9)

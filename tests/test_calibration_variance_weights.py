@@ -18,11 +18,12 @@ from uwcam.profile import CalibrationCovariance
 from uwcam.ranging import RangeEstimator
 
 C = np.array([0.46, 0.11, 0.06])
+B = np.array([0.0, 0.4, -0.3])  # log constants b_k (reference R)
 
 
 def covariance_profile(**noise):
     a = np.random.default_rng(3).normal(size=(4, 4)) * np.array([3e-4, 3e-4, 2e-3, 2e-3])
-    base = make_profile(C, [0.0, 0.0, 0.0], **noise)
+    base = make_profile(C, B, **noise)
     return base.model_copy(update={"covariance": CalibrationCovariance(parameters=["V:G", "V:B", "b:G", "b:B"],
                                                                       matrix=(a @ a.T).tolist())})
 
@@ -33,8 +34,8 @@ def reference(profile, e, total, usable, read2, gain, q):
     w = np.where(usable, e * e / np.where(usable, var, 1.0), 0.0)
     cw = (w * C).sum(-1, keepdims=True) / w.sum(-1, keepdims=True)
     h = w * (C - cw) / (w * (C - cw) ** 2).sum(-1, keepdims=True)
-    # The path of the usable channels, by weighted least squares on y = ln E (log constants 0).
-    y = np.log(np.where(usable, e, 1.0))
+    # The path of the usable channels, by weighted least squares on y = ln E − b.
+    y = np.log(np.where(usable, e, 1.0)) - B
     yw = (w * y).sum(-1, keepdims=True) / w.sum(-1, keepdims=True)
     d = (-(w * (C - cw) * (y - yw)).sum(-1) / (w * (C - cw) ** 2).sum(-1))[..., None, None]
     cvv, cvb, cbb = profile.covariance_blocks()
@@ -86,14 +87,38 @@ def test_a_channel_less_than_one_code_above_dark_still_counts_with_a_floor_of_ze
 def test_blocks_of_two_pixels_give_the_share_of_each_blocks_mean():
     read, gain = 5.0, 0.3
     profile = covariance_profile(read_noise=read, shot_gain=gain)
-    path = np.repeat(np.array([2.0, 2.0, 5.0, 5.0])[:, None], 4, axis=1)  # two rows of 2×2 blocks
+    i, j = np.mgrid[0:4, 0:4]
+    path = 2.0 + 0.8 * i + 0.5 * j  # varies inside every block: a block's share is not a pixel's
     e = 4e4 * np.exp(-C * path[..., None])
     got = RangeEstimator(profile).calibration_variance(e.astype(np.float32), block=2)
-    share = reference(profile, e, e, np.ones(e.shape, bool), read**2, gain, 1.0)
+    means = e.reshape(2, 2, 2, 2, 3).mean(axis=(1, 3))  # (2, 2, 3) block means
+    share = reference(profile, means, means, np.ones(means.shape, bool), read**2, gain, 1.0)
     assert got.shape == (4, 4)
-    # Bilinear interpolation between block centres: each block's own centre rows keep its value.
-    np.testing.assert_allclose(got[0], share[0], rtol=1e-4)
-    np.testing.assert_allclose(got[3], share[3], rtol=1e-4)
+    # Bilinear interpolation between block centres, clamped at the border: corners are block values.
+    np.testing.assert_allclose([got[0, 0], got[0, 3], got[3, 0], got[3, 3]], share.ravel(), rtol=1e-4)
+    pixel = reference(profile, e, e, np.ones(e.shape, bool), read**2, gain, 1.0)
+    assert abs(pixel[0, 0] - share[0, 0]) > 1e-3 * share[0, 0]
+
+
+def test_a_frame_narrower_than_a_block_is_one_column_of_blocks():
+    read, gain = 5.0, 0.3
+    profile = covariance_profile(read_noise=read, shot_gain=gain)
+    path = np.repeat(np.linspace(1.5, 7.0, 6)[None], 8, axis=0)  # 8 rows, 6 very different columns
+    e = 4e4 * np.exp(-C * path[..., None])
+    got = RangeEstimator(profile).calibration_variance(e.astype(np.float32), block=8)
+    mean = e.mean(axis=(0, 1))[None, None]
+    share = reference(profile, mean, mean, np.ones(mean.shape, bool), read**2, gain, 1.0)
+    np.testing.assert_allclose(got, np.full((8, 6), share[0, 0]), rtol=1e-4)
+
+
+def test_a_channel_without_any_noise_model_counts_one_code_squared():
+    """Read noise 0 in R only, no step: R's σ² is 0, taken as 1 DN² (as for ranging itself)."""
+    read = np.array([0.0, 2.0, 3.0])
+    profile = covariance_profile(read_noise=read).model_copy(update={"quantisation_step": 0.0})
+    e = np.array([[[800.0, 1500.0, 900.0], [50.0, 400.0, 700.0]]])
+    got = RangeEstimator(profile).calibration_variance(e, block=1)
+    read2 = np.where(read > 0, read**2, 1.0)
+    np.testing.assert_allclose(got, reference(profile, e, e, np.ones(e.shape, bool), read2, 0.0, 0.0), rtol=1e-6)
 
 
 @pytest.mark.parametrize("side", ["above", "below", "left", "right"])

@@ -150,3 +150,13 @@ def test_range_frame_smooths_at_the_stage_asked_for_and_not_at_the_other():
     smoothed, samples = smooth_frame(frame, "mean", profile.saturation_level)
     before = range_frame(est, frame, smoothing="mean", stage="before")
     np.testing.assert_array_equal(before.range, est(smoothed, samples=samples).range)
+
+
+def test_a_noise_model_below_one_code_squared_is_used_as_it_is():
+    """σ² = 0.01 DN² (read 0.1, no step): the variance is that, not σ² clipped at 1 DN²."""
+    profile = make_profile(C, B, read_noise=0.1, quantisation_step=0.0)
+    e = signals([1.0, 2.5])
+    out = RangeEstimator(profile, pair=("R", "G"))(e)
+    d, var_d = pair_closed_form(e, np.full(e.shape, 0.01))
+    np.testing.assert_allclose(out.range, d, rtol=1e-5)
+    np.testing.assert_allclose(out.variance, var_d, rtol=1e-5)
