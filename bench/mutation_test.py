@@ -367,7 +367,7 @@ def _trees(tmp: Path, jobs: int) -> list[Path]:
     return trees
 
 
-def run(names: list[str], jobs: int, sample: int | None, rerun: bool) -> None:
+def run(names: list[str], jobs: int, sample: int | None, rerun: bool, resume: bool = False) -> None:
     """Run every mutant (or a seeded random ``sample`` of them) of each module; with ``rerun``,
     only the survivors recorded in results.json (and the mutants not run then), keeping the kills."""
     with tempfile.TemporaryDirectory(prefix="uwcam-mutation-") as tmp:
@@ -384,9 +384,14 @@ def run(names: list[str], jobs: int, sample: int | None, rerun: bool) -> None:
                 if previous.get("module") != target.path or ("runs" not in previous and previous.get("not_run")):
                     print(f"{name}: no complete earlier run of this scope in results.json; running every mutant")
                 else:
-                    chosen, carried = _to_rerun(source, mutants, previous)
+                    chosen, carried = _to_rerun(source, mutants, previous, resume)
             if sample is not None and sample < len(chosen):
-                chosen = random.Random(0).sample(chosen, sample)
+                if rerun and carried:  # the survivors first, then a seeded sample of those never run
+                    known = [m for m in chosen if m["job_id"] in previous.get("runs", {})]
+                    fresh = [m for m in chosen if m["job_id"] not in previous.get("runs", {})]
+                    chosen = known + random.Random(0).sample(fresh, max(0, min(len(fresh), sample - len(known))))
+                else:
+                    chosen = random.Random(0).sample(chosen, sample)
             print(f"{name}: {len(mutants)} mutants ({excluded} out of scope or excluded), running {len(chosen)} "
                   f"with {jobs} job(s)", flush=True)
             results = execute(trees, target, chosen, progress=f"{name}: ")
@@ -402,7 +407,7 @@ def run(names: list[str], jobs: int, sample: int | None, rerun: bool) -> None:
                   f"{summary['survived']} survived, {summary['not_run']} not run, {summary['minutes']} min", flush=True)
 
 
-def _to_rerun(source: str, mutants: list[dict], previous: dict) -> tuple[list[dict], dict[str, dict]]:
+def _to_rerun(source: str, mutants: list[dict], previous: dict, resume: bool = False) -> tuple[list[dict], dict[str, dict]]:
     """Split the mutants into those to run again (the earlier survivors and those never run) and
     the earlier kills, kept. The earlier run must be of the same source: checked by hash, or, for
     a record without one, by every recorded survivor's diff being reproduced exactly."""
@@ -431,8 +436,11 @@ def _to_rerun(source: str, mutants: list[dict], previous: dict) -> tuple[list[di
                 print(f"  survivor {key} of the earlier run is not the same mutant now: running every mutant")
                 return mutants, {}
             runs[key] = "survived"
-    # Survivors run again; kills are kept; mutants left out of a sampled run stay out of it.
+    # Survivors run again; kills are kept; mutants left out of a sampled run stay out of it
+    # unless ``resume`` (then they run too, after the survivors, so that --sample takes them last).
     again = [m for m in mutants if runs.get(m["job_id"]) == "survived"]
+    if resume:
+        again += [m for m in mutants if m["job_id"] not in runs]
     kept = {m["job_id"]: {"outcome": runs[m["job_id"]], "diff": ""} for m in mutants
             if runs.get(m["job_id"], "survived") != "survived"}
     return again, kept
@@ -469,13 +477,13 @@ def _key(s: dict) -> str:
 
 
 def _equivalents() -> dict[str, set[str]]:
-    """SURVIVORS.md lists each equivalent mutant as a line `- eq module line:Operator:occurrence`
-    inside its <details> blocks (generated with --report, then judged by hand)."""
+    """SURVIVORS.md names the mutants judged equivalent on lines `- eq MODULE LINE:Operator:occurrence …`
+    (one or more per line, under the explanation of why); the rest of the file is prose."""
     found: dict[str, set[str]] = {}
     path = OUT / "SURVIVORS.md"
     if path.exists():
-        for m in re.finditer(r"^\s*- eq (\S+) (\d+:\w+:\d+)", path.read_text(), re.M):
-            found.setdefault(m.group(1), set()).add(m.group(2))
+        for m in re.finditer(r"^\s*- eq (\S+) (.*)$", path.read_text(), re.M):
+            found.setdefault(m.group(1), set()).update(re.findall(r"\d+:\w+:\d+", m.group(2)))
     return found
 
 
@@ -486,6 +494,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--report", action="store_true", help="only print the results recorded in bench/mutation/results.json")
     p.add_argument("--rerun-survivors", action="store_true",
                    help="run the current tests against the recorded survivors only; kills (and mutants a sample left out) are kept")
+    p.add_argument("--resume", action="store_true",
+                   help="with --rerun-survivors: also run the mutants a sampled run left out (--sample: how many in all)")
     p.add_argument("--jobs", type=int, default=1, help="mutants tested in parallel, each in its own copy of the tree")
     p.add_argument("--sample", type=int, default=None, help="run only this many mutants per module (seeded random sample)")
     args = p.parse_args(argv)
@@ -498,7 +508,7 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"unknown module(s) {', '.join(unknown)}; known: {', '.join(TARGETS)}")
     names = args.modules or list(TARGETS)
     if not args.report:
-        run(names, max(1, args.jobs), args.sample, args.rerun_survivors)
+        run(names, max(1, args.jobs), args.sample, args.rerun_survivors or args.resume, args.resume)
     report(names)
     return 0
 

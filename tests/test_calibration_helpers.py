@@ -156,3 +156,59 @@ def test_attenuation_fit_residuals_are_observed_minus_fitted_log_ratios():
         slope, intercept = np.polyfit(d, ratio[:, k], 1)
         assert fit.attenuation_difference[k] == pytest.approx(-slope, rel=1e-9)
         assert fit.log_constant[k] == pytest.approx(intercept, rel=1e-9)
+
+
+def _plate(shape=(40, 48), patch=(16, 24, 14, 12)):
+    """A plate lit by a smooth (quadratic) field X with a black patch, and their masks."""
+    h, w = shape
+    yy, xx = np.mgrid[0:h, 0:w]
+    light = 1000.0 + 8.0 * xx - 5.0 * yy + 0.09 * xx * yy - 0.12 * (yy - 20.0) ** 2
+    plate_mask = np.zeros(shape, bool)
+    plate_mask[3:-3, 3:-3] = True
+    x, y, bw, bh = patch
+    black_mask = np.zeros(shape, bool)
+    black_mask[y : y + bh, x : x + bw] = True
+    return light, plate_mask, black_mask
+
+
+def test_backscatter_at_the_black_patch_is_exact_for_a_smooth_lamp_field():
+    """black = bs + ρb·X and plate = bs + ρp·X with X quadratic: the fit recovers bs and ln(ρp·X̄)."""
+    from uwcam.calibration import backscatter_at_black_patch
+
+    light, plate_mask, black_mask = _plate()
+    bs, rho_p, rho_b = np.array([40.0, 90.0]), np.array([0.8, 0.6]), np.array([0.05, 0.04])
+    reflect = np.where(black_mask[..., None], rho_b, rho_p)
+    signal = bs + reflect * light[..., None]
+    est = backscatter_at_black_patch(signal, black_mask, plate_mask, rho_b, rho_p)
+    inner = np.zeros_like(black_mask)
+    inner[26:34, 18:28] = True  # the patch (rows 24–35, columns 16–29) without its 2-pixel edge
+    np.testing.assert_array_equal(est.pixels, inner)
+    np.testing.assert_allclose(est.level, bs, rtol=1e-9)
+    np.testing.assert_allclose(est.black_mean, (bs + rho_b * light[inner][:, None]).mean(axis=0), rtol=1e-12)
+    np.testing.assert_allclose(est.plate_log, np.log(rho_p * light[inner].mean()), rtol=1e-9)
+    assert est.variance.shape == est.plate_log_variance.shape == (2,)
+    assert not est.variance.any() and not est.plate_log_variance.any()  # no pixel variance given
+
+
+def test_backscatter_variances_are_those_of_the_linear_estimate():
+    """The level and the plate's light are linear in the pixel values: their variances for
+    independent pixel noise σ² are σ²·Σ_p (∂/∂s_p)², the derivatives taken here by giving each
+    pixel a unit value in its own channel (the estimate treats channels independently)."""
+    from uwcam.calibration import backscatter_at_black_patch
+
+    light, plate_mask, black_mask = _plate()
+    h, w = light.shape
+    rho_p, rho_b, sigma2 = 0.8, 0.05, 30.0
+    reflect = np.where(black_mask, rho_b, rho_p)
+    signal = 40.0 + reflect * light
+    est = backscatter_at_black_patch(signal[..., None], black_mask, plate_mask, [rho_b], [rho_p],
+                                     pixel_variance=np.full((h, w, 1), sigma2))
+    impulses = np.eye(h * w).reshape(h, w, h * w)
+    unit = backscatter_at_black_patch(impulses, black_mask, plate_mask, np.full(h * w, rho_b), np.full(h * w, rho_p))
+    d_level, d_black = unit.level, unit.black_mean
+    alpha, beta = rho_p / (rho_p - rho_b), rho_b / (rho_p - rho_b)
+    d_plate = (alpha * d_black - d_level) / beta  # level = α·mean(black) − β·mean(plate fit)
+    d_difference = d_plate - d_black
+    difference = rho_p * light[est.pixels].mean() * (rho_p - rho_b) / rho_p
+    np.testing.assert_allclose(est.variance, sigma2 * (d_level**2).sum(), rtol=1e-9)
+    np.testing.assert_allclose(est.plate_log_variance, sigma2 * (d_difference**2).sum() / difference**2, rtol=1e-9)
