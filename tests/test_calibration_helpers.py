@@ -212,3 +212,141 @@ def test_backscatter_variances_are_those_of_the_linear_estimate():
     difference = rho_p * light[est.pixels].mean() * (rho_p - rho_b) / rho_p
     np.testing.assert_allclose(est.variance, sigma2 * (d_level**2).sum(), rtol=1e-9)
     np.testing.assert_allclose(est.plate_log_variance, sigma2 * (d_difference**2).sum() / difference**2, rtol=1e-9)
+
+
+def _wls(a: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Weighted least squares written out: the normal equations AᵀWA p = AᵀWy."""
+    return np.linalg.solve(a.T @ (a * w[:, None]), a.T @ (w * y))
+
+
+def _points(e, t, s, frames):
+    return [NoisePoint(np.array([ei]), np.array([ei * ei * 1.02]), np.array([si]), None if ti is None else np.array([ti]),
+                       frames, 400) for ei, ti, si in zip(e, t, s)]
+
+
+def test_noise_fit_from_repeated_frames_is_weighted_by_one_over_variance_squared():
+    """Points off the model (±4 %): the fit is the weighted least-squares one, with weights
+    1/t² for read and shot noise (t − q²/12 = read² + gain·E) and 1/s² for the fixed pattern
+    (s − t_model/m = fpn²·mean(E²)); step 2 DN, so q²/12 = 1/3 DN²."""
+    from uwcam.calibration import fit_noise
+
+    q = 4.0 / 12.0
+    e = np.array([60.0, 300.0, 1500.0, 6000.0])
+    t = (20.0 + 0.4 * e + q) * np.array([1.04, 0.97, 1.03, 0.98])
+    m = 4
+    s = (t / m + 2e-5 * e * e * 1.02) * np.array([0.96, 1.05, 0.98, 1.02])
+    fit = fit_noise(_points(e, t, s, m), quantisation_step=2.0)
+    read2, gain = _wls(np.stack([np.ones_like(e), e], 1), t - q, 1 / t**2)
+    assert read2 > 0 and gain > 0
+    np.testing.assert_allclose([fit.read_noise[0] ** 2, fit.shot_gain[0]], [read2, gain], rtol=1e-9)
+    e2 = e * e * 1.02
+    residual = s - (read2 + gain * e + q) / m
+    fpn2 = np.sum(residual * e2 / s**2) / np.sum(e2 * e2 / s**2)
+    assert fpn2 > 0
+    assert fit.fixed_pattern[0] ** 2 == pytest.approx(fpn2, rel=1e-9)
+
+
+def test_noise_fit_from_single_frames_is_weighted_by_one_over_variance_squared():
+    from uwcam.calibration import fit_noise
+
+    e = np.array([50.0, 200.0, 900.0, 3000.0, 9000.0])
+    e2 = e * e * 1.02
+    s = (16.0 + 0.5 * e + 3e-5 * e2 + 1 / 12) * np.array([1.03, 0.96, 1.04, 0.97, 1.02])
+    fit = fit_noise(_points(e, [None] * 5, s, 1))  # default step: 1 DN
+    expected = _wls(np.stack([np.ones_like(e), e, e2], 1), s - 1 / 12, 1 / s**2)
+    assert np.all(expected > 0)
+    got = [fit.read_noise[0] ** 2, fit.shot_gain[0], fit.fixed_pattern[0] ** 2]
+    np.testing.assert_allclose(got, expected, rtol=1e-8)
+
+
+def test_noise_fit_of_tiny_variances_is_not_clipped_at_one():
+    """Float data (step 0) with variances of 0.02–0.4 DN²: weights 1/t², not 1/max(t, 1)²."""
+    from uwcam.calibration import fit_noise
+
+    e = np.array([2.0, 10.0, 40.0])
+    t = (0.01 + 0.009 * e) * np.array([1.1, 0.9, 1.05])
+    s = t * np.array([1.0, 1.0, 1.0])
+    fit = fit_noise(_points(e, t, s, 1), quantisation_step=0.0)
+    read2, gain = _wls(np.stack([np.ones_like(e), e], 1), t, 1 / t**2)
+    assert read2 > 0 and gain > 0
+    np.testing.assert_allclose([fit.read_noise[0] ** 2, fit.shot_gain[0]], [read2, gain], rtol=1e-9)
+    single = fit_noise(_points(e, [None] * 3, s * np.array([1.0, 1.2, 0.9]), 1), quantisation_step=0.0)
+    s1 = s * np.array([1.0, 1.2, 0.9])
+    a = np.stack([np.ones_like(e), e, e * e * 1.02], 1)
+    # Non-negative: check optimality (KKT) of the fit with weights 1/s² directly.
+    p = np.array([single.read_noise[0] ** 2, single.shot_gain[0], single.fixed_pattern[0] ** 2])
+    grad = a.T @ ((a @ p - s1) / s1**2)
+    scale = np.abs(a.T @ (s1 / s1**2))
+    assert np.all(np.where(p > 0, np.abs(grad) <= 1e-9 * scale, grad >= -1e-9 * scale)), (p, grad)
+
+
+def test_non_negative_least_squares_keeps_a_small_positive_solution():
+    """One parameter: p = max(0, Σwy/Σw). For y = (0.5, −0.4): p = 0.05, better than 0."""
+    from uwcam.calibration import _nonnegative_least_squares
+
+    p = _nonnegative_least_squares(np.ones((2, 1)), np.array([0.5, -0.4]), np.ones(2))
+    assert p[0] == pytest.approx(0.05, rel=1e-12)
+    p = _nonnegative_least_squares(np.ones((2, 1)), np.array([0.3, -0.4]), np.ones(2))
+    assert p[0] == 0.0
+
+
+def test_log_mean_variance_is_the_sum_over_pixels_of_their_share_squared():
+    """Written out: each used pixel's 5×5 box spreads 1/(25·P) to every pixel in it; the variance of
+    the mean of ln(box average) is Σ share² σ²/E² (E clipped at 1e-30 only, not at 1 DN)."""
+    from uwcam.calibration import SMOOTHING, log_mean_variance
+
+    assert SMOOTHING == 5
+    h, w = 12, 14
+    pixels = np.zeros((h, w), bool)
+    pixels[4:8, 3:10] = True
+    pixels[5, 3] = False
+    rng = np.random.default_rng(4)
+    signal = rng.uniform(0.3, 50.0, size=(h, w, 2))  # some pixels under 1 DN
+    variance = rng.uniform(1.0, 9.0, size=(h, w, 2))
+    count = pixels.sum()
+    share = np.zeros((h, w))
+    for i, j in zip(*np.nonzero(pixels)):
+        share[max(i - 2, 0) : i + 3, max(j - 2, 0) : j + 3] += 1.0 / (25 * count)
+    expected = (share[..., None] ** 2 * variance / signal**2).sum(axis=(0, 1))
+    np.testing.assert_allclose(log_mean_variance(pixels, signal, variance), expected, rtol=1e-9)
+    assert (signal[share > 0] < 1).any()
+
+
+def test_log_signal_leaves_out_pixels_without_signal_in_every_channel():
+    from uwcam.calibration import smoothed_log_signal
+
+    frame = np.full((14, 14, 2), 100.0)
+    frame[3:10, 3:10, 1] = 0.0  # a 7×7 block dark in one channel: its centre's 5×5 average is 0
+    mask = np.ones((14, 14), bool)
+    logs, used = smoothed_log_signal(frame, mask)
+    assert not used[5:8, 5:8].any() and used[2, 2] and np.all(np.isfinite(logs))
+
+
+def test_backscatter_log_variance_of_a_faint_plate_is_not_clipped_at_one():
+    from uwcam.calibration import backscatter_at_black_patch
+
+    light, plate_mask, black_mask = _plate()
+    light = light / 2000.0  # about 0.5: the plate gives under 1 DN more than the patch
+    signal = (5.0 + np.where(black_mask, 0.05, 0.8) * light)[..., None]
+    est = backscatter_at_black_patch(signal, black_mask, plate_mask, [0.05], [0.8],
+                                     pixel_variance=np.full(signal.shape, 0.01))
+    difference = 0.75 * light[est.pixels].mean()
+    assert difference < 1.0 and est.plate_log_variance[0] > 0
+    brighter = backscatter_at_black_patch(signal * 100.0, black_mask, plate_mask, [0.05], [0.8],
+                                          pixel_variance=np.full(signal.shape, 0.01))
+    # ln-variance is var/difference²: a hundred times the light, the same noise: 10⁴ times less.
+    assert est.plate_log_variance[0] == pytest.approx(1e4 * brighter.plate_log_variance[0], rel=1e-9)
+
+
+def test_more_results_are_immutable_and_image_size_errors_say_width_by_height():
+    from uwcam.calibration import BackscatterEstimate, CalibrationInputs, calibrate
+
+    est = BackscatterEstimate(np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1), np.zeros((2, 2), bool))
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        est.level = np.ones(1)  # type: ignore[misc]
+    inputs = CalibrationInputs(channel_names=["R", "G"], wavelengths_nm=[None, None], target_reflectance=np.ones(2))
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        inputs.reference = 1  # type: ignore[misc]
+    frames = [np.ones((4, 6, 2)), np.ones((5, 6, 2))]
+    with pytest.raises(UserInputError, match="image 2 is 6×5 but the first image is 6×4"):
+        calibrate(frames, [1.0, 2.0], inputs)
