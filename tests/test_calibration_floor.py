@@ -1,0 +1,46 @@
+"""The noise floor and backscatter samples a calibration with a black patch stores, recomputed here
+from what it measured (the fitted noise model, the patch's backscatter and black levels) with the
+formulas of docs/physics.md written out: σ² = read² + gain·E + (fpn·E)² (+ step²/12), floor =
+max over distances of (backscatter⁺ + 3σ of the black patch's signal)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.test_calibration import INTR, PLATE, frames, inputs
+from uwcam.calibration import backscatter_at_black_patch, calibrate_with_details, project_plate_box
+
+
+def test_black_patch_floor_and_samples_are_those_of_the_measured_levels():
+    rng = np.random.default_rng(3)
+    distances = [1.0, 2.0]
+    black_rho = 0.02
+    boxes = [project_plate_box((0.1, 0.1), (0.12, 0.12), d, INTR) for d in distances]
+    out = []
+    for f, box in zip(frames(distances), boxes):
+        x, y, w, h = box
+        f[y : y + h, x : x + w] *= black_rho / PLATE
+        # Backscatter-like offset, pixel noise, and a fixed pattern (1 % of the signal, per pixel).
+        f *= 1.0 + 0.01 * np.random.default_rng(9).standard_normal(f.shape[:2])[..., None]
+        f += 30.0 + 2.0 * rng.standard_normal(f.shape)
+        out.append(f)
+    details = calibrate_with_details(out, distances, inputs(black_boxes=boxes, black_reflectance=np.full(3, black_rho)))
+    noise = details.noise
+    assert np.all(noise.fixed_pattern > 0)
+    levels = np.array([g.backscatter.level for g in details.groups])
+    blacks = np.array([g.backscatter.black_mean for g in details.groups])
+    sigma = np.sqrt(noise.read_noise**2 + noise.shot_gain * blacks + (noise.fixed_pattern * blacks) ** 2)
+    np.testing.assert_allclose(details.profile.array("noise_floor"), (np.maximum(levels, 0) + 3 * sigma).max(axis=0), rtol=1e-9)
+    samples = details.profile.backscatter
+    np.testing.assert_allclose(samples.patch_pixels, [(x + w / 2 - 0.5, y + h / 2 - 0.5) for x, y, w, h in boxes])
+    for k, name in enumerate(["R", "G", "B"]):
+        np.testing.assert_allclose(samples.levels[name], np.maximum(levels[:, k], 0), rtol=1e-12)
+        assert samples.noise_sigma[name] == pytest.approx(np.max(sigma[:, k]), rel=1e-9)
+    # Each patch's backscatter variance follows from the per-pixel variance of the distance's
+    # mean frame: temporal noise (one frame here) plus the fixed pattern squared.
+    for g in details.groups:
+        e = np.maximum(g.mean_frame, 0)
+        pixel_var = noise.read_noise**2 + noise.shot_gain * e + (noise.fixed_pattern * e) ** 2
+        expected = backscatter_at_black_patch(g.mean_frame, g.black, g.target, np.full(3, black_rho), PLATE, pixel_var)
+        np.testing.assert_allclose(g.backscatter.variance, expected.variance, rtol=1e-9)
