@@ -87,7 +87,7 @@ TARGETS: dict[str, Target] = {
                                           "tests/test_vehicle_mask.py::test_mask_marks_its_boxes_clipped_to_the_image_and_nothing_else "
                                           "tests/test_ranging_contracts.py tests/test_calibration_variance_weights.py",
                      exclude=("RangeEstimator.warm_up",)),
-    "calibration": Target("uwcam/calibration.py", "tests/test_calibration_helpers.py tests/test_independent_calibration.py tests/test_calibration_floor.py "
+    "calibration": Target("uwcam/calibration.py", "tests/test_calibration_helpers.py tests/test_independent_calibration.py tests/test_calibration_details.py "
                                                   "tests/test_calibration_closed_forms.py "
                                                   "tests/test_calibration.py tests/test_calibration_statistics.py"),
     "api.security": Target("uwcam/api/security.py", "tests/test_auth.py", annotations_inert=False),

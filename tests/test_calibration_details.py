@@ -44,3 +44,30 @@ def test_black_patch_floor_and_samples_are_those_of_the_measured_levels():
         pixel_var = noise.read_noise**2 + noise.shot_gain * e + (noise.fixed_pattern * e) ** 2
         expected = backscatter_at_black_patch(g.mean_frame, g.black, g.target, np.full(3, black_rho), PLATE, pixel_var)
         np.testing.assert_allclose(g.backscatter.variance, expected.variance, rtol=1e-9)
+
+
+def test_exactly_one_percent_of_saturated_target_pixels_is_accepted_and_more_refused():
+    from uwcam.calibration import calibrate
+    from uwcam.fileio import UserInputError
+
+    box = (40, 30, 10, 10)  # 100 target pixels
+    out = frames([1.0, 2.0])
+    level = 1e6
+    out[0][35, 45, 1] = level  # one pixel of 100 at the saturation level: 1 %, not more
+    calibrate(out, [1.0, 2.0], inputs(target_box=box, saturation_level=level))
+    out[0][36, 45, 1] = level + 1
+    with pytest.raises(UserInputError, match="2% of the target region of image 1 is saturated in channel G"):
+        calibrate(out, [1.0, 2.0], inputs(target_box=box, saturation_level=level))
+
+
+def test_a_target_too_small_for_noise_is_named_by_its_image_or_by_its_distance():
+    from uwcam.calibration import calibrate
+    from uwcam.fileio import UserInputError
+
+    box = (40, 30, 2, 2)
+    single = frames([1.0, 2.0])
+    with pytest.raises(UserInputError, match="the target region of image 1 is too small"):
+        calibrate(single, [1.0, 2.0], inputs(target_box=box))
+    repeated = frames([1.0, 1.0, 2.0])
+    with pytest.raises(UserInputError, match="the target region of 2 images at 1 m is too small"):
+        calibrate(repeated, [1.0, 1.0, 2.0], inputs(target_box=box))
