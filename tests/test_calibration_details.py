@@ -71,3 +71,32 @@ def test_a_target_too_small_for_noise_is_named_by_its_image_or_by_its_distance()
     repeated = frames([1.0, 1.0, 2.0])
     with pytest.raises(UserInputError, match="the target region of 2 images at 1 m is too small"):
         calibrate(repeated, [1.0, 1.0, 2.0], inputs(target_box=box))
+
+
+def test_noise_free_frames_with_a_black_patch_and_no_backscatter_fit_the_whole_plate_at_the_floor():
+    """No backscatter and no noise: nothing is measured at the patch (the level is 0 to rounding,
+    below 0.1 % of the plate's light), so the whole plate is fitted; with no pixel noise each
+    distance's log variance is the quantisation floor, (1/12)/E² of its mean signal."""
+    distances = [1.0, 2.0]
+    boxes = [project_plate_box((0.1, 0.1), (0.12, 0.12), d, INTR) for d in distances]
+    out = []
+    for f, (x, y, w, h) in zip(frames(distances), boxes):
+        f[y : y + h, x : x + w] *= 0.02 / PLATE
+        out.append(f)
+    details = calibrate_with_details(out, distances, inputs(black_boxes=boxes, black_reflectance=np.full(3, 0.02),
+                                                            quantisation_step=1.0))
+    assert "whole plate" in details.profile.provenance.method
+    for g in details.groups:
+        np.testing.assert_allclose(g.log_variance, (1 / 12) / np.exp(g.log_signal) ** 2, rtol=1e-9)
+
+
+def test_without_intrinsics_the_path_is_taken_along_the_optical_axis():
+    """No intrinsics: every pixel on the axis, d_T = d + |(0, 0, d) − S| for a lamp at S."""
+    from uwcam.calibration import calibrate_with_details as details_of
+
+    lamp = np.array(inputs().lamp_position_m)  # the frames' lamp, beside the camera
+    assert np.any(lamp)
+    distances = [1.0, 2.0]
+    details = details_of(frames(distances), distances, inputs(intrinsics=None))
+    for g, d in zip(details.groups, distances):
+        assert g.path_length_m == pytest.approx(d + np.linalg.norm(np.array([0.0, 0.0, d]) - lamp), rel=1e-12)
