@@ -1,26 +1,37 @@
 """Mutation testing of the modules whose bugs the tests must catch; prints kill rates and survivors.
 
-Uses cosmic-ray (works on Python 3.11, mutates one module file at a time, and the set of mutants
-can be scoped to the functions that matter). Runs in a copy of the source tree, never in the
-working tree: cosmic-ray edits the file under test in place. The copy is put first on
-``PYTHONPATH`` (``uwcam/drivers`` becomes a link to ``drivers/``, as the installed package
-maps it), so the tests import the mutated copy and not the editable install.
+Uses cosmic-ray's operators and its list of mutants (one module file at a time; the set can be
+scoped to the functions that matter), but applies and tests each mutant itself: the mutated
+source is written into a private copy of the source tree (``--jobs N``: N copies, N mutants at
+a time), and the module's tests run in a child forked from this process, which has numpy,
+numba, OpenCV, FastAPI, pytest… already imported; uwcam itself is imported afresh by every
+child, from the copy (first on ``sys.path``; ``uwcam/drivers`` links to ``drivers/`` as the
+installed package maps it). A mutant then costs one pytest run of its module's subset: about a
+second when a test fails early, the whole subset when it survives.
 
 Each module is tested with a fast subset of the suite (the tests that exercise it), ``-x`` and
 ``-p no:randomly``. Operators are a mutmut-like subset of cosmic-ray's (one natural replacement
 per operator: + → −, < → ≤, == → !=, and → or, numbers ±1, ``not`` added or removed, …) rather
 than every operator into every other one, which would multiply the run time by ten for mutants
-that say nothing new.
+that say nothing new. Docstrings, postponed annotations and the functions a target lists in
+``exclude`` (speed only, e.g. warm-up) are not mutated.
 
-Usage (slow: minutes per module on a small machine; not part of the CI gate):
+Usage (slow: minutes per module on a small machine; not part of the CI gate; on a shared
+machine run it under ``nice``):
 
-    .venv/bin/python bench/mutation_test.py                 # every module
-    .venv/bin/python bench/mutation_test.py rangefinder lamp # some of them
+    nice -n 19 .venv/bin/python bench/mutation_test.py --jobs 2                 # every module
+    nice -n 19 .venv/bin/python bench/mutation_test.py --jobs 2 ranging lamp    # some of them
+    nice -n 19 .venv/bin/python bench/mutation_test.py --jobs 2 --sample 400 calibration
+    nice -n 19 .venv/bin/python bench/mutation_test.py --jobs 2 --rerun-survivors ranging
+    nice -n 19 .venv/bin/python bench/mutation_test.py --jobs 2 --resume calibration  # + the rest of a sample
+    .venv/bin/python bench/mutation_test.py --report     # the table and the survivors, no run
     .venv/bin/python bench/mutation_test.py --list
 
-Results: bench/mutation/<name>.sqlite (cosmic-ray session), a summary printed per module and
-written to bench/mutation/results.json. Survivors judged equivalent are explained in
-bench/mutation/SURVIVORS.md.
+Results: bench/mutation/results.json (per module: mutants, kills, survivors with their diffs, the
+outcome of every mutant run, the hash of the source they were run on); the report prints the
+kill rate over all mutants and over the mutants not judged equivalent. Survivors judged
+equivalent are named and explained in bench/mutation/SURVIVORS.md (lines ``- eq MODULE
+LINE:Operator:occurrence``), which the report reads.
 """
 
 from __future__ import annotations
