@@ -160,3 +160,21 @@ def test_a_noise_model_below_one_code_squared_is_used_as_it_is():
     d, var_d = pair_closed_form(e, np.full(e.shape, 0.01))
     np.testing.assert_allclose(out.range, d, rtol=1e-5)
     np.testing.assert_allclose(out.variance, var_d, rtol=1e-5)
+
+
+def test_lookup_tables_keep_channels_with_a_signal_below_its_noise():
+    """A channel at 3 DN with σ = 5 DN (weight E²/σ² < 1) still counts, with its own ln E: the
+    uint8 lookup-table path equals weighted least squares written out (numpy.linalg.lstsq)."""
+    from tests.test_independent_estimator import wls
+
+    read = 5.0
+    e = np.array([200.0, 150.0, 3.0])
+    b = np.log(e) + C * 2.4  # these codes at a path of 2.4 m
+    profile = make_profile(C, b, read_noise=read, quantisation_step=1.0, saturation_level=255.0)
+    out = RangeEstimator(profile)(e[None, None].astype(np.uint8))
+    var = read**2 + np.full(3, 1 / 12)
+    assert e[2] ** 2 / var[2] < 1
+    d, var_d = wls(e, C, b, var)
+    assert d == pytest.approx(2.4, rel=1e-9)
+    assert out.range[0, 0] == pytest.approx(d / 2, rel=1e-5)
+    assert out.variance[0, 0] == pytest.approx(var_d / 4, rel=1e-4)
