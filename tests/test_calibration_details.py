@@ -100,3 +100,30 @@ def test_without_intrinsics_the_path_is_taken_along_the_optical_axis():
     details = details_of(frames(distances), distances, inputs(intrinsics=None))
     for g, d in zip(details.groups, distances):
         assert g.path_length_m == pytest.approx(d + np.linalg.norm(np.array([0.0, 0.0, d]) - lamp), rel=1e-12)
+
+
+def test_each_distances_log_variance_is_the_noise_of_its_pixels_written_out():
+    """Whole-plate fit, noisy frames, a target box: Var(mean ln E) = Σ share_p² σ_p²/E_p², with
+    share_p = (boxes of fitted pixels holding p)/(25·P) and E_p each pixel's expected signal, the
+    mean of the target's pixels in its 5×5 box (the box clipped to the target, near its edges)."""
+    rng = np.random.default_rng(6)
+    distances = [1.0, 2.0]
+    box = (30, 20, 40, 30)
+    out = frames(distances, noise=(4.0, 0.3), rng=rng)
+    details = calibrate_with_details(out, distances, inputs(target_box=box))
+    noise = details.noise
+    for g in details.groups:
+        target, used = g.target, g.fit_pixels
+        count = used.sum()
+        h, w = target.shape
+        share = np.zeros((h, w))
+        for i, j in zip(*np.nonzero(used)):
+            share[max(i - 2, 0) : i + 3, max(j - 2, 0) : j + 3] += 1.0 / (25 * count)
+        total = 0.0
+        for i, j in zip(*np.nonzero(share)):
+            rows, cols = slice(max(i - 2, 0), i + 3), slice(max(j - 2, 0), j + 3)
+            e = g.mean_frame[rows, cols][target[rows, cols]].mean(axis=0)
+            var = noise.read_noise**2 + noise.shot_gain * e + (noise.fixed_pattern * e) ** 2
+            total = total + share[i, j] ** 2 * var / e**2
+        assert target[share > 0].all() and (share > 0).sum() > count  # boxes reach the target's edge
+        np.testing.assert_allclose(g.log_variance, total, rtol=1e-6)
