@@ -270,12 +270,8 @@ def execute(trees: list[Path], target: Target, mutants: list[dict], progress: st
     """Run the module's tests against each mutant, one mutant per tree copy at a time (as many in
     parallel as there are trees); returns {job_id: {"outcome", "diff"}}. Outcomes: 'killed' (a test
     failed or the run passed the timeout), 'survived', 'incompetent' (pytest could not run: the
-    mutant does not import; counted as killed), 'no-op' (the operator found nothing to mutate)."""
-    import difflib
-
-    import cosmic_ray.plugins
-    from cosmic_ray.mutating import mutate_code
-
+    mutant does not import; counted as killed), 'no-op' (the operator found nothing to mutate).
+    Interrupted (SIGINT), it returns the outcomes judged so far."""
     for module in PRELOAD:
         try:
             __import__(module)
@@ -294,6 +290,25 @@ def execute(trees: list[Path], target: Target, mutants: list[dict], progress: st
     running: dict[int, tuple[dict, Path, str, float]] = {}
     results: dict[str, dict] = {}
     t0 = time.monotonic()
+    try:
+        _loop(todo, free, running, results, original, args, target, mutants, progress, t0)
+    except KeyboardInterrupt:  # stopped (Ctrl-C, or `timeout -s INT`): keep what was judged
+        for pid, (m, tree, _, _) in running.items():
+            os.kill(pid, 9)
+            os.waitpid(pid, 0)
+            (tree / target.path).write_text(original)
+        print(f"  {progress}stopped after {len(results)} of {len(mutants)} mutants", flush=True)
+    return results
+
+
+def _loop(todo: list[dict], free: list[Path], running: dict, results: dict[str, dict], original: str,
+          args: list[str], target: Target, mutants: list[dict], progress: str, t0: float) -> None:
+    """Keep every free tree busy with the next mutant; record each outcome as its child ends."""
+    import difflib
+
+    import cosmic_ray.plugins
+    from cosmic_ray.mutating import mutate_code
+
     while todo or running:
         while free and todo:
             m = todo.pop()
@@ -326,7 +341,6 @@ def execute(trees: list[Path], target: Target, mutants: list[dict], progress: st
                 rate = (time.monotonic() - t0) / len(results)
                 print(f"  {progress}{len(results)}/{len(mutants)} mutants, {rate:.1f} s each", flush=True)
         time.sleep(0.02)
-    return results
 
 
 def summarise(name: str, target: Target, source: str, mutants: list[dict], results: dict[str, dict],
@@ -403,6 +417,9 @@ def run(names: list[str], jobs: int, sample: int | None, rerun: bool, resume: bo
                     chosen = known + random.Random(0).sample(fresh, max(0, min(len(fresh), sample - len(known))))
                 else:
                     chosen = random.Random(0).sample(chosen, sample)
+            # In a seeded random order: a run stopped early has judged a fair sample of the module.
+            chosen = sorted(chosen, key=lambda m: m["job_id"])
+            random.Random(1).shuffle(chosen)
             print(f"{name}: {len(mutants)} mutants ({excluded} out of scope or excluded), running {len(chosen)} "
                   f"with {jobs} job(s)", flush=True)
             results = execute(trees, target, chosen, progress=f"{name}: ")
