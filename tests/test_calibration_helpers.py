@@ -138,21 +138,21 @@ def test_attenuation_fit_checks_its_shapes_and_needs_two_different_paths():
 
 
 def test_attenuation_fit_residuals_are_observed_minus_fitted_log_ratios():
-    """Three channels, four distances, noisy: GLS; the residuals are ln(E_k/E_ref) − (b_k − V_k d)."""
+    """Four channels, four distances, noisy: GLS; the residuals are ln(E_k/E_ref) − (b_k − V_k d)."""
     from uwcam.calibration import fit_attenuation_differences
 
     d = np.array([1.0, 2.0, 3.5, 5.0])
-    c = np.array([0.46, 0.11, 0.06])
+    c = np.array([0.46, 0.11, 0.06, 0.2])
     rng = np.random.default_rng(2)
-    ln_e = 9.0 - d[:, None] * c + rng.normal(0.0, 0.01, size=(4, 3))
-    fit = fit_attenuation_differences(ln_e, d, log_variance=np.full((4, 3), 1e-4))
+    ln_e = 9.0 - d[:, None] * c + rng.normal(0.0, 0.01, size=(4, 4))
+    fit = fit_attenuation_differences(ln_e, d, log_variance=np.full((4, 4), 1e-4))
     ratio = ln_e - ln_e[:, :1]
     expected = ratio - (fit.log_constant - np.outer(d, fit.attenuation_difference))
     np.testing.assert_allclose(fit.residuals, expected, atol=1e-12)
     assert np.abs(fit.residuals[:, 1:]).max() > 1e-3  # noisy: the residuals are not all 0
     # Ordinary least squares per channel on the ratios gives the same V when all variances are equal
     # within a distance (the reference's shared noise is the same for every ratio of that distance).
-    for k in (1, 2):
+    for k in (1, 2, 3):
         slope, intercept = np.polyfit(d, ratio[:, k], 1)
         assert fit.attenuation_difference[k] == pytest.approx(-slope, rel=1e-9)
         assert fit.log_constant[k] == pytest.approx(intercept, rel=1e-9)
@@ -350,3 +350,39 @@ def test_more_results_are_immutable_and_image_size_errors_say_width_by_height():
     frames = [np.ones((4, 6, 2)), np.ones((5, 6, 2))]
     with pytest.raises(UserInputError, match="image 2 is 6×5 but the first image is 6×4"):
         calibrate(frames, [1.0, 2.0], inputs)
+
+
+def test_noise_model_fit_with_fewer_points_than_channels():
+    means = np.array([[100.0, 80.0, 60.0], [900.0, 700.0, 500.0]])
+    read, gain = np.array([3.0, 4.0, 5.0]), np.array([0.2, 0.3, 0.4])
+    got_read, got_gain = fit_noise_model(means, read**2 + gain * means + 1 / 12)
+    np.testing.assert_allclose(got_read, read, rtol=1e-6)
+    np.testing.assert_allclose(got_gain, gain, rtol=1e-6)
+
+
+def test_variance_floor_of_float_values_under_one():
+    from uwcam.calibration import variance_floor
+
+    e = np.array([0.25, 3.0])
+    np.testing.assert_allclose(variance_floor(e, 0.0), (e * 2.0**-23) ** 2 / 12, rtol=1e-12)
+
+
+def test_log_signal_takes_off_the_dark_level_keeps_dim_pixels_and_stays_inside_the_image():
+    from uwcam.calibration import smoothed_log_signal
+
+    frame = np.full((10, 10, 2), [10.5, 40.0])
+    logs, used = smoothed_log_signal(frame, np.ones((10, 10), bool), dark_level=[10.0, 20.0])
+    expected = np.zeros((10, 10), bool)
+    expected[2:8, 2:8] = True  # whole 5×5 boxes inside the image only
+    np.testing.assert_array_equal(used, expected)
+    np.testing.assert_allclose(logs, np.log([[0.5, 20.0]] * 36), rtol=1e-12)  # 0.5 DN still counts
+
+
+def test_calibration_results_are_immutable():
+    from tests.test_calibration import frames, inputs
+    from uwcam.calibration import calibrate_with_details
+
+    details = calibrate_with_details(frames([1.0, 2.0]), [1.0, 2.0], inputs())
+    for obj, field in [(details, "profile"), (details.noise, "method"), (details.fit, "method"), (details.groups[0], "images")]:
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            setattr(obj, field, None)
