@@ -127,3 +127,39 @@ def test_each_distances_log_variance_is_the_noise_of_its_pixels_written_out():
             total = total + share[i, j] ** 2 * var / e**2
         assert target[share > 0].all() and (share > 0).sum() > count  # boxes reach the target's edge
         np.testing.assert_allclose(g.log_variance, total, rtol=1e-6)
+
+
+def test_a_black_patch_needs_both_its_boxes_and_its_reflectance_to_count():
+    """Boxes without a reflectance (or a reflectance without boxes): no backscatter is measured,
+    no floor is set, and the patch's pixels (if boxed) are still kept out of the plate's fit."""
+    distances = [1.0, 2.0]
+    boxes = [project_plate_box((0.1, 0.1), (0.12, 0.12), d, INTR) for d in distances]
+    out = []
+    for f, (x, y, w, h) in zip(frames(distances), boxes):
+        f[y : y + h, x : x + w] *= 0.02 / PLATE
+        out.append(f)
+    boxed = calibrate_with_details(out, distances, inputs(black_boxes=boxes))
+    assert all(g.backscatter is None for g in boxed.groups) and boxed.profile.backscatter is None
+    x, y, w, h = boxes[0]
+    assert not boxed.groups[0].target[y : y + h, x : x + w].any()
+    assert np.all(boxed.profile.array("noise_floor") == 0)
+    reflectance_only = calibrate_with_details(out[:1] + out[1:], distances, inputs(black_reflectance=np.full(3, 0.02)))
+    assert all(g.backscatter is None for g in reflectance_only.groups)
+
+
+def test_noise_points_are_named_by_distance_and_brightness_level_and_clipped_pixels_left_out():
+    out = frames([1.0, 2.0])
+    level = 1e6
+    out[0][40, 60, 2] = level  # exactly at the saturation level: clipped
+    details = calibrate_with_details(out, [1.0, 2.0], inputs(saturation_level=level))
+    names = [name for name, _ in details.noise_points]
+    assert names[:4] == [f"plate 1 m, level {j}" for j in (1, 2, 3, 4)]
+    assert not details.groups[0].target[40, 60] and details.groups[0].target[40, 61]
+
+
+def test_frames_without_channels_say_they_have_one():
+    from uwcam.calibration import calibrate
+    from uwcam.fileio import UserInputError
+
+    with pytest.raises(UserInputError, match=r"image 1 has 1 channel\(s\) but calibration expects 3"):
+        calibrate([np.ones((4, 6)), np.ones((4, 6, 3))], [1.0, 2.0], inputs())

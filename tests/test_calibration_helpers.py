@@ -49,6 +49,7 @@ def test_dilation_grows_a_mask_by_its_radius_in_every_direction():
 
 def test_boxes_on_the_image_edge_are_accepted_and_boxes_past_it_or_empty_are_refused():
     np.testing.assert_array_equal(box_mask((4, 6), (0, 0, 6, 4), "box"), np.ones((4, 6), bool))
+    assert box_mask((4, 6), (5, 3, 1, 1), "box").sum() == 1  # one pixel, in the far corner
     for bad in [(0, -1, 2, 2), (-1, 0, 2, 2), (0, 0, 2, 0), (0, 0, 0, 2), (5, 0, 2, 2), (0, 3, 2, 2)]:
         with pytest.raises(UserInputError, match="does not lie inside the 6×4 image"):
             box_mask((4, 6), bad, "box")
@@ -332,6 +333,7 @@ def test_backscatter_log_variance_of_a_faint_plate_is_not_clipped_at_one():
                                      pixel_variance=np.full(signal.shape, 0.01))
     difference = 0.75 * light[est.pixels].mean()
     assert difference < 1.0 and est.plate_log_variance[0] > 0
+    assert est.plate_log[0] == pytest.approx(np.log(0.8 * light[est.pixels].mean()), rel=1e-9)  # not clipped at 1 DN
     brighter = backscatter_at_black_patch(signal * 100.0, black_mask, plate_mask, [0.05], [0.8],
                                           pixel_variance=np.full(signal.shape, 0.01))
     # ln-variance is var/difference²: a hundred times the light, the same noise: 10⁴ times less.
