@@ -227,6 +227,10 @@ def _fork_pytest(tree: Path, args: list[str], env: dict[str, str]) -> int:
     """Start pytest with ``args`` in a forked child of this (pre-loaded) process, in ``tree``; its pid."""
     pid = os.fork()
     if pid == 0:  # child: never returns
+        import signal
+
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops its children itself
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
         code = 4
         saved_stderr = os.dup(2)
         try:
@@ -392,7 +396,8 @@ def _trees(tmp: Path, jobs: int) -> list[Path]:
     return trees
 
 
-def run(names: list[str], jobs: int, sample: int | None, rerun: bool, resume: bool = False) -> None:
+def run(names: list[str], jobs: int, sample: int | None, rerun: bool, resume: bool = False,
+        lines: set[int] | None = None) -> None:
     """Run every mutant (or a seeded random ``sample`` of them) of each module; with ``rerun``,
     only the survivors recorded in results.json (and the mutants not run then), keeping the kills."""
     with tempfile.TemporaryDirectory(prefix="uwcam-mutation-") as tmp:
@@ -410,6 +415,11 @@ def run(names: list[str], jobs: int, sample: int | None, rerun: bool, resume: bo
                     print(f"{name}: no complete earlier run of this scope in results.json; running every mutant")
                 else:
                     chosen, carried = _to_rerun(source, mutants, previous, resume)
+                    if lines and carried:  # survivors elsewhere keep their outcome and diff
+                        diffs = {f"core/{s['operator']}#{s['occurrence']}": s["diff"] for s in previous["survivors"]}
+                        carried.update({m["job_id"]: {"outcome": "survived", "diff": diffs.get(m["job_id"], "")}
+                                        for m in chosen if m["line"] not in lines})
+                        chosen = [m for m in chosen if m["line"] in lines]
             if sample is not None and sample < len(chosen):
                 if rerun and carried:  # the survivors first, then a seeded sample of those never run
                     known = [m for m in chosen if m["job_id"] in previous.get("runs", {})]
@@ -515,7 +525,17 @@ def _equivalents() -> dict[str, set[str]]:
     return found
 
 
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
 def main(argv: list[str] | None = None) -> int:
+    import signal
+
+    # Stop cleanly, keeping the outcomes judged so far, on Ctrl-C or `timeout` (INT or TERM), even
+    # when started in the background by a shell that ignores SIGINT there.
+    signal.signal(signal.SIGINT, _interrupt)
+    signal.signal(signal.SIGTERM, _interrupt)
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("modules", nargs="*", help=f"subset of: {', '.join(TARGETS)}")
     p.add_argument("--list", action="store_true", help="list the modules and their test subsets")
@@ -524,6 +544,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="run the current tests against the recorded survivors only; kills (and mutants a sample left out) are kept")
     p.add_argument("--resume", action="store_true",
                    help="with --rerun-survivors: also run the mutants a sampled run left out (--sample: how many in all)")
+    p.add_argument("--lines", default="",
+                   help="with --rerun-survivors: re-run only the survivors on these lines (comma-separated); the rest keep their outcome")
     p.add_argument("--jobs", type=int, default=1, help="mutants tested in parallel, each in its own copy of the tree")
     p.add_argument("--sample", type=int, default=None, help="run only this many mutants per module (seeded random sample)")
     args = p.parse_args(argv)
@@ -536,7 +558,8 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"unknown module(s) {', '.join(unknown)}; known: {', '.join(TARGETS)}")
     names = args.modules or list(TARGETS)
     if not args.report:
-        run(names, max(1, args.jobs), args.sample, args.rerun_survivors or args.resume, args.resume)
+        lines = {int(x) for x in args.lines.split(",") if x.strip()}
+        run(names, max(1, args.jobs), args.sample, args.rerun_survivors or args.resume, args.resume, lines)
     report(names)
     return 0
 
