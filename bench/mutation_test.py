@@ -115,9 +115,17 @@ TARGETS: dict[str, Target] = {
     # The compiled kernels run as plain Python here (NUMBA_DISABLE_JIT): each mutant would
     # otherwise need a fresh compilation, and the arithmetic being mutated is the same. Compiled,
     # a float32 division by zero is silent (error_model="numpy"); as Python it warns: ignored.
-    "optics.kernels": Target("uwcam/optics/kernels.py", "tests/test_independent_estimator.py tests/test_independent_geometry.py "
-                                                        "tests/test_independent_validity.py -W ignore::RuntimeWarning",
+    # kernels.py holds the numpy path (used where numba is missing) and the dispatch; the numba
+    # kernels are in kernels_numba.py.
+    "optics.kernels": Target("uwcam/optics/kernels.py", "tests/test_numpy_path.py tests/test_optics_contracts.py "
+                                                        "tests/test_ranging_contracts.py tests/test_independent_estimator.py "
+                                                        "tests/test_independent_geometry.py tests/test_independent_validity.py "
+                                                        "-W ignore::RuntimeWarning",
                              env={"NUMBA_DISABLE_JIT": "1"}),
+    "optics.kernels_numba": Target("uwcam/optics/kernels_numba.py", "tests/test_independent_estimator.py tests/test_independent_geometry.py "
+                                                                    "tests/test_independent_validity.py tests/test_backscatter_terms.py "
+                                                                    "-W ignore::RuntimeWarning",
+                                   env={"NUMBA_DISABLE_JIT": "1"}),
 }
 
 

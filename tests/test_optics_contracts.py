@@ -42,3 +42,29 @@ def test_reflectance_ratios_are_relative_to_the_first_channel_by_default():
     d = 3.0
     signal = np.exp(b_target + np.log([1.0, 2.0, 0.5]) + 0.7 - c * d)  # 0.7: overall brightness, cancels
     np.testing.assert_allclose(reflectance_ratio_from_range(signal[None], [d], c, b_target), [1.0, 2.0, 0.5], rtol=1e-12)
+
+
+@pytest.mark.skipif(__import__("uwcam.optics.kernels", fromlist=["BACKEND"]).BACKEND != "numba", reason="numba is not installed here")
+@pytest.mark.parametrize("dtype", [np.uint16, np.float32])
+def test_numpy_path_with_non_square_pixels_and_an_off_centre_principal_point(dtype, monkeypatch):
+    """The numpy path (machines without numba) against the compiled kernels, with fx ≠ fy and the
+    principal point off centre, a lamp beside the camera: every pixel's own ray must be used."""
+    from tests.synthetic import make_profile
+    from uwcam.optics import kernels
+    from uwcam.ranging import RangeEstimator
+
+    intr = Intrinsics(60.0, 41.0, 30.3, 14.2)
+    profile = make_profile([0.46, 0.11, 0.06], [9.0, 9.6, 9.3], read_noise=2.0, shot_gain=0.3,
+                           lamp=(0.3, -0.2, 0.05), intrinsics=intr)
+    est = RangeEstimator(profile, calibration_variance=False)
+    yy, xx = np.mgrid[0:24, 0:40]
+    path = 2.0 + 0.05 * xx + 0.08 * yy
+    frame = np.exp(np.array([9.0, 9.6, 9.3]) - np.array([0.46, 0.11, 0.06]) * path[..., None])
+    frame = np.rint(frame) if dtype == np.uint16 else frame
+    compiled = est(frame.astype(dtype))
+    monkeypatch.setattr(kernels, "fuse_lookup", kernels.fuse_lookup_numpy)
+    monkeypatch.setattr(kernels, "fuse_arrays", kernels.fuse_arrays_numpy)
+    numpy_path = RangeEstimator(profile, calibration_variance=False)(frame.astype(dtype))
+    assert np.isfinite(compiled.range).all()
+    np.testing.assert_allclose(numpy_path.range, compiled.range, rtol=2e-5)
+    np.testing.assert_allclose(numpy_path.variance, compiled.variance, rtol=2e-4)
