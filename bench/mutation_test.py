@@ -1,26 +1,37 @@
 """Mutation testing of the modules whose bugs the tests must catch; prints kill rates and survivors.
 
-Uses cosmic-ray (works on Python 3.11, mutates one module file at a time, and the set of mutants
-can be scoped to the functions that matter). Runs in a copy of the source tree, never in the
-working tree: cosmic-ray edits the file under test in place. The copy is put first on
-``PYTHONPATH`` (``uwcam/drivers`` becomes a link to ``drivers/``, as the installed package
-maps it), so the tests import the mutated copy and not the editable install.
+Uses cosmic-ray's operators and its list of mutants (one module file at a time; the set can be
+scoped to the functions that matter), but applies and tests each mutant itself: the mutated
+source is written into a private copy of the source tree (``--jobs N``: N copies, N mutants at
+a time), and the module's tests run in a child forked from this process, which has numpy,
+numba, OpenCV, FastAPI, pytest… already imported; uwcam itself is imported afresh by every
+child, from the copy (first on ``sys.path``; ``uwcam/drivers`` links to ``drivers/`` as the
+installed package maps it). A mutant then costs one pytest run of its module's subset: about a
+second when a test fails early, the whole subset when it survives.
 
 Each module is tested with a fast subset of the suite (the tests that exercise it), ``-x`` and
 ``-p no:randomly``. Operators are a mutmut-like subset of cosmic-ray's (one natural replacement
 per operator: + → −, < → ≤, == → !=, and → or, numbers ±1, ``not`` added or removed, …) rather
 than every operator into every other one, which would multiply the run time by ten for mutants
-that say nothing new.
+that say nothing new. Docstrings, postponed annotations and the functions a target lists in
+``exclude`` (speed only, e.g. warm-up) are not mutated.
 
-Usage (slow: minutes per module on a small machine; not part of the CI gate):
+Usage (slow: minutes per module on a small machine; not part of the CI gate; on a shared
+machine run it under ``nice``):
 
-    .venv/bin/python bench/mutation_test.py                 # every module
-    .venv/bin/python bench/mutation_test.py rangefinder lamp # some of them
+    nice -n 19 .venv/bin/python bench/mutation_test.py --jobs 2                 # every module
+    nice -n 19 .venv/bin/python bench/mutation_test.py --jobs 2 ranging lamp    # some of them
+    nice -n 19 .venv/bin/python bench/mutation_test.py --jobs 2 --sample 400 calibration
+    nice -n 19 .venv/bin/python bench/mutation_test.py --jobs 2 --rerun-survivors ranging
+    nice -n 19 .venv/bin/python bench/mutation_test.py --jobs 2 --resume calibration  # + the rest of a sample
+    .venv/bin/python bench/mutation_test.py --report     # the table and the survivors, no run
     .venv/bin/python bench/mutation_test.py --list
 
-Results: bench/mutation/<name>.sqlite (cosmic-ray session), a summary printed per module and
-written to bench/mutation/results.json. Survivors judged equivalent are explained in
-bench/mutation/SURVIVORS.md.
+Results: bench/mutation/results.json (per module: mutants, kills, survivors with their diffs, the
+outcome of every mutant run, the hash of the source they were run on); the report prints the
+kill rate over all mutants and over the mutants not judged equivalent. Survivors judged
+equivalent are named and explained in bench/mutation/SURVIVORS.md (lines ``- eq MODULE
+LINE:Operator:occurrence``), which the report reads.
 """
 
 from __future__ import annotations
@@ -67,23 +78,30 @@ class Target:
     timeout_s: float = 120.0
     annotations_inert: bool = True
     """False where FastAPI reads handler signatures (request models, dependencies)."""
+    exclude: tuple[str, ...] = ()
+    """Qualified names of functions whose only effect is speed (e.g. compiling ahead of the first
+    frame): not mutated. Each is explained in SURVIVORS.md ("Excluded from mutation")."""
 
 
 TARGETS: dict[str, Target] = {
     "optics.noise": Target("uwcam/optics/noise.py", "tests/test_independent_noise.py"),
     "optics.transform": Target("uwcam/optics/transform.py", "tests/test_independent_estimator.py"),
     "optics.fusion": Target("uwcam/optics/fusion.py", "tests/test_independent_estimator.py"),
-    "optics.reflectance": Target("uwcam/optics/reflectance.py", "tests/test_independent_estimator.py"),
-    "optics.geometry": Target("uwcam/optics/geometry.py", "tests/test_independent_geometry.py"),
+    "optics.reflectance": Target("uwcam/optics/reflectance.py", "tests/test_optics_contracts.py tests/test_independent_estimator.py"),
+    "optics.geometry": Target("uwcam/optics/geometry.py", "tests/test_optics_contracts.py tests/test_independent_geometry.py"),
     "optics.validity": Target("uwcam/optics/validity.py", "tests/test_independent_validity.py tests/test_validity.py"),
     "ranging": Target("uwcam/ranging.py", "tests/test_independent_estimator.py tests/test_independent_geometry.py "
                                           "tests/test_smoothing.py tests/test_independent_validity.py "
                                           "tests/test_estimator.py tests/test_statistics.py tests/test_calibration_statistics.py "
                                           "tests/test_backscatter_terms.py tests/test_calibration_variance_edges.py "
-                                          "tests/test_vehicle_mask.py::test_range_frame_masks_before_smoothing_so_the_vehicle_lends_no_range"),
-    "calibration": Target("uwcam/calibration.py", "tests/test_independent_calibration.py tests/test_calibration_closed_forms.py "
+                                          "tests/test_vehicle_mask.py::test_range_frame_masks_before_smoothing_so_the_vehicle_lends_no_range "
+                                          "tests/test_vehicle_mask.py::test_mask_marks_its_boxes_clipped_to_the_image_and_nothing_else "
+                                          "tests/test_ranging_contracts.py tests/test_calibration_variance_weights.py",
+                     exclude=("RangeEstimator.warm_up",)),
+    "calibration": Target("uwcam/calibration.py", "tests/test_calibration_helpers.py tests/test_independent_calibration.py tests/test_calibration_details.py "
+                                                  "tests/test_calibration_closed_forms.py "
                                                   "tests/test_calibration.py tests/test_calibration_statistics.py"),
-    "api.security": Target("uwcam/api/security.py", "tests/test_auth.py", annotations_inert=False),
+    "api.security": Target("uwcam/api/security.py", "tests/test_security_rules.py tests/test_auth.py", annotations_inert=False),
     "api.session": Target("uwcam/api/session.py", "tests/test_auth.py", annotations_inert=False),
     "api.models": Target("uwcam/api/settings.py", "tests/test_api_validation.py",
                          only=("ProcessingPatch", "patch_config"), annotations_inert=False),
@@ -97,9 +115,17 @@ TARGETS: dict[str, Target] = {
     # The compiled kernels run as plain Python here (NUMBA_DISABLE_JIT): each mutant would
     # otherwise need a fresh compilation, and the arithmetic being mutated is the same. Compiled,
     # a float32 division by zero is silent (error_model="numpy"); as Python it warns: ignored.
-    "optics.kernels": Target("uwcam/optics/kernels.py", "tests/test_independent_estimator.py tests/test_independent_geometry.py "
-                                                        "tests/test_independent_validity.py -W ignore::RuntimeWarning",
+    # kernels.py holds the numpy path (used where numba is missing) and the dispatch; the numba
+    # kernels are in kernels_numba.py.
+    "optics.kernels": Target("uwcam/optics/kernels.py", "tests/test_numpy_path.py tests/test_optics_contracts.py "
+                                                        "tests/test_ranging_contracts.py tests/test_independent_estimator.py "
+                                                        "tests/test_independent_geometry.py tests/test_independent_validity.py "
+                                                        "-W ignore::RuntimeWarning",
                              env={"NUMBA_DISABLE_JIT": "1"}),
+    "optics.kernels_numba": Target("uwcam/optics/kernels_numba.py", "tests/test_independent_estimator.py tests/test_independent_geometry.py "
+                                                                    "tests/test_independent_validity.py tests/test_backscatter_terms.py "
+                                                                    "-W ignore::RuntimeWarning",
+                                   env={"NUMBA_DISABLE_JIT": "1"}),
 }
 
 
@@ -154,59 +180,48 @@ def _copy_tree(dest: Path) -> None:
     (dest / "uwcam" / "calibration_rigs").symlink_to("../calibration_rigs")
 
 
-def run_target(name: str, target: Target, tree: Path, env: dict[str, str]) -> dict:
+def _mutants(name: str, target: Target, tree: Path, env: dict[str, str]) -> tuple[list[dict], int]:
+    """Every mutant of the module in scope, as dicts (job_id, operator, args, occurrence, line), and
+    how many were left out (other operators, prose, inert annotations, outside ``only``, ``exclude``)."""
     import cosmic_ray.work_db as wdb
-    from cosmic_ray.work_item import WorkerOutcome, WorkResult
 
-    OUT.mkdir(parents=True, exist_ok=True)
-    session = OUT / f"{name}.sqlite"
-    session.unlink(missing_ok=True)
-    module = tree / target.path
-    source = module.read_text()
-    cmd_env = {**env, **target.env}
-    config = tree / f"cr-{name}.toml"
-    test_command = f"{PYTEST} {target.tests}"
-    config.write_text(
-        "[cosmic-ray]\n"
-        f"module-path = {json.dumps(target.path)}\n"
-        f"timeout = {target.timeout_s}\n"
-        "excluded-modules = []\n"
-        f"test-command = {json.dumps(test_command)}\n"
-        "[cosmic-ray.distributor]\nname = \"local\"\n"
-    )
-    t0 = time.monotonic()
-    base = subprocess.run(test_command, shell=True, cwd=tree, env=cmd_env, capture_output=True, text=True)
-    if base.returncode != 0:
-        print(f"{name}: the unmutated tests fail; fix them first\n{base.stdout[-2000:]}{base.stderr[-2000:]}")
-        return {"module": target.path, "error": "baseline failed"}
-    baseline_s = time.monotonic() - t0
-    subprocess.run([COSMIC_RAY, "init", str(config), str(session)], cwd=tree, env=cmd_env,
-                   check=True, capture_output=True)
-    spans = _spans(source, target.only) if target.only else None
-    prose, annotations = _inert(source)
-    skipped = 0
-    with wdb.use_db(str(session), wdb.WorkDB.Mode.open) as db:
-        for item in list(db.pending_work_items):
-            spec = item.mutations[0]
-            line = spec.start_pos[0]
-            keep = OPERATORS.match(spec.operator_name) and line not in prose
-            if target.annotations_inert:
-                keep = keep and not any(a <= tuple(spec.start_pos) < b for a, b in annotations)
-            if keep and spans is not None:
-                keep = any(a <= line <= b for a, b in spans)
-            if not keep:
-                db.set_result(item.job_id, WorkResult(worker_outcome=WorkerOutcome.SKIPPED))
-                skipped += 1
-        total = db.num_work_items - skipped
-    print(f"{name}: {total} mutants ({skipped} out of scope), tests take {baseline_s:.1f} s unmutated", flush=True)
-    execute(session, tree, target)
-    summary = summarise(name, target, source)
-    summary["minutes"] = round((time.monotonic() - t0) / 60, 1)
-    print(f"{name}: {summary['killed']}/{summary['mutants']} killed ({100 * summary['kill_rate']:.1f} %), "
-          f"{summary['survived']} survived, {summary['minutes']} min", flush=True)
-    for s in summary["survivors"]:
-        print(f"    line {s['line']:4d} {s['operator']:<40s} #{s['occurrence']}: {s['code'][:90]}")
-    return summary
+    source = (tree / target.path).read_text()
+    with tempfile.TemporaryDirectory(prefix="uwcam-cr-") as tmp:
+        session = Path(tmp) / f"{name}.sqlite"
+        config = Path(tmp) / f"cr-{name}.toml"
+        config.write_text(
+            "[cosmic-ray]\n"
+            f"module-path = {json.dumps(target.path)}\n"
+            f"timeout = {target.timeout_s}\n"
+            "excluded-modules = []\n"
+            f"test-command = {json.dumps(PYTEST)}\n"
+            "[cosmic-ray.distributor]\nname = \"local\"\n"
+        )
+        subprocess.run([COSMIC_RAY, "init", str(config), str(session)], cwd=tree, env=env, check=True,
+                       capture_output=True)
+        spans = _spans(source, target.only) if target.only else None
+        excluded = _spans(source, target.exclude) if target.exclude else []
+        prose, annotations = _inert(source)
+        mutants, skipped = [], 0
+        with wdb.use_db(str(session), wdb.WorkDB.Mode.open) as db:
+            for item in db.pending_work_items:
+                spec = item.mutations[0]
+                line = spec.start_pos[0]
+                keep = OPERATORS.match(spec.operator_name) and line not in prose
+                if target.annotations_inert:
+                    keep = keep and not any(a <= tuple(spec.start_pos) < b for a, b in annotations)
+                if keep and spans is not None:
+                    keep = any(a <= line <= b for a, b in spans)
+                keep = keep and not any(a <= line <= b for a, b in excluded)
+                if keep:
+                    # cosmic-ray's job ids are random per session; operator and occurrence name a
+                    # mutant of the same source in every run.
+                    mutants.append({"job_id": f"{spec.operator_name}#{spec.occurrence}", "operator": spec.operator_name,
+                                    "args": spec.operator_args or {}, "occurrence": spec.occurrence, "line": line})
+                else:
+                    skipped += 1
+    mutants.sort(key=lambda m: m["job_id"])
+    return mutants, skipped
 
 
 # Imported once by the parent so that every forked test run starts with them loaded; uwcam itself
@@ -216,11 +231,14 @@ PRELOAD = ("numpy", "numba", "cv2", "pydantic", "fastapi", "starlette", "uvicorn
            "_hypothesis_pytestplugin", "schemathesis", "schemathesis.pytest.plugin")
 
 
-def _run_forked(tree: Path, args: list[str], env: dict[str, str], timeout_s: float) -> str:
-    """Run pytest with ``args`` in a forked child of this (pre-loaded) process: 'survived' when it
-    passes, 'killed' when it fails or runs past ``timeout_s``, 'incompetent' when it cannot run."""
+def _fork_pytest(tree: Path, args: list[str], env: dict[str, str]) -> int:
+    """Start pytest with ``args`` in a forked child of this (pre-loaded) process, in ``tree``; its pid."""
     pid = os.fork()
     if pid == 0:  # child: never returns
+        import signal
+
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops its children itself
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
         code = 4
         saved_stderr = os.dup(2)
         try:
@@ -243,161 +261,315 @@ def _run_forked(tree: Path, args: list[str], env: dict[str, str], timeout_s: flo
             os.write(saved_stderr, traceback.format_exc().encode())
         finally:
             os._exit(code)
-    deadline = time.monotonic() + timeout_s
-    while True:
-        done, status = os.waitpid(pid, os.WNOHANG)
-        if done:
-            code = os.waitstatus_to_exitcode(status)
-            break
-        if time.monotonic() > deadline:
-            os.kill(pid, 9)
-            os.waitpid(pid, 0)
-            return "killed"
-        time.sleep(0.05)
+    return pid
+
+
+def _outcome(status: int) -> str:
     # pytest: 0 passed, 1 tests failed; 2 interrupted, 3 internal error, 4 usage error, 5 none collected.
-    return {0: "survived", 1: "killed"}.get(code, "incompetent")
+    return {0: "survived", 1: "killed"}.get(os.waitstatus_to_exitcode(status), "incompetent")
 
 
-def execute(session: Path, tree: Path, target: Target, only: set[str] | None = None) -> None:
-    """Apply each pending mutant in the copy, run the module's tests in a forked child, record the outcome."""
+def _test_args(target: Target) -> list[str]:
     import shlex
 
-    import cosmic_ray.plugins
-    import cosmic_ray.work_db as wdb
-    from cosmic_ray.mutating import use_mutation
-    from cosmic_ray.work_item import TestOutcome, WorkerOutcome, WorkResult
+    # Pre-loaded pytest plugins (anyio, hypothesis, schemathesis) cannot have their own asserts
+    # rewritten: harmless, and not a failure of the tests.
+    return shlex.split(target.tests) + ["-x", "-q", "-p", "no:randomly", "-p", "no:cacheprovider",
+                                        "-W", "ignore::pytest.PytestAssertRewriteWarning"]
 
+
+def execute(trees: list[Path], target: Target, mutants: list[dict], progress: str = "") -> dict[str, dict]:
+    """Run the module's tests against each mutant, one mutant per tree copy at a time (as many in
+    parallel as there are trees); returns {job_id: {"outcome", "diff"}}. Outcomes: 'killed' (a test
+    failed or the run passed the timeout), 'survived', 'incompetent' (pytest could not run: the
+    mutant does not import; counted as killed), 'no-op' (the operator found nothing to mutate).
+    Interrupted (SIGINT), it returns the outcomes judged so far."""
     for module in PRELOAD:
         try:
             __import__(module)
         except ImportError:
             pass
-    # Pre-loaded pytest plugins (anyio, hypothesis, schemathesis) cannot have their own asserts
-    # rewritten: harmless, and not a failure of the tests.
-    args = shlex.split(target.tests) + ["-x", "-q", "-p", "no:randomly", "-p", "no:cacheprovider",
-                                        "-W", "ignore::pytest.PytestAssertRewriteWarning"]
-    unmutated = _run_forked(tree, args, target.env, target.timeout_s)
-    if unmutated != "survived":
-        raise SystemExit(f"{target.path}: the unmutated tests do not pass in a forked run ({unmutated}); cannot judge mutants")
-    with wdb.use_db(str(session), wdb.WorkDB.Mode.open) as db:
-        # In a random (seeded) order: a run stopped early has then judged a fair sample of the module.
-        pending = sorted((i for i in db.pending_work_items if only is None or i.job_id in only), key=lambda item: item.job_id)
-        random.Random(0).shuffle(pending)
-        for item in pending:
-            spec = item.mutations[0]
-            operator = cosmic_ray.plugins.get_operator(spec.operator_name)(**(spec.operator_args or {}))
-            with use_mutation(tree / spec.module_path, operator, spec.occurrence) as (original, mutated):
-                if mutated is None:
-                    db.set_result(item.job_id, WorkResult(worker_outcome=WorkerOutcome.NO_TEST))
-                    continue
-                outcome = _run_forked(tree, args, target.env, target.timeout_s)
-            import difflib
-
-            diff = "".join(difflib.unified_diff(original.splitlines(True), mutated.splitlines(True), n=0))
-            db.set_result(item.job_id, WorkResult(worker_outcome=WorkerOutcome.NORMAL, test_outcome=TestOutcome(outcome),
-                                                  diff=diff))
+    args = _test_args(target)
+    # The unmutated tests, once in every copy (this also fills each copy's compilation cache).
+    children = {_fork_pytest(tree, args, target.env): tree for tree in trees}
+    for pid, tree in children.items():
+        outcome = _outcome(os.waitpid(pid, 0)[1])
+        if outcome != "survived":
+            raise SystemExit(f"{target.path}: the unmutated tests do not pass in a forked run in {tree} ({outcome})")
+    original = (trees[0] / target.path).read_text()
+    free = list(trees)
+    todo = list(reversed(mutants))
+    running: dict[int, tuple[dict, Path, str, float]] = {}
+    results: dict[str, dict] = {}
+    t0 = time.monotonic()
+    try:
+        _loop(todo, free, running, results, original, args, target, mutants, progress, t0)
+    except KeyboardInterrupt:  # stopped (Ctrl-C, or `timeout -s INT`): keep what was judged
+        for pid, (m, tree, _, _) in running.items():
+            os.kill(pid, 9)
+            os.waitpid(pid, 0)
+            (tree / target.path).write_text(original)
+        print(f"  {progress}stopped after {len(results)} of {len(mutants)} mutants", flush=True)
+    return results
 
 
-def summarise(name: str, target: Target, source: str) -> dict:
-    """Kill rate and survivors of a finished session (bench/mutation/<name>.sqlite)."""
-    import cosmic_ray.work_db as wdb
-    from cosmic_ray.work_item import WorkerOutcome
+def _loop(todo: list[dict], free: list[Path], running: dict, results: dict[str, dict], original: str,
+          args: list[str], target: Target, mutants: list[dict], progress: str, t0: float) -> None:
+    """Keep every free tree busy with the next mutant; record each outcome as its child ends."""
+    import difflib
 
-    session = OUT / f"{name}.sqlite"
-    survivors, killed, incompetent, total, pending = [], 0, 0, 0, 0
-    lines = source.splitlines()
-    with wdb.use_db(str(session), wdb.WorkDB.Mode.open) as db:
-        done = {item.job_id for item, _ in db.completed_work_items}
-        pending = sum(1 for item in db.work_items if item.job_id not in done)
-        for item, result in db.completed_work_items:
-            if result.worker_outcome == WorkerOutcome.SKIPPED:
+    import cosmic_ray.plugins
+    from cosmic_ray.mutating import mutate_code
+
+    while todo or running:
+        while free and todo:
+            m = todo.pop()
+            operator = cosmic_ray.plugins.get_operator(m["operator"])(**m["args"])
+            mutated = mutate_code(original, operator, m["occurrence"])
+            if mutated is None:
+                results[m["job_id"]] = {"outcome": "no-op", "diff": ""}
                 continue
-            total += 1
-            if result.test_outcome is not None and result.test_outcome.value == "survived":
-                spec = item.mutations[0]
-                line = spec.start_pos[0]
-                survivors.append({"line": line, "operator": spec.operator_name.removeprefix("core/"),
-                                  "occurrence": spec.occurrence, "code": lines[line - 1].strip(), "diff": result.diff})
-            elif result.test_outcome is not None and result.test_outcome.value == "incompetent":
-                incompetent += 1  # the mutant does not even import or run: counted as killed
-                killed += 1
+            tree = free.pop()
+            (tree / target.path).write_text(mutated)
+            diff = "".join(difflib.unified_diff(original.splitlines(True), mutated.splitlines(True), n=0))
+            pid = _fork_pytest(tree, args, target.env)
+            running[pid] = (m, tree, diff, time.monotonic() + target.timeout_s)
+        for pid in list(running):
+            m, tree, diff, deadline = running[pid]
+            done, status = os.waitpid(pid, os.WNOHANG)
+            if done:
+                outcome = _outcome(status)
+            elif time.monotonic() > deadline:
+                os.kill(pid, 9)
+                os.waitpid(pid, 0)
+                outcome = "killed"
             else:
-                killed += 1
-    survivors.sort(key=lambda s: (s["line"], s["operator"]))
-    rate = killed / total if total else 1.0
-    return {"module": target.path, "mutants": total, "killed": killed, "incompetent": incompetent,
-            "survived": len(survivors), "kill_rate": round(rate, 4), "tests": target.tests, "not_run": pending,
-            "survivors": survivors}
+                continue
+            del running[pid]
+            (tree / target.path).write_text(original)
+            free.append(tree)
+            results[m["job_id"]] = {"outcome": outcome, "diff": diff}
+            if len(results) % 25 == 0:
+                rate = (time.monotonic() - t0) / len(results)
+                print(f"  {progress}{len(results)}/{len(mutants)} mutants, {rate:.1f} s each", flush=True)
+        time.sleep(0.02)
+
+
+def summarise(name: str, target: Target, source: str, mutants: list[dict], results: dict[str, dict],
+              excluded: int) -> dict:
+    """Kill rate and survivors of a run."""
+    import hashlib
+
+    lines = source.splitlines()
+    survivors, killed, incompetent, total = [], 0, 0, 0
+    for m in mutants:
+        r = results.get(m["job_id"])
+        if r is None or r["outcome"] == "no-op":
+            continue
+        total += 1
+        if r["outcome"] == "survived":
+            survivors.append({"line": m["line"], "operator": m["operator"].removeprefix("core/"),
+                              "occurrence": m["occurrence"], "code": lines[m["line"] - 1].strip(), "diff": r["diff"]})
+        else:
+            killed += 1
+            incompetent += r["outcome"] == "incompetent"
+    survivors.sort(key=lambda s: (s["line"], s["operator"], s["occurrence"]))
+    not_run = sum(1 for m in mutants if m["job_id"] not in results)
+    return {"module": target.path, "source_sha256": hashlib.sha256(source.encode()).hexdigest(),
+            "mutants": total, "killed": killed, "incompetent": incompetent, "survived": len(survivors),
+            "kill_rate": round(killed / total if total else 1.0, 4), "tests": target.tests,
+            "excluded_out_of_scope": excluded, "not_run": not_run, "survivors": survivors}
+
+
+def _load() -> dict:
+    results_file = OUT / "results.json"
+    return json.loads(results_file.read_text()) if results_file.exists() else {}
 
 
 def _save(name: str, summary: dict) -> None:
     """Merge one module's summary into results.json (runs of different modules may overlap)."""
-    results_file = OUT / "results.json"
-    results = json.loads(results_file.read_text()) if results_file.exists() else {}
+    results = _load()
     results[name] = summary
-    results_file.write_text(json.dumps(results, indent=1) + "\n")
+    OUT.mkdir(parents=True, exist_ok=True)
+    (OUT / "results.json").write_text(json.dumps(results, indent=1) + "\n")
+
+
+def _trees(tmp: Path, jobs: int) -> list[Path]:
+    trees = []
+    for i in range(jobs):
+        tree = tmp / f"tree{i}"
+        tree.mkdir()
+        _copy_tree(tree)
+        trees.append(tree)
+    return trees
+
+
+def run(names: list[str], jobs: int, sample: int | None, rerun: bool, resume: bool = False,
+        lines: set[int] | None = None) -> None:
+    """Run every mutant (or a seeded random ``sample`` of them) of each module; with ``rerun``,
+    only the survivors recorded in results.json (and the mutants not run then), keeping the kills."""
+    with tempfile.TemporaryDirectory(prefix="uwcam-mutation-") as tmp:
+        trees = _trees(Path(tmp), jobs)
+        for name in names:
+            target = TARGETS[name]
+            t0 = time.monotonic()
+            source = (ROOT / target.path).read_text()
+            mutants, excluded = _mutants(name, target, trees[0], os.environ.copy())
+            chosen = mutants
+            previous = _load().get(name, {})
+            carried: dict[str, dict] = {}
+            if rerun:
+                if previous.get("module") != target.path or ("runs" not in previous and previous.get("not_run")):
+                    print(f"{name}: no complete earlier run of this scope in results.json; running every mutant")
+                else:
+                    chosen, carried = _to_rerun(source, mutants, previous, resume)
+                    if lines and carried:  # survivors elsewhere keep their outcome and diff
+                        diffs = {f"core/{s['operator']}#{s['occurrence']}": s["diff"] for s in previous["survivors"]}
+                        carried.update({m["job_id"]: {"outcome": "survived", "diff": diffs.get(m["job_id"], "")}
+                                        for m in chosen if m["line"] not in lines})
+                        chosen = [m for m in chosen if m["line"] in lines]
+            if sample is not None and sample < len(chosen):
+                if rerun and carried:  # the survivors first, then a seeded sample of those never run
+                    known = [m for m in chosen if m["job_id"] in previous.get("runs", {})]
+                    fresh = [m for m in chosen if m["job_id"] not in previous.get("runs", {})]
+                    chosen = known + random.Random(0).sample(fresh, max(0, min(len(fresh), sample - len(known))))
+                else:
+                    chosen = random.Random(0).sample(chosen, sample)
+            # In a seeded random order: a run stopped early has judged a fair sample of the module.
+            chosen = sorted(chosen, key=lambda m: m["job_id"])
+            random.Random(1).shuffle(chosen)
+            print(f"{name}: {len(mutants)} mutants ({excluded} out of scope or excluded), running {len(chosen)} "
+                  f"with {jobs} job(s)", flush=True)
+            results = execute(trees, target, chosen, progress=f"{name}: ")
+            results = {**carried, **results}
+            summary = summarise(name, target, source, mutants, results, excluded)
+            summary["runs"] = {k: v["outcome"] for k, v in results.items()}
+            summary["minutes"] = round((time.monotonic() - t0) / 60, 1)
+            summary["jobs"] = jobs
+            if rerun and carried:
+                summary["note"] = f"survivors re-run on {time.strftime('%Y-%m-%d')}; kills carried from the earlier full run"
+            _save(name, summary)
+            print(f"{name}: {summary['killed']}/{summary['mutants']} killed ({100 * summary['kill_rate']:.1f} %), "
+                  f"{summary['survived']} survived, {summary['not_run']} not run, {summary['minutes']} min", flush=True)
+
+
+def _to_rerun(source: str, mutants: list[dict], previous: dict, resume: bool = False) -> tuple[list[dict], dict[str, dict]]:
+    """Split the mutants into those to run again (the earlier survivors and those never run) and
+    the earlier kills, kept. The earlier run must be of the same source: checked by hash, or, for
+    a record without one, by every recorded survivor's diff being reproduced exactly."""
+    import difflib
+    import hashlib
+
+    import cosmic_ray.plugins
+    from cosmic_ray.mutating import mutate_code
+
+    if "runs" in previous:
+        if previous.get("source_sha256") != hashlib.sha256(source.encode()).hexdigest():
+            print("  the module changed since the earlier run: running every mutant")
+            return mutants, {}
+        runs = previous["runs"]
+    else:  # an older record (every mutant run, survivors listed with their diffs)
+        by_key = {m["job_id"]: m for m in mutants}
+        runs = {key: "killed" for key in by_key}
+        for s in previous["survivors"]:
+            key = f"core/{s['operator']}#{s['occurrence']}"
+            m = by_key.get(key)
+            if m is None:
+                continue  # out of scope now (an excluded function)
+            mutated = mutate_code(source, cosmic_ray.plugins.get_operator(m["operator"])(**m["args"]), m["occurrence"])
+            diff = mutated and "".join(difflib.unified_diff(source.splitlines(True), mutated.splitlines(True), n=0))
+            if diff != s["diff"]:
+                print(f"  survivor {key} of the earlier run is not the same mutant now: running every mutant")
+                return mutants, {}
+            runs[key] = "survived"
+    # Survivors run again; kills are kept; mutants left out of a sampled run stay out of it
+    # unless ``resume`` (then they run too, after the survivors, so that --sample takes them last).
+    again = [m for m in mutants if runs.get(m["job_id"]) == "survived"]
+    if resume:
+        again += [m for m in mutants if m["job_id"] not in runs]
+    kept = {m["job_id"]: {"outcome": runs[m["job_id"]], "diff": ""} for m in mutants
+            if runs.get(m["job_id"], "survived") != "survived"}
+    return again, kept
+
+
+def report(names: list[str]) -> None:
+    """Print the table of results.json and each module's survivors, with the equivalents counted
+    from SURVIVORS.md's table of equivalent mutants."""
+    results = _load()
+    equivalent = _equivalents()
+    print("module               mutants  killed  survived  equivalent  killed/mutants  killed/(mutants-equivalent)")
+    for name in names:
+        r = results.get(name)
+        if r is None:
+            print(f"{name:20s} not run")
+            continue
+        eq = sum(1 for s in r["survivors"] if _key(s) in equivalent.get(name, set()))
+        rest = r["mutants"] - eq
+        print(f"{name:20s} {r['mutants']:7d} {r['killed']:7d} {r['survived']:9d} {eq:11d}  "
+              f"{100 * r['kill_rate']:12.1f} %  {100 * (r['killed'] / rest if rest else 1):12.1f} %"
+              + (f"  ({r['not_run']} not run)" if r.get("not_run") else ""))
+    for name in names:
+        r = results.get(name)
+        if not r or not r["survivors"]:
+            continue
+        print(f"\n{name} survivors (E = explained as equivalent in SURVIVORS.md):")
+        for s in r["survivors"]:
+            mark = "E" if _key(s) in equivalent.get(name, set()) else " "
+            print(f"  {mark} line {s['line']:4d} {s['operator']:<36s} #{s['occurrence']:<3d} {s['code'][:80]}")
+
+
+def _key(s: dict) -> str:
+    return f"{s['line']}:{s['operator']}:{s['occurrence']}"
+
+
+def _equivalents() -> dict[str, set[str]]:
+    """SURVIVORS.md names the mutants judged equivalent on lines `- eq MODULE LINE:Operator:occurrence …`
+    (one or more per line, under the explanation of why); the rest of the file is prose."""
+    found: dict[str, set[str]] = {}
+    path = OUT / "SURVIVORS.md"
+    if path.exists():
+        for m in re.finditer(r"^\s*- eq (\S+) (.*)$", path.read_text(), re.M):
+            found.setdefault(m.group(1), set()).update(re.findall(r"\d+:\w+:\d+", m.group(2)))
+    return found
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
 
 
 def main(argv: list[str] | None = None) -> int:
+    import signal
+
+    # Stop cleanly, keeping the outcomes judged so far, on Ctrl-C or `timeout` (INT or TERM), even
+    # when started in the background by a shell that ignores SIGINT there.
+    signal.signal(signal.SIGINT, _interrupt)
+    signal.signal(signal.SIGTERM, _interrupt)
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("modules", nargs="*", help=f"subset of: {', '.join(TARGETS)}")
     p.add_argument("--list", action="store_true", help="list the modules and their test subsets")
-    p.add_argument("--report", action="store_true", help="only summarise the sessions already in bench/mutation/")
+    p.add_argument("--report", action="store_true", help="only print the results recorded in bench/mutation/results.json")
     p.add_argument("--rerun-survivors", action="store_true",
-                   help="run the current tests against the survivors (and unrun mutants) of the existing sessions only")
+                   help="run the current tests against the recorded survivors only; kills (and mutants a sample left out) are kept")
+    p.add_argument("--resume", action="store_true",
+                   help="with --rerun-survivors: also run the mutants a sampled run left out (--sample: how many in all)")
+    p.add_argument("--lines", default="",
+                   help="with --rerun-survivors: re-run only the survivors on these lines (comma-separated); the rest keep their outcome")
+    p.add_argument("--jobs", type=int, default=1, help="mutants tested in parallel, each in its own copy of the tree")
+    p.add_argument("--sample", type=int, default=None, help="run only this many mutants per module (seeded random sample)")
     args = p.parse_args(argv)
     if args.list:
         for name, t in TARGETS.items():
-            print(f"{name:20s} {t.path:28s} {t.tests}")
+            print(f"{name:20s} {t.path:28s} {t.tests}" + (f"  (not mutated: {', '.join(t.exclude)})" if t.exclude else ""))
         return 0
     unknown = [m for m in args.modules if m not in TARGETS]
     if unknown:
         p.error(f"unknown module(s) {', '.join(unknown)}; known: {', '.join(TARGETS)}")
     names = args.modules or list(TARGETS)
-    if args.report or args.rerun_survivors:
-        names = [n for n in names if (OUT / f"{n}.sqlite").exists()]
-        if args.rerun_survivors:
-            rerun(names)
-        for name in names:
-            _save(name, summarise(name, TARGETS[name], (ROOT / TARGETS[name].path).read_text()))
-    else:
-        run(names)
-    results = json.loads((OUT / "results.json").read_text())
-    print("\nmodule               mutants  killed  survived  kill rate")
-    for name in names:
-        r = results[name]
-        if "error" in r:
-            print(f"{name:20s} {r['error']}")
-        else:
-            print(f"{name:20s} {r['mutants']:7d} {r['killed']:7d} {r['survived']:9d}  {100 * r['kill_rate']:6.1f} %"
-                  + (f"  ({r['not_run']} not run)" if r.get("not_run") else ""))
+    if not args.report:
+        lines = {int(x) for x in args.lines.split(",") if x.strip()}
+        run(names, max(1, args.jobs), args.sample, args.rerun_survivors or args.resume, args.resume, lines)
+    report(names)
     return 0
-
-
-def rerun(names: list[str]) -> None:
-    """Forget the survivors of each session and run them again with the tests as they are now."""
-    import sqlite3
-
-    with tempfile.TemporaryDirectory(prefix="uwcam-mutation-") as tmp:
-        tree = Path(tmp)
-        _copy_tree(tree)
-        for name in names:
-            with sqlite3.connect(OUT / f"{name}.sqlite") as db:
-                jobs = {row[0] for row in db.execute("SELECT job_id FROM work_results WHERE test_outcome = 'SURVIVED'")}
-                db.execute("DELETE FROM work_results WHERE test_outcome = 'SURVIVED'")
-            print(f"{name}: running {len(jobs)} survivors again", flush=True)
-            execute(OUT / f"{name}.sqlite", tree, TARGETS[name], only=jobs)
-
-
-def run(names: list[str]) -> None:
-    with tempfile.TemporaryDirectory(prefix="uwcam-mutation-") as tmp:
-        tree = Path(tmp)
-        _copy_tree(tree)
-        # No .pyc files: a mutant of the same size written within the same second as the
-        # original would otherwise be shadowed by the original's cached bytecode.
-        env = {**os.environ, "PYTHONPATH": str(tree), "PYTHONDONTWRITEBYTECODE": "1"}
-        for name in names:
-            _save(name, run_target(name, TARGETS[name], tree, env))
 
 
 if __name__ == "__main__":
