@@ -196,7 +196,7 @@ def report(name: str, r: dict, seconds: float, fps: float | None) -> None:
     rec = r.get("recording")
     if rec and rec.get("state") != "idle" or rec and rec.get("frames_written"):
         print(f"  recording ({rec['state']}): {rec['frames_written']} frames written, {rec['frames_dropped']} dropped by the "
-              f"recorder (the disk or its CPU share could not keep up; ranging is not slowed), "
+              f"recorder (the disk or its share of the CPU could not keep up), "
               f"{rec['bytes'] / 1e6:.0f} MB, {rec['queued']} queued at the end")
 
 
