@@ -226,17 +226,15 @@ def test_incidence_unavailable_says_why(tmp_path):
         assert r.status_code == 409 and "absolute attenuations" in r.json()["detail"]
 
 
-def test_absolute_scale_at_a_tilted_footprint_divides_by_the_range_map_normals_cos():
-    """The simulator's plane tilted 30°, a rangefinder reading at the image centre: the surface's
-    absolute scale (what a surface square to the lamp would return) equals the simulator's own,
-    because the footprint's cos γ comes from the range map's normal. Assuming the surface square
-    to the beam would make it 1/cos 30° = 15 % too bright, and every angle found with it too steep."""
+def tilted_footprint():
+    """A grey plane tilted 30° at 2 m in water without scattering, the lamp at the camera, a
+    noise-free calibration, and a rangefinder reading the true range at the image centre:
+    (profile, world, lamp, rangefinder, footprint config, reading time ns)."""
     from types import SimpleNamespace
 
     from uwcam.config import ReflectanceConfig
-    from uwcam.drivers.base import Frame, Health, HealthState
+    from uwcam.drivers.base import Health, HealthState
     from uwcam.drivers.rangefinder import RangeReading
-    from uwcam.pipeline import ReflectanceCorrector
     from uwcam.simulation.render import Lamp
     from uwcam.simulation.tank import calibrate_in_simulation
     from uwcam.simulation.water import water_preset
@@ -248,12 +246,25 @@ def test_absolute_scale_at_a_tilted_footprint_divides_by_the_range_map_normals_c
     profile = calibrate_in_simulation(water, lamp, size, noise_free=True)
     world = SimulatedWorld(scene="tilted-plane", distance=2.0, size=size, water=water, lamp=lamp)
     w, h = size
-    truth_range = world.camera_range
     now = 10**12
-    reading = RangeReading(float(truth_range[h // 2, w // 2]), 0.97, now, 0.0)
+    reading = RangeReading(float(world.camera_range[h // 2, w // 2]), 0.97, now, 0.0)
     rf = SimpleNamespace(health=Health(HealthState.OK, "reading"), latest=lambda: reading)
-    corrector = ReflectanceCorrector(ReflectanceConfig(footprint=(w // 2 - 4, h // 2 - 4, 9, 9)), profile, rf,
-                                     beam_half_angle_deg=lamp.beam_half_angle_deg)
+    return profile, world, lamp, rf, ReflectanceConfig(footprint=(w // 2 - 4, h // 2 - 4, 9, 9)), now
+
+
+def test_absolute_scale_at_a_tilted_footprint_divides_by_the_range_map_normals_cos():
+    """The simulator's plane tilted 30°, a rangefinder reading at the image centre: the surface's
+    absolute scale (what a surface square to the lamp would return) equals the simulator's own,
+    because the footprint's cos γ comes from the range map's normal. Assuming the surface square
+    to the beam would make it 1/cos 30° = 15 % too bright, and every angle found with it too steep."""
+    from uwcam.drivers.base import Frame
+    from uwcam.pipeline import ReflectanceCorrector
+
+    profile, world, lamp, rf, footprint, now = tilted_footprint()
+    water = world.water
+    w, h = world.size
+    truth_range = world.camera_range
+    corrector = ReflectanceCorrector(footprint, profile, rf, beam_half_angle_deg=lamp.beam_half_angle_deg)
     frame = Frame(data=world.noise_free_frame(), sequence=1, host_monotonic_ns=now, wall_time=0.0)
     corrector.update(frame, profile.array("attenuation_difference"))
     assert corrector.scale is None  # no normal yet: no absolute scale rather than a wrong one
@@ -295,33 +306,16 @@ def test_the_footprints_scale_and_reflectance_do_not_depend_on_the_frames_exposu
     """The same tilted footprint exposed 0.5×, 0.8× and 0.65× per channel: with the frame's exposure
     shift ln m_k given, the surface's log constants and absolute scale are those of the frame at
     the calibration's exposure (both are kept at the calibration's exposure)."""
-    from types import SimpleNamespace
-
-    from uwcam.config import ReflectanceConfig
-    from uwcam.drivers.base import Frame, Health, HealthState
-    from uwcam.drivers.rangefinder import RangeReading
+    from uwcam.drivers.base import Frame
     from uwcam.pipeline import ReflectanceCorrector
-    from uwcam.simulation.render import Lamp
-    from uwcam.simulation.tank import calibrate_in_simulation
-    from uwcam.simulation.water import water_preset
-    from uwcam.simulation.world import SimulatedWorld
 
-    water = water_preset("ideal", [675.0, 575.0, 475.0])
-    lamp = Lamp(position=(0.0, 0.0, 0.0))
-    size = (160, 120)
-    profile = calibrate_in_simulation(water, lamp, size, noise_free=True)
-    world = SimulatedWorld(scene="tilted-plane", distance=2.0, size=size, water=water, lamp=lamp)
-    w, h = size
-    now = 10**12
-    reading = RangeReading(float(world.camera_range[h // 2, w // 2]), 0.97, now, 0.0)
-    rf = SimpleNamespace(health=Health(HealthState.OK, "reading"), latest=lambda: reading)
+    profile, world, lamp, rf, footprint, now = tilted_footprint()
     dark = profile.array("dark_level")
     light = world.noise_free_frame().astype(np.float64) - dark
     m = np.array([0.5, 0.8, 0.65])  # shorter: the frame is exposed near the top code already
     found = []
     for gain, shift in ((np.ones(3), None), (m, np.log(m))):
-        corrector = ReflectanceCorrector(ReflectanceConfig(footprint=(w // 2 - 4, h // 2 - 4, 9, 9)), profile, rf,
-                                         beam_half_angle_deg=lamp.beam_half_angle_deg)
+        corrector = ReflectanceCorrector(footprint, profile, rf, beam_half_angle_deg=lamp.beam_half_angle_deg)
         frame = Frame(data=(light * gain + dark).astype(np.float32), sequence=1, host_monotonic_ns=now, wall_time=0.0)
         corrector.observe(world.camera_range)
         b = corrector.update(frame, profile.array("attenuation_difference"), exposure_shift=shift)
