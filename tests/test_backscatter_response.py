@@ -122,22 +122,29 @@ def test_the_columns_share_in_front_of_the_seabed_matches_the_simulators():
     assert np.abs(f_calibration - true_f)[2] > 0.02, (f_calibration, true_f)  # the bias the fit removes
 
 
+def seabed_at_5_m(water_name: str, lamp_position, open_water_frames: int):
+    """A grey seabed 5 m away in this water, calibrated there (4 frames a distance, exposure
+    recorded), and a compensator given this many open-water frames at the seabed's exposure:
+    (seabed world, compensator, estimator), path lengths up to 100 m."""
+    size = (320, 240)
+    water, lamp, camera = water_preset(water_name, WAVELENGTHS), Lamp(position=lamp_position), CameraModel()
+    profile = calibrate_in_simulation(water, lamp, size, camera, frames_per_distance=4, record_exposure=True)
+    scene = SimulatedWorld(scene="seabed", distance=5.0, size=size, water=water, lamp=lamp, camera=camera,
+                           material="grey", seed=5)
+    water_world = SimulatedWorld(scene="open-water", distance=5.0, size=size, water=water, lamp=lamp, camera=camera,
+                                 fixed_exposure=scene.exposure, seed=6)
+    comp = BackscatterCompensator(profile, (240, 320), 2, np.stack([water_world.frame(i) for i in range(open_water_frames)]),
+                                  path_length_bounds=(0.0, 100.0))
+    return scene, comp, RangeEstimator(profile, path_length_bounds=(0.0, 100.0))
+
+
 def test_too_murky_pixels_are_marked_invalid_rather_than_wrong():
     """Jerlov III, lamp 0.6 m aside, grey seabed at 5 m: the seabed's light left after the
     subtraction is within the noise; without a limit on the range's own uncertainty a tenth of the
     pixels came out valid and hundreds of per cent long. Now they have no range, reason 3."""
     from uwcam.optics.validity import Reason
 
-    size = (320, 240)
-    water, lamp, camera = water_preset("jerlov-III", WAVELENGTHS), Lamp(position=(0.6, 0.0, 0.0)), CameraModel()
-    profile = calibrate_in_simulation(water, lamp, size, camera, frames_per_distance=4, record_exposure=True)
-    scene = SimulatedWorld(scene="seabed", distance=5.0, size=size, water=water, lamp=lamp, camera=camera,
-                           material="grey", seed=5)
-    water_world = SimulatedWorld(scene="open-water", distance=5.0, size=size, water=water, lamp=lamp, camera=camera,
-                                 fixed_exposure=scene.exposure, seed=6)
-    comp = BackscatterCompensator(profile, (240, 320), 2, np.stack([water_world.frame(i) for i in range(8)]),
-                                  path_length_bounds=(0.0, 100.0))
-    est = RangeEstimator(profile, path_length_bounds=(0.0, 100.0))
+    scene, comp, est = seabed_at_5_m("jerlov-III", (0.6, 0.0, 0.0), open_water_frames=8)
     result = comp.range(scene.frame(0), est.attenuation, est.log_constant)
     error = np.abs(result.range - scene.camera_range) / scene.camera_range
     wrong = np.isfinite(error) & (error > 0.2)
@@ -151,16 +158,7 @@ def test_with_the_lamp_at_the_camera_the_calibrations_column_stands():
     alike, so the open water's shape across the view does not tell the column's attenuation; a
     fit left free there picked blue's c fifty times too low or ten times too high, and the ranges
     30 % short."""
-    size = (320, 240)
-    water, lamp, camera = water_preset("jerlov-IB", WAVELENGTHS), Lamp(position=(0.0, 0.0, 0.0)), CameraModel()
-    profile = calibrate_in_simulation(water, lamp, size, camera, frames_per_distance=4, record_exposure=True)
-    scene = SimulatedWorld(scene="seabed", distance=5.0, size=size, water=water, lamp=lamp, camera=camera,
-                           material="grey", seed=5)
-    water_world = SimulatedWorld(scene="open-water", distance=5.0, size=size, water=water, lamp=lamp, camera=camera,
-                                 fixed_exposure=scene.exposure, seed=6)
-    comp = BackscatterCompensator(profile, (240, 320), 2, np.stack([water_world.frame(i) for i in range(16)]),
-                                  path_length_bounds=(0.0, 100.0))
-    est = RangeEstimator(profile, path_length_bounds=(0.0, 100.0))
+    scene, comp, est = seabed_at_5_m("jerlov-IB", (0.0, 0.0, 0.0), open_water_frames=16)
     r = smooth_range_map(comp.range(scene.frame(0), est.attenuation, est.log_constant), "mean").range
     h, w = r.shape
     e = ((r - scene.camera_range) / scene.camera_range)[h // 10 : h - h // 10, w // 10 : w - w // 10]

@@ -73,16 +73,22 @@ def test_a_target_too_small_for_noise_is_named_by_its_image_or_by_its_distance()
         calibrate(repeated, [1.0, 1.0, 2.0], inputs(target_box=box))
 
 
-def test_noise_free_frames_with_a_black_patch_and_no_backscatter_fit_the_whole_plate_at_the_floor():
-    """No backscatter and no noise: nothing is measured at the patch (the level is 0 to rounding,
-    below 0.1 % of the plate's light), so the whole plate is fitted; with no pixel noise each
-    distance's log variance is the quantisation floor, (1/12)/E² of its mean signal."""
-    distances = [1.0, 2.0]
+def frames_with_black_patch(distances):
+    """Plate frames at these distances with a black patch (reflectance 0.02) in view, and its box per frame."""
     boxes = [project_plate_box((0.1, 0.1), (0.12, 0.12), d, INTR) for d in distances]
     out = []
     for f, (x, y, w, h) in zip(frames(distances), boxes):
         f[y : y + h, x : x + w] *= 0.02 / PLATE
         out.append(f)
+    return out, boxes
+
+
+def test_noise_free_frames_with_a_black_patch_and_no_backscatter_fit_the_whole_plate_at_the_floor():
+    """No backscatter and no noise: nothing is measured at the patch (the level is 0 to rounding,
+    below 0.1 % of the plate's light), so the whole plate is fitted; with no pixel noise each
+    distance's log variance is the quantisation floor, (1/12)/E² of its mean signal."""
+    distances = [1.0, 2.0]
+    out, boxes = frames_with_black_patch(distances)
     details = calibrate_with_details(out, distances, inputs(black_boxes=boxes, black_reflectance=np.full(3, 0.02),
                                                             quantisation_step=1.0))
     assert "whole plate" in details.profile.provenance.method
@@ -133,11 +139,7 @@ def test_a_black_patch_needs_both_its_boxes_and_its_reflectance_to_count():
     """Boxes without a reflectance (or a reflectance without boxes): no backscatter is measured,
     no floor is set, and the patch's pixels (if boxed) are still kept out of the plate's fit."""
     distances = [1.0, 2.0]
-    boxes = [project_plate_box((0.1, 0.1), (0.12, 0.12), d, INTR) for d in distances]
-    out = []
-    for f, (x, y, w, h) in zip(frames(distances), boxes):
-        f[y : y + h, x : x + w] *= 0.02 / PLATE
-        out.append(f)
+    out, boxes = frames_with_black_patch(distances)
     boxed = calibrate_with_details(out, distances, inputs(black_boxes=boxes))
     assert all(g.backscatter is None for g in boxed.groups) and boxed.profile.backscatter is None
     x, y, w, h = boxes[0]
