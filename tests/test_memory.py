@@ -71,6 +71,7 @@ def test_the_compilers_code_leaves_the_resident_set_and_compiled_kernels_still_r
     r = json.loads(out.stdout.strip().splitlines()[-1])
     assert r["first"] == r["again"] == sum(range(1000))
     assert r["advised"] > 0 and r["before"] > 20_000  # tens of MB of LLVM were resident
-    # Every clean page of the library that this process alone maps is gone (pages that another
-    # process maps too, pytest's own here, stay: the kernel keeps them for that process).
-    assert r["after"] == 0
+    # The clean pages of the library that this process alone maps are gone (pages that another
+    # process maps too, pytest's own here, stay: the kernel keeps them for that process). The
+    # advice is best effort: a page busy at that instant may stay (one 4 kB page was seen once).
+    assert r["after"] <= max(64, 0.01 * r["before"])  # kB: from tens of MB to next to nothing
