@@ -466,6 +466,8 @@ def test_pins_line_profile_and_patch_region_drawn_on_the_image(server, browser):
 def test_normals_snapshot_of_the_flat_seabed_faces_the_camera(server):
     import io
 
+    # The module's other tests turn the vehicle and switch the lamp: start from a ranged frame.
+    assert wait_for(lambda: np.isfinite(server.daemon.pipeline.latest.result.range).mean() > 0.5, 30.0)
     response = server.http.get("/api/v1/snapshot/normals")
     assert response.status_code == 200
     n = np.load(io.BytesIO(response.content))
@@ -669,3 +671,5 @@ def test_backscatter_compensation_and_its_open_water_frame_from_the_page(server,
         server.daemon.forget_open_water()
         server.http.patch("/api/v1/config", json={"backscatter": None})
         page.close()
+        # The module's next test must not find an open-water frame as the newest: wait for the seabed.
+        assert wait_for(lambda: np.isfinite(server.daemon.pipeline.latest.result.range).mean() > 0.5, 30.0)
