@@ -135,7 +135,7 @@ class BackscatterCompensator:
         small_ambient = None if ambient is None else cv2.resize(ambient, half, interpolation=cv2.INTER_AREA)
         # The first pass subtracts the ambient light alone; without any, it is plain ranging (the
         # lookup-table kernel for integer frames: the same terms as with a zero background).
-        result = self._half(small) if small_ambient is None else self._half(small, background=small_ambient)
+        result = self._half(small, background=small_ambient)
         scale = 1.0 if background_scale is None else np.asarray(background_scale, np.float32)
         for _ in range(self.iterations - 1):
             background = self.level(result.range, half=True, scale=scale)

@@ -107,17 +107,23 @@ def _varint(n: int) -> bytes:
     return bytes(out)
 
 
+def _image_layout(data: NDArray) -> tuple[NDArray, int, int, int]:
+    """An (H, W[, C]) array as foxglove.RawImage stores it: (C-contiguous little-endian data, H, W,
+    bytes per row)."""
+    data = np.ascontiguousarray(data)
+    if data.dtype.byteorder == ">":
+        data = data.astype(data.dtype.newbyteorder("<"))
+    h, w = data.shape[:2]
+    return data, h, w, w * (data.shape[2] if data.ndim == 3 else 1) * data.dtype.itemsize
+
+
 def raw_image(data: NDArray, log_time_ns: int, encoding: str | None = None) -> bytes:
     """foxglove.RawImage (protobuf bytes) of an (H, W[, C]) array, little-endian, unpadded.
 
     Encoded here rather than through the Foxglove SDK's message class, which copies a frame's
     pixels twice byte by byte (16 ms for a 1920×1080×3 16-bit frame against 1 ms here): the bytes
     are the same, field for field (tests/test_recording_encoding.py compares them with the SDK's)."""
-    data = np.ascontiguousarray(data)
-    if data.dtype.byteorder == ">":
-        data = data.astype(data.dtype.newbyteorder("<"))
-    h, w = data.shape[:2]
-    step = w * (data.shape[2] if data.ndim == 3 else 1) * data.dtype.itemsize
+    data, h, w, step = _image_layout(data)
     seconds, nanos = divmod(log_time_ns, 1_000_000_000)
     stamp = (b"\x08" + _varint(seconds) if seconds else b"") + (b"\x10" + _varint(nanos) if nanos else b"")
     text = (encoding or image_encoding(data)).encode()
@@ -141,11 +147,7 @@ def raw_image(data: NDArray, log_time_ns: int, encoding: str | None = None) -> b
 
 def raw_image_message(data: NDArray, log_time_ns: int, encoding: str | None = None):
     """foxglove.RawImage message of an (H, W[, C]) array, little-endian, unpadded."""
-    data = np.ascontiguousarray(data)
-    if data.dtype.byteorder == ">":
-        data = data.astype(data.dtype.newbyteorder("<"))
-    h, w = data.shape[:2]
-    step = w * (data.shape[2] if data.ndim == 3 else 1) * data.dtype.itemsize
+    data, h, w, step = _image_layout(data)
     m = _messages()
     return m.RawImage(timestamp=timestamp(log_time_ns), frame_id=FRAME_ID, width=w, height=h,
                       encoding=encoding or image_encoding(data), step=step, data=data.tobytes())

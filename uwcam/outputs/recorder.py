@@ -4,7 +4,8 @@ results, into one MCAP file per recording (layout in :mod:`uwcam.recording`).
 An output of the frame loop: the loop's callbacks only append to a queue bounded in frames and
 in bytes (the oldest item is dropped and counted when the disk cannot keep up); one writer
 thread per recording encodes and writes, at a lower scheduling priority than the frame loop, so
-a recorder short of CPU loses frames of its own rather than slowing ranging. A write error (disk full, folder gone) or a vanished folder ends the
+a recorder short of CPU loses frames of its own first (its copies still take some CPU from the
+loop: docs/recording.md). A write error (disk full, folder gone) or a vanished folder ends the
 recording cleanly: the file is cut after its last complete record and closed with a footer,
 so any MCAP reader reads it, and :meth:`Recorder.status` says why it stopped.
 """
@@ -104,7 +105,7 @@ class Recorder:
         limit = self.config.queue_mb * 1e6
         with self._lock:
             while self._queue and (len(self._queue) >= self.config.queue_frames or self._queued_bytes + size > limit):
-                self._queued_bytes -= item_bytes(self._queue.popleft())  # the disk cannot keep up: lose the oldest
+                self._dequeue()  # the disk cannot keep up: lose the oldest, count it
                 self.frames_dropped += 1
             self._queue.append(item)
             self._queued_bytes += size
@@ -117,6 +118,11 @@ class Recorder:
         item = self._queue.popleft()
         self._queued_bytes -= item_bytes(item)
         return item
+
+    def _clear_queue(self) -> None:
+        """Forget every queued item; the caller holds the lock."""
+        self._queue.clear()
+        self._queued_bytes = 0
 
     def _on_published(self, published: Published) -> None:
         # Profile and settings are read here, in the loop's thread, so they match the frame.
@@ -156,8 +162,7 @@ class Recorder:
             raise UserInputError(f"cannot create {path}: {exc.strerror}") from None
         with self._lock:
             self._files = [path]
-            self._queue.clear()
-            self._queued_bytes = 0
+            self._clear_queue()
             self.frames_written = self.frames_dropped = self.bytes_closed = 0
             self._stop_reason = None
             self._state = "recording"
@@ -264,8 +269,7 @@ class Recorder:
                 self._state = "idle"
                 self.last_stop_reason = reason
                 self._thread = None
-                self._queue.clear()
-                self._queued_bytes = 0
+                self._clear_queue()
             log.info("recording stopped: %s", reason)
 
     def _finish(self) -> None:
