@@ -76,6 +76,13 @@ class SerialLink:
         except PORT_ERRORS as exc:
             self.fail(f"{what} {self.port} failed: {exc}")
             raise DeviceLost(f"{what} {self.port} failed: {exc}") from None
+        except (TypeError, AttributeError) as exc:
+            if port.is_open:
+                raise  # a mistake in the call itself, not the port
+            # Closed under the call (a disconnect handled in another thread): pyserial checks
+            # is_open first, then uses the descriptor it no longer has (TypeError from tcflush).
+            self.fail(f"{what} {self.port} failed: the port was closed")
+            raise DeviceLost(f"{what} {self.port} failed: the port was closed during the call ({exc})") from None
 
     def write(self, data: bytes) -> None:
         """Send ``data``, dropping any stale input first (each command waits for its own reply)."""
