@@ -29,7 +29,7 @@ from uwcam.drivers.base import (
 )
 from uwcam.rig import builtin_rig_path, load_rig
 from uwcam.simulation import Ambient, CameraModel, Lamp, SimulatedWorld, water_preset
-from uwcam.simulation._jit import set_threads
+from uwcam.jit import set_threads
 from uwcam.simulation.survey import SurveyMotion, SurveyWorld
 
 

@@ -5,7 +5,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
+from uwcam import backscatter
 from uwcam.backscatter import BackscatterModel
 
 
@@ -35,7 +37,12 @@ def naive(shares, depths, grid_step, z, row, col):
     return total
 
 
-def test_fraction_interpolates_in_log_depth_and_across_the_grid():
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "numpy"])
+def test_fraction_interpolates_in_log_depth_and_across_the_grid(compiled, monkeypatch):
+    if compiled and backscatter._interpolate_table is None:
+        pytest.skip("numba is not installed")  # the numpy case still runs
+    if not compiled:
+        monkeypatch.setattr(backscatter, "_interpolate_table", None)
     rng = np.random.default_rng(2)
     shares = rng.random((6, 9, 14, 3))
     depths = np.geomspace(0.05, 40.0, 14)
@@ -44,6 +51,12 @@ def test_fraction_interpolates_in_log_depth_and_across_the_grid():
     z[rng.random((h, w)) < 0.2] = np.nan
     rows = rng.uniform(0, 5 * 16, (h, w))
     cols = rng.uniform(0, 8 * 16, (h, w))
-    got = model(shares, depths, 16).fraction(z, rows, cols)
+    m = model(shares, depths, 16)
+    got = m.fraction(z, rows, cols)
     want = np.array([[naive(shares, depths, 16, z[i, j], rows[i, j], cols[i, j]) for j in range(w)] for i in range(h)])
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14)
+    # The grid's corners computed once and given again (as the frame loop does) change nothing.
+    corners = m.corners(rows, cols)
+    np.testing.assert_allclose(m.fraction(z, corners=corners), want, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(m.fraction(z[::-1], corners=corners), np.array(
+        [[naive(shares, depths, 16, z[::-1][i, j], rows[i, j], cols[i, j]) for j in range(w)] for i in range(h)]), rtol=1e-12, atol=1e-14)

@@ -124,3 +124,28 @@ def test_wrong_channel_count_and_a_pair_without_contrast_say_what_is_wrong():
         RangeEstimator(profile)(np.ones((4, 4), np.uint16))
     with pytest.raises(UserInputError, match="channels G and B have equal attenuation"):
         RangeEstimator(profile, pair=("G", "B"))
+
+
+def test_a_share_beyond_float32_stays_the_largest_float32_not_its_neighbours(monkeypatch):
+    """A block whose ∂d_c/∂d_T is enormous (a path at the lamp's own distance) has an enormous
+    calibration share: it must not become inf, which the filling of blocks without a range would
+    replace with the neighbours' (small) share."""
+    import uwcam.ranging as ranging
+
+    _, profile, _ = covariance_profile(lamp=(0.0, 0.0, 0.0))
+    path = np.full((32, 32), 4.0)
+    frame = (4e4 * np.exp(-C * path[..., None])).astype(np.float32)
+    real = ranging.camera_range_derivative
+
+    def blown_up(*args, **kwargs):
+        deriv = np.array(real(*args, **kwargs), dtype=np.float64, copy=True)
+        deriv = np.broadcast_to(deriv, args[0].shape).copy()
+        deriv[1, 1] = 1e30  # one block: far beyond float32 once squared
+        return deriv
+
+    monkeypatch.setattr(ranging, "camera_range_derivative", blown_up)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no overflow warning either
+        share = RangeEstimator(profile).calibration_variance(frame, block=8)
+    assert share[12, 12] > 1e38  # by block 1, 1 of the 8-pixel blocks (interpolated: near float32's largest)
+    assert np.all(np.isfinite(share))

@@ -63,9 +63,16 @@ def test_numpy_path_equals_compiled_kernels(dtype, geometry):
         pairs = kernels.pack_pairs(y, weight, state, 2, 3)
         kernels.fuse_arrays_numpy(pairs, est._c, (0.0,) * 4, est._geo, est.bounds, *out)
     np.testing.assert_array_equal(out[2], compiled.reasons)
-    # Same float32 operations in the same order; only the compiler's choices may differ by an ulp.
-    np.testing.assert_allclose(out[0], compiled.range, rtol=1e-6, equal_nan=True)
-    np.testing.assert_allclose(out[1], compiled.variance, rtol=1e-6, equal_nan=True)
+    if background is None:
+        # Same float32 operations in the same order; only the compiler's choices may differ by an ulp.
+        np.testing.assert_allclose(out[0], compiled.range, rtol=1e-6, equal_nan=True)
+        np.testing.assert_allclose(out[1], compiled.variance, rtol=1e-6, equal_nan=True)
+    else:
+        # The compiled background kernel computes each channel's terms in float32, numpy in float64:
+        # y = ln E − b differs by float32's rounding of ln E (~1e-6 at ln E ≈ 8), which the fit
+        # divides by attenuation differences of ~0.1–0.5 1/m: ~1e-5 m, far inside any range's noise.
+        np.testing.assert_allclose(out[0], compiled.range, rtol=1e-6, atol=3e-5, equal_nan=True)
+        np.testing.assert_allclose(out[1], compiled.variance, rtol=1e-4, atol=1e-9, equal_nan=True)
     assert len(set(np.unique(compiled.reasons))) >= 4  # the comparison covers valid and invalid pixels
 
 

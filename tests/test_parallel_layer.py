@@ -105,3 +105,35 @@ print(uwcam.parallel.SERIALISED, uwcam.parallel.threadsafe_layers(), threading_l
     assert done.returncode == 0, done.stderr[-3000:]
     serialised, layers, layer = done.stdout.split(maxsplit=1)[0], done.stdout, done.stdout.split()[-1]
     assert serialised == "False" and "omp" in layers and layer == "omp"
+
+
+def _openmp_wait_policy(preset: str | None) -> str:
+    """The wait policy libgomp reports (OMP_DISPLAY_ENV) when a frame is ranged in a fresh daemon
+    interpreter, with OMP_WAIT_POLICY preset by the user or not."""
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "NUMBA_THREADING_LAYER")}
+    env["OMP_DISPLAY_ENV"] = "true"
+    if preset is not None:
+        env["OMP_WAIT_POLICY"] = preset
+    code = textwrap.dedent("""
+        import numpy as np
+        import uwcam.cli  # what `uwcam run` imports first
+        from tests.synthetic import make_profile
+        from uwcam.ranging import RangeEstimator
+        RangeEstimator(make_profile([0.46, 0.11, 0.06], [0.0, 0.3, 0.5]))(np.full((16, 16, 3), 900, np.uint16))
+    """)
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    lines = [line for line in out.stderr.splitlines() if "OMP_WAIT_POLICY" in line]
+    if not lines:
+        import pytest
+
+        pytest.skip("numba does not run on OpenMP here (no libgomp): no wait policy to check")
+    return lines[0].split("=")[1].strip().strip("'")
+
+
+def test_openmp_workers_sleep_between_kernels_unless_the_user_says_otherwise():
+    # Spinning workers take the cores the camera, the loop and the server need between kernels.
+    assert _openmp_wait_policy(None) == "PASSIVE"
+    assert _openmp_wait_policy("ACTIVE") == "ACTIVE"

@@ -360,7 +360,7 @@ def test_without_numba_the_simulator_gives_the_same_frames(tmp_path):
         "import sys; sys.modules['numba'] = None\n"
         "import numpy as np\n"
         "from uwcam.simulation import SimulatedWorld, Lamp, water_preset\n"
-        "from uwcam.simulation._jit import HAVE_NUMBA\n"
+        "from uwcam.jit import HAVE_NUMBA\n"
         "from uwcam.simulation.survey import SurveyWorld\n"
         "assert not HAVE_NUMBA\n"
         "water = water_preset('jerlov-II', [675.0, 575.0, 475.0])\n"

@@ -69,6 +69,7 @@ class BackscatterCompensator:
             ci = np.clip(np.rint(cols).astype(int), 0, w - 1)
             pattern = pattern[ri, ci]
         self._pattern = pattern
+        self._corners = self.model.corners(rows, cols) if self.model.grid_step else None
         # Each pixel's own response (several open-water frames), at full and half resolution.
         response = self.model.response
         self._response = None if response is None else response.astype(np.float32)
@@ -106,7 +107,7 @@ class BackscatterCompensator:
         count = cv2.resize(valid.astype(np.float32), (gw, gh), interpolation=cv2.INTER_AREA)
         with np.errstate(invalid="ignore", divide="ignore"):
             block_depth = np.where(count > 0.05, depth_sum / count, np.nan)
-        fraction = self.model.fraction(block_depth, self._rows, self._cols)
+        fraction = self.model.fraction(block_depth, self._rows, self._cols, self._corners)
         small = (self._pattern * fraction * scale).astype(np.float32)
         size = (w // 2, h // 2) if half else (w, h)
         out = cv2.resize(small, size, interpolation=cv2.INTER_LINEAR).reshape(size[1], size[0], -1)

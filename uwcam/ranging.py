@@ -361,7 +361,10 @@ class RangeEstimator:
         cvv, cvb, cbb = self.covariance
         var_path = calibration_path_variance(np.stack(weight, axis=-1), c, path, cvv, cvb, cbb)
         deriv = camera_range_derivative(path, self.profile.lamp_position_m, self._rays_for(gh, gw, h, w))
-        cal = (deriv * deriv * var_path).astype(np.float32)
+        # A path length at the lamp's own distance makes the derivative, hence the variance, exceed
+        # float32: it stays the largest float32 (still no range worth the name), not inf, which the
+        # filling below would take for a block without a range and give its neighbours' value.
+        cal = np.minimum(deriv * deriv * var_path, np.finfo(np.float32).max).astype(np.float32)
         bad = ~np.isfinite(cal)
         if bad.all():
             return np.zeros((h, w), np.float32)

@@ -135,69 +135,75 @@ def fuse_arrays(pairs, c, b, geo, bounds, out_range, out_var, out_reason):
         _fuse_row(buf.view(np.float32), p_row, c, b, bounds[0], bounds[1], geo[4], out_range[i], out_var[i], out_reason[i])
 
 
-LN2 = 0.6931471805599453
-SQRT2_MANTISSA = 0x3FF6A09E667F3BCD  # the bits of √2's mantissa with exponent 0: larger ones are halved
-MANTISSA_MASK = 0x000FFFFFFFFFFFFF
-EXPONENT_ONE = 0x3FF0000000000000
+LN2 = np.float32(0.6931471805599453)
+SQRT2_MANTISSA = 0x3FB504F3  # the bits of √2 (float32) with exponent 0: larger mantissas are halved
+MANTISSA_MASK = 0x007FFFFF
+EXPONENT_ONE = 0x3F800000
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _ln_row(x, out, bits):
-    """ln x of every x of a row (float64, positive and normal) into out; bits: an int64 row for
-    scratch. Branch-free, so that the loop vectorises (libm's log is a call per value): x = m·2^k
-    with m in [√½, √2), ln x = k·ln 2 + 2·atanh(s), s = (m − 1)/(m + 1), |s| ≤ 0.172, from the
-    series to s¹³ (error < 6e-13, far below the float32 the terms are stored in)."""
-    xi = x.view(np.int64)
+    """ln x of every x of a row (float32, positive and normal) into out (float32); bits: an int32
+    row for scratch. Branch-free, so that the loop vectorises (libm's log is a call per value):
+    x = m·2^k with m in [√½, √2), ln x = k·ln 2 + 2·atanh(s), s = (m − 1)/(m + 1), |s| ≤ 0.172,
+    from the series to s⁹ (truncation < 1e-9, below float32's own rounding). float32 throughout:
+    twice the values per vector instruction of float64, and the terms are stored as float32."""
+    xi = x.view(np.int32)
+    one, two = np.float32(1.0), np.float32(2.0)
     for j in range(x.shape[0]):
         b = xi[j]
         m = (b & MANTISSA_MASK) | EXPONENT_ONE
-        high = np.int64(m > SQRT2_MANTISSA)
-        bits[j] = m - (high << 52)
-        out[j] = np.float64(((b >> 52) & 0x7FF) - 1023 + high) * LN2
-    mantissa = bits.view(np.float64)
+        high = np.int32(m > SQRT2_MANTISSA)
+        bits[j] = m - (high << 23)
+        out[j] = np.float32(((b >> 23) & 0xFF) - 127 + high) * LN2
+    mantissa = bits.view(np.float32)
     for j in range(x.shape[0]):
-        s = (mantissa[j] - 1.0) / (mantissa[j] + 1.0)
+        s = (mantissa[j] - one) / (mantissa[j] + one)
         s2 = s * s
-        series = 1.0 + s2 * (1.0 / 3.0 + s2 * (0.2 + s2 * (1.0 / 7.0 + s2 * (1.0 / 9.0 + s2 * (1.0 / 11.0 + s2 / 13.0)))))
-        out[j] += 2.0 * s * series
+        series = one + s2 * (np.float32(1.0 / 3.0) + s2 * (np.float32(0.2) + s2 * (np.float32(1.0 / 7.0) + s2 * np.float32(1.0 / 9.0))))
+        out[j] += two * s * series
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _background_terms(raw, bg, t, level, sat, e, var, ln, bits, y_out, w_out):
     """[y, w] of every value of one row, channels interleaved as in the frame ((W·N,) each): the
-    arithmetic, in float64, of RangeEstimator.channel_terms with a background ``bg`` (DN) known not
-    to come from the surface. t: (9, W·N) each channel's constants repeated along the row (dark,
-    read², shot gain, fixed pattern, q²/12, floor, b, active, relative background uncertainty u,
-    adding (u·bg)²); level: (W·N,) the open-water level (−inf: none); e, var, ln: float64 rows and
-    bits an int64 row, for scratch.
+    arithmetic of RangeEstimator.channel_terms with a background ``bg`` (DN) known not to come from
+    the surface, in float32 (a 16-bit code and the noise terms need no more: the values differ
+    from float64's by float32 rounding, ~1e-7 relative, the precision they are stored in anyway).
+    t: (9, W·N) float32, each channel's constants repeated along the row (dark, read², shot gain,
+    fixed pattern, q²/12, floor, b, active, relative background uncertainty u, adding (u·bg)²);
+    level: (W·N,) float32, the open-water level (−inf: none); sat: float32; e, var, ln: float32
+    rows and bits an int32 row, for scratch.
 
     Three passes, each over contiguous memory with no call and no branch, so that each vectorises
     (per pixel and channel, the terms cost about what the table lookup of integer frames does):
     signal and noise; ln of the signal; each value's state, whose tests are written as selections."""
+    zero, one = np.float32(0.0), np.float32(1.0)
     for x in range(raw.shape[0]):
-        b = np.float64(bg[x])
-        v = np.float64(raw[x]) - t[0, x] - b
-        total = max(v + b, 0.0)
+        b = bg[x]
+        v = np.float32(raw[x]) - t[0, x] - b
+        total = max(v + b, zero)
         s2 = t[1, x] + t[2, x] * total + t[4, x] + (t[3, x] * total) * (t[3, x] * total)
-        s2 = s2 if s2 > 0.0 else 1.0
+        s2 = s2 if s2 > zero else one
         u = t[8, x]
-        var[x] = s2 + (u * b) * (u * b) if u > 0.0 else s2
+        var[x] = s2 + (u * b) * (u * b) if u > zero else s2
         e[x] = v
-        ln[x] = max(v, 1e-300)  # a valid argument everywhere; only usable values (e > 3σ > 0) are kept
+        ln[x] = max(v, np.float32(1e-30))  # a valid argument everywhere; only usable values (e > 3σ > 0) are kept
     _ln_row(ln, ln, bits)
+    sigmas = np.float32(BACKGROUND_SIGMAS)
     for x in range(raw.shape[0]):
         v = e[x]
         s2 = var[x]
-        on = t[7, x] != 0.0
-        saturated = np.float64(raw[x]) >= sat
+        on = t[7, x] != zero
+        saturated = np.float32(raw[x]) >= sat
         dark = (not (v > t[5, x])) | (not math.isfinite(v))
-        water = (v <= level[x]) | (v <= BACKGROUND_SIGMAS * math.sqrt(s2))
+        water = (v <= level[x]) | (v <= sigmas * math.sqrt(s2))
         usable = on & (not saturated) & (not dark) & (not water)
         # The first state that applies wins, as in channel_terms.
-        flag = FLAG_SATURATED if saturated else (0.0 if dark else (FLAG_BACKSCATTER if water else 0.0))
-        flag = flag if on else 0.0
-        y_out[x] = np.float32(ln[x] - t[6, x]) if usable else np.float32(flag)
-        w_out[x] = np.float32(v * v / s2) if usable else np.float32(0.0)
+        flag = np.float32(FLAG_SATURATED) if saturated else (zero if dark else (np.float32(FLAG_BACKSCATTER) if water else zero))
+        flag = flag if on else zero
+        y_out[x] = ln[x] - t[6, x] if usable else flag
+        w_out[x] = v * v / s2 if usable else zero
 
 
 @parallel
@@ -211,22 +217,23 @@ def fuse_background(frame, background, noise, levels, sat, c, geo, bounds, out_r
     m = w * n
     raw_rows = frame.reshape(h, m)
     bg_rows = background.reshape(h, m)
-    t = np.empty((9, m))
-    level = np.empty(m)
+    t = np.empty((9, m), np.float32)
+    level = np.empty(m, np.float32)
     for j in range(w):
         for k in range(n):
             for q in range(9):
                 t[q, j * n + k] = noise[k, q]
             level[j * n + k] = levels[k]
+    sat32 = np.float32(sat)
     zeros = np.zeros(n)
     for i in prange(h):
-        e = np.empty(m)
-        var = np.empty(m)
-        ln = np.empty(m)
-        bits = np.empty(m, np.int64)
+        e = np.empty(m, np.float32)
+        var = np.empty(m, np.float32)
+        ln = np.empty(m, np.float32)
+        bits = np.empty(m, np.int32)
         y = np.empty(m, np.float32)
         wt = np.empty(m, np.float32)
-        _background_terms(raw_rows[i], bg_rows[i], t, level, sat, e, var, ln, bits, y, wt)
+        _background_terms(raw_rows[i], bg_rows[i], t, level, sat32, e, var, ln, bits, y, wt)
         buf = np.empty((n, 2 * w), np.float32)
         for j in range(w):
             for k in range(n):

@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from uwcam.fileio import UserInputError
-from uwcam.simulation._jit import HAVE_NUMBA, njit, prange
+from uwcam.jit import HAVE_NUMBA, njit, prange
 
 if HAVE_NUMBA:
     from numba import uint64

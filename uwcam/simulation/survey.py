@@ -43,7 +43,7 @@ from numpy.typing import NDArray
 from uwcam.fileio import UserInputError
 from uwcam.optics.geometry import Intrinsics
 from uwcam.rig import resolve_reflectance
-from uwcam.simulation._jit import HAVE_NUMBA, njit, prange
+from uwcam.jit import HAVE_NUMBA, njit, prange
 from uwcam.simulation.camera import CameraModel, frame_key, inverse_normal_table
 from uwcam.simulation.render import PORT_DISTANCE, Ambient, Lamp, KERNELS, slab_edges
 from uwcam.simulation.scene import (

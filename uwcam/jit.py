@@ -1,7 +1,7 @@
 """numba when it is installed, numpy otherwise.
 
 numba has no wheels for some platforms a vehicle runs (32-bit ARM). Every compiled kernel of
-the simulator has a numpy twin computing the same values; :data:`HAVE_NUMBA` chooses between
+the simulator and of the backscatter model has a numpy twin computing the same values; :data:`HAVE_NUMBA` chooses between
 them when a module is imported. Without numba, :func:`njit` leaves a function as plain Python
 (its numpy twin is the one called) and :func:`set_threads` does nothing.
 """
