@@ -296,16 +296,29 @@ def test_controls_need_sign_in_when_a_token_is_set(browser):
             page.close()
 
 
+def set_slider(page, selector: str, values: list[float]) -> None:
+    """Set a slider and fire its change event for each value in turn, in one turn of the page's
+    event loop (no status refresh can move the slider in between, as it could between a fill
+    and a dispatched event)."""
+    page.evaluate("""([selector, values]) => {
+        const el = document.querySelector(selector);
+        for (const v of values) { el.value = v; el.dispatchEvent(new Event("change")); }
+    }""", [selector, values])
+
+
 def test_controls_without_a_token(server, browser):
     page = open_page(browser, server.url + "/", server.url)
     try:
         assert wait_for(lambda: page.locator("#lamp-intensity").is_enabled() and displayed(page) > 0, 15.0)
-        page.locator("#lamp-intensity").fill("40")
-        page.locator("#lamp-intensity").dispatch_event("change")
+        set_slider(page, "#lamp-intensity", [40])
         assert wait_for(lambda: abs(server.daemon.lamp.last_status.percent - 40) < 1, 10.0)
-        page.locator("#lamp-intensity").fill("100")
-        page.locator("#lamp-intensity").dispatch_event("change")
+        set_slider(page, "#lamp-intensity", [100])
         assert wait_for(lambda: abs(server.daemon.lamp.last_status.percent - 100) < 1, 10.0)
+        # A slider dragged: changes in quick succession; the lamp ends where the slider stopped.
+        set_slider(page, "#lamp-intensity", [70, 20, 55, 85])
+        assert wait_for(lambda: abs(server.daemon.lamp.last_status.percent - 85) < 1, 10.0)
+        time.sleep(1.0)  # nothing older arrives afterwards
+        assert abs(server.daemon.lamp.last_status.percent - 85) < 1
     finally:
         page.close()
 
