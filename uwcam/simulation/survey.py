@@ -72,6 +72,11 @@ STRIP_WIDTH_M = 6.0
 # Newton steps of the ray/height-map intersection, and the smallest denominator 1 − ∇D·p
 # allowed (grazing slopes facing away would otherwise throw a step far off).
 NEWTON_STEPS = 4
+# Along a row of the shading grid, a seabed node's intersection starts from its left neighbour's
+# (a few millimetres off) and needs fewer steps; the first of a row, which has no neighbour,
+# takes more. The intersection was ~75 % of the render's CPU.
+WARM_NEWTON_STEPS = 2
+FIRST_NEWTON_STEPS = NEWTON_STEPS + 2
 MIN_SLOPE_DENOMINATOR = 0.25
 MIN_DEPTH_M = 0.05
 # Backscatter table: every this many pixels, and this many slabs from the port to the farthest depth.
@@ -309,11 +314,12 @@ def _bilinear(data, layer, x, y, x0, inv_cell, out):
 
 
 @njit(cache=True, inline="always", fastmath=_FAST)
-def _intersect(data, x0, inv_cell, qx, qy, x0w, y0w, z0w, z_start, sample):
+def _intersect(data, x0, inv_cell, qx, qy, x0w, y0w, z0w, z_start, steps, sample):
     """Camera-frame depth z where the ray of normalised image point (qx, qy) meets the height
-    map: Newton steps on g(z) = D(x0w + z·qx, y0w + z·qy) − z0w − z, g′ = ∇D·(qx, qy) − 1."""
+    map: ``steps`` Newton steps from z_start on g(z) = D(x0w + z·qx, y0w + z·qy) − z0w − z,
+    g′ = ∇D·(qx, qy) − 1."""
     z = z_start
-    for _ in range(NEWTON_STEPS):
+    for _ in range(steps):
         _bilinear(data, 3, x0w + z * qx, y0w + z * qy, x0, inv_cell, sample)
         den = max(1.0 - sample[1] * qx - sample[2] * qy, MIN_SLOPE_DENOMINATOR)
         z = max(z + (sample[0] - z0w - z) / den, MIN_DEPTH_M)
@@ -330,7 +336,7 @@ def _node_backscatter(nqx, nqy, node_fg_z, x0w, y0w, z0w, z_start, data, x0, inv
         for gj in range(gw):
             z = node_fg_z[gi, gj]
             if z <= 0.0:
-                z = _intersect(data, x0, inv_cell, nqx[gj], nqy[gi], x0w, y0w, z0w, z_start, sample)
+                z = _intersect(data, x0, inv_cell, nqx[gj], nqy[gi], x0w, y0w, z0w, z_start, NEWTON_STEPS, sample)
             lv = min(max((math.log(z) - log_z0) * inv_dlog, 0.0), n_levels - 1.000001)
             l0 = int(lv)
             fl = lv - l0
@@ -350,6 +356,7 @@ def _shade(px, py, x0w, y0w, z0w, z_start, data, x0, inv_cell, fg_range, fg_norm
     with_ambient = amb_fraction > 0.0 or amb.max() > 0.0
     for i in prange(hs):
         sample = np.empty(n_layers)
+        z_prev = -1.0  # the row's last seabed node: the next one starts from it
         qy = py[i]
         gy = (i * step + 0.5 * (step - 1)) / node_px
         gi = min(int(gy), gh - 2)
@@ -364,7 +371,11 @@ def _shade(px, py, x0w, y0w, z0w, z_start, data, x0, inv_cell, fg_range, fg_norm
                 for k in range(n):
                     sample[3 + k] = fg_refl[i, j, k]
             else:
-                z = _intersect(data, x0, inv_cell, qx, qy, x0w, y0w, z0w, z_start, sample)
+                if z_prev > 0.0:
+                    z = _intersect(data, x0, inv_cell, qx, qy, x0w, y0w, z0w, z_prev, WARM_NEWTON_STEPS, sample)
+                else:
+                    z = _intersect(data, x0, inv_cell, qx, qy, x0w, y0w, z0w, z_start, FIRST_NEWTON_STEPS, sample)
+                z_prev = z
                 _bilinear(data, n_layers, x0w + z * qx, y0w + z * qy, x0, inv_cell, sample)
                 gn = math.sqrt(sample[1] * sample[1] + sample[2] * sample[2] + 1.0)
                 nxv, nyv, nzv = sample[1] / gn, sample[2] / gn, -1.0 / gn
@@ -450,14 +461,37 @@ def _expose(radiance, gain, exposure, dark_e, g_dn, read_dn2, key, top, pool, ou
 # numpy twins -------------------------------------------------------------------------
 
 def intersect_numpy(terrain: Terrain, qx: NDArray, qy: NDArray, x0w: float, y0w: float, z0w: float,
-                    z_start: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """numpy twin of ``_intersect`` for arrays of normalised image points: (z, layers at the hit)."""
-    z = np.full(np.broadcast(qx, qy).shape, float(z_start))
-    for _ in range(NEWTON_STEPS):
+                    z_start: float | NDArray, steps: int | NDArray = NEWTON_STEPS) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """numpy twin of ``_intersect`` for arrays of normalised image points: (z, layers at the hit);
+    z_start and steps may differ from point to point (arrays broadcasting with qx, qy)."""
+    shape = np.broadcast(qx, qy).shape
+    z = np.broadcast_to(np.asarray(z_start, dtype=np.float64), shape).copy()
+    steps = np.broadcast_to(steps, shape)
+    for k in range(int(steps.max(initial=0))):
         sample = terrain.sample(x0w + z * qx, y0w + z * qy)
         den = np.maximum(1.0 - sample[..., 1] * qx - sample[..., 2] * qy, MIN_SLOPE_DENOMINATOR)
-        z = np.maximum(z + (sample[..., 0] - z0w - z) / den, MIN_DEPTH_M)
+        z = np.where(k < steps, np.maximum(z + (sample[..., 0] - z0w - z) / den, MIN_DEPTH_M), z)
     return z, terrain.sample(x0w + z * qx, y0w + z * qy)
+
+
+def row_intersect_numpy(terrain: Terrain, qx: NDArray, qy: NDArray, x0w: float, y0w: float, z0w: float,
+                        z_start: float, foreground: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """numpy twin of ``_shade``'s intersections on the grid (hs, ws): along each row, a node not
+    in the ``foreground`` (hs, ws) starts from the row's last such node (WARM_NEWTON_STEPS), the
+    first from z_start (FIRST_NEWTON_STEPS); column by column, every row at once."""
+    hs, ws = foreground.shape
+    z = np.empty((hs, ws))
+    sample = None
+    z_prev = np.full(hs, -1.0)
+    for j in range(ws):
+        warm = z_prev > 0.0
+        zj, sj = intersect_numpy(terrain, qx[:, j], qy[:, j], x0w, y0w, z0w, np.where(warm, z_prev, z_start),
+                                 np.where(warm, WARM_NEWTON_STEPS, FIRST_NEWTON_STEPS))
+        if sample is None:
+            sample = np.empty((hs, ws, sj.shape[-1]))
+        z[:, j], sample[:, j] = zj, sj
+        z_prev = np.where(foreground[:, j], z_prev, zj)
+    return z, sample
 
 
 def node_backscatter_numpy(nqx, nqy, node_fg_z, x0w, y0w, z0w, z_start, terrain: Terrain, table, log_z0, inv_dlog, out):
@@ -477,7 +511,7 @@ def shade_numpy(px, py, x0w, y0w, z0w, z_start, terrain: Terrain, fg_range, fg_n
     """numpy twin of ``_shade`` (same arguments, the terrain as a :class:`Terrain`)."""
     qx, qy = np.broadcast_arrays(px[None, :], py[:, None])
     norm = np.sqrt(qx * qx + qy * qy + 1.0)
-    z, sample = intersect_numpy(terrain, qx, qy, x0w, y0w, z0w, z_start)
+    z, sample = row_intersect_numpy(terrain, qx, qy, x0w, y0w, z0w, z_start, fg_range > 0.0)
     gn = np.sqrt(sample[..., 1] ** 2 + sample[..., 2] ** 2 + 1.0)
     normal = np.stack([sample[..., 1] / gn, sample[..., 2] / gn, -1.0 / gn], axis=-1)
     d = z * norm
