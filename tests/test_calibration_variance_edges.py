@@ -149,3 +149,26 @@ def test_a_share_beyond_float32_stays_the_largest_float32_not_its_neighbours(mon
         share = RangeEstimator(profile).calibration_variance(frame, block=8)
     assert share[12, 12] > 1e38  # by block 1, 1 of the 8-pixel blocks (interpolated: near float32's largest)
     assert np.all(np.isfinite(share))
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32])
+@pytest.mark.parametrize("shape,size", [((64, 96, 3), (12, 8)), ((64, 96), (12, 8)), ((60, 90, 3), (11, 7)), ((32, 32, 3), (16, 16))])
+def test_block_means_are_the_mean_of_each_block(dtype, shape, size):
+    from uwcam.ranging import block_means
+
+    rng = np.random.default_rng(5)
+    top = 250 if dtype == np.uint8 else 60000
+    image = (rng.random(shape) * top).astype(dtype)
+    got = block_means(image, size).astype(np.float64)
+    assert got.shape[:2] == (size[1], size[0]) and block_means(image, size).dtype == dtype
+    h, w = shape[:2]
+    if h % size[1] == 0 and w % size[0] == 0:  # blocks of whole pixels: their plain means, written out
+        by, bx = h // size[1], w // size[0]
+        exact = image.astype(np.float64).reshape(size[1], by, size[0], bx, *shape[2:]).mean(axis=(1, 3))
+        # Integers: a rounding (≤ ½ DN) per halving, three halvings for blocks of 8; floats: float32's own.
+        tolerance = 0.5 * np.log2(by) if np.issubdtype(dtype, np.integer) else 1e-6 * top
+        assert np.abs(got - exact).max() <= tolerance
+    else:  # fractional blocks: OpenCV's area average itself
+        import cv2
+
+        np.testing.assert_array_equal(block_means(image, size), cv2.resize(image, size, interpolation=cv2.INTER_AREA))
