@@ -23,7 +23,7 @@ from uwcam.jit import HAVE_NUMBA, njit
 from uwcam.optics.geometry import pixel_rays
 from uwcam.optics.validity import Reason
 from uwcam.profile import CalibrationProfile
-from uwcam.ranging import RangeEstimator, RangeResult
+from uwcam.ranging import RangeEstimator, RangeResult, block_means
 
 BLOCK = 8
 """Side of the blocks (pixels) the backscatter is evaluated on."""
@@ -175,7 +175,7 @@ class BackscatterCompensator:
             est.set_attenuation_differences(attenuation_differences)
             est.set_log_constants(log_constants)
         coarse = (max(w // COARSE, 1), max(h // COARSE, 1))
-        small = cv2.resize(np.asarray(frame), coarse, interpolation=cv2.INTER_AREA)
+        small = block_means(np.asarray(frame), coarse)
         small_ambient = None if ambient is None else cv2.resize(ambient, coarse, interpolation=cv2.INTER_AREA)
         # The first pass subtracts the ambient light alone; without any, it is plain ranging (the
         # lookup-table kernel for integer frames: the same terms as with a zero background).
