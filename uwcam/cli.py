@@ -358,12 +358,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     import logging
     import os
 
-    # Worker threads of numba's OpenMP layer sleep when idle instead of spinning: the camera,
-    # the frame loop and the server share few cores. Must be set before numba starts OpenMP.
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    from uwcam.memory import return_large_blocks_to_the_system
+    from uwcam.memory import limit_malloc_arenas
 
-    return_large_blocks_to_the_system()  # before any thread allocates: see uwcam/memory.py
+    limit_malloc_arenas()  # before any thread allocates: see uwcam/memory.py
 
     import socket
 

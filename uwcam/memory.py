@@ -1,16 +1,22 @@
-"""Give memory the daemon no longer needs back to the operating system.
+"""Give memory the daemon no longer needs back to the operating system, without paying for it per frame.
 
 Three kinds of memory stay resident for no use unless handed back:
 
-* **Freed frame-sized blocks.** glibc serves a block above its mmap threshold with its own
-  mapping, returned to the system on free; but the threshold *rises* each time such a block is
-  freed (up to 32 MiB), after which frame-sized blocks come from per-thread heaps that fragment
-  and stay resident: snapshot hammering left the daemon ~110 MB above its baseline for good
-  (bench/bench_snapshots.py). :func:`return_large_blocks_to_the_system` fixes the threshold, once,
-  before any thread allocates.
+* **Frame-sized blocks in many heaps.** glibc gives each thread that allocates concurrently a heap
+  (an "arena") of its own, up to eight per core; frame-sized blocks freed in one and not reused
+  fragment them all, and snapshot hammering left the daemon ~110 MB above its baseline for good
+  (bench/bench_snapshots.py). :func:`limit_malloc_arenas` caps them at two, once, before any
+  thread allocates. Frame-sized blocks then come from those heaps and are reused frame after
+  frame. (An earlier cure, a fixed 256 kB mmap threshold so that every such block had a mapping of
+  its own returned on free, made each of a frame's ~60 MB of temporaries a fresh mapping to fault
+  in page by page and unmap again: ~17 ms of CPU per compensated 720p frame, and at 1080p60 a third
+  of a core and the loop's stalls past 50 ms. Measured with bench/bench_daemon.py: 1080p60 replay
+  24 → 14 ms of CPU per frame, p99 latency 68 → 32 ms; 720p with backscatter compensation
+  27 → 30 fps.)
 * **Free heap pages.** Whatever was free in the heaps at the busiest moment stays resident;
   :func:`release_free_memory`, called about once a second by the frame loop, hands free pages back
-  (``malloc_trim``); pages in use are untouched.
+  (``malloc_trim``); pages in use are untouched. After a burst of snapshot requests resident
+  memory comes back to within a few MB of its baseline.
 * **The compiler's code.** numba compiles (or loads from its cache) the kernels with LLVM, whose
   library is ~100 MB of machine code; loading it alone makes ~95 MB of it resident (its static
   initialisers are spread over the whole library), yet none of it runs once the kernels are
@@ -31,8 +37,8 @@ import sys
 
 log = logging.getLogger(__name__)
 
-M_MMAP_THRESHOLD = -3  # from glibc's malloc.h
-MMAP_THRESHOLD_BYTES = 256 * 1024
+M_ARENA_MAX = -8  # from glibc's malloc.h
+MALLOC_ARENAS = 2
 MADV_PAGEOUT = 21  # from Linux's mman-common.h (since 5.4)
 COMPILER_LIBRARIES = ("libllvmlite",)
 """Shared libraries whose code serves only to compile or load kernels (matched in the path)."""
@@ -62,13 +68,14 @@ _MALLOPT = _function("mallopt", ctypes.c_int, ctypes.c_int, ctypes.c_int)
 _MADVISE = _function("madvise", ctypes.c_int, ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int)
 
 
-def return_large_blocks_to_the_system(threshold: int = MMAP_THRESHOLD_BYTES) -> bool:
-    """Fix glibc's mmap threshold at ``threshold`` bytes; False where libc is not glibc."""
+def limit_malloc_arenas(arenas: int = MALLOC_ARENAS) -> bool:
+    """Let glibc keep at most ``arenas`` heaps for all threads; False where libc is not glibc.
+    Call it before threads allocate: arenas made already stay."""
     if _MALLOPT is None:  # musl, macOS: no mallopt, nothing to tune
         return False
-    ok = bool(_MALLOPT(M_MMAP_THRESHOLD, threshold))
+    ok = bool(_MALLOPT(M_ARENA_MAX, arenas))
     if not ok:
-        log.debug("mallopt(M_MMAP_THRESHOLD) refused")
+        log.debug("mallopt(M_ARENA_MAX) refused")
     return ok
 
 
