@@ -690,3 +690,43 @@ def test_an_off_acknowledged_while_frames_stay_lit_is_asked_again():
     finally:
         commander.stop()
     assert calls.count("off") >= 2 and pipeline.processed == 20  # asked again; every frame ranged
+
+
+def test_the_running_daemon_keeps_its_startup_objects_out_of_the_collectors_sight(tmp_path):
+    """`uwcam run` freezes what start-up made (gc.freeze) before it serves: full collections of
+    those ~10⁵ long-lived objects stopped every thread for ~50 ms, and a 60 fps loop skipped frames."""
+    import signal
+    import socket
+    import subprocess
+    import textwrap
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    config = tmp_path / "rig.yaml"
+    config.write_text(yaml.safe_dump({
+        "version": 1, "camera": {"driver": "sim", "options": {"fps": 10}},
+        "simulation": {"scene": "seabed", "distance": 2.0, "size": [96, 72], "water": "jerlov-IB"}}))
+    code = textwrap.dedent(f"""
+        import gc, os, signal, sys, threading, time, urllib.request
+
+        def probe():
+            while True:
+                try:
+                    urllib.request.urlopen("http://127.0.0.1:{port}/api/v1/status", timeout=2)
+                    break
+                except OSError:
+                    time.sleep(0.2)
+            print("frozen", gc.get_freeze_count(), flush=True)
+            os.kill(os.getpid(), signal.SIGTERM)  # an orderly stop, as systemd does
+
+        threading.Thread(target=probe, daemon=True).start()
+        from uwcam.cli import main
+        sys.exit(main(["run", "--config", {str(config)!r}, "--port", "{port}"]))
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=180,
+                         env={k: v for k, v in __import__("os").environ.items() if k != "UWCAM_TOKEN"})
+    frozen = [int(line.split()[1]) for line in out.stdout.splitlines() if line.startswith("frozen")]
+    assert frozen and frozen[0] > 10_000, (out.stdout[-1000:], out.stderr[-2000:])
+    # uvicorn stops in order, then lets the signal end the process as its default would.
+    assert out.returncode in (0, -signal.SIGTERM), out.stderr[-2000:]
