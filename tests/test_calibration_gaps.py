@@ -33,7 +33,6 @@ RHO_B = np.array([0.05, 0.04, 0.02])
 
 def _shift_any(mask: np.ndarray, r: int) -> np.ndarray:
     """Pixels with some pixel of ``mask`` within Chebyshev distance r."""
-    h, w = mask.shape
     out = np.zeros_like(mask)
     for y, x in zip(*np.nonzero(mask)):
         out[max(y - r, 0) : y + r + 1, max(x - r, 0) : x + r + 1] = True
