@@ -495,3 +495,88 @@ def test_fixed_pattern_of_a_black_patch_under_one_dn_enters_its_backscatter_vari
         pixel_var = noise.read_noise**2 + noise.shot_gain * e + (noise.fixed_pattern * e) ** 2
         expected = backscatter_at_black_patch(g.mean_frame, g.black, g.target, RHO_P * 1e-4, RHO_P, pixel_var)
         np.testing.assert_allclose(g.backscatter.variance, expected.variance, rtol=1e-9)
+
+
+# ---------------------------------------------------------------------------------------------
+# Absolute attenuation (--lamp-radius): the pixels every distance measured
+
+
+LAMP_R = 0.15
+
+
+def _uniform_lamp_frames(attenuation, lamp):
+    """No intrinsics (every pixel on the axis): uniform frames E = K·(r/(d_s + r))²·cos θ·exp(−c·(d + d_s))."""
+    out = []
+    for d in (1.0, 2.0):
+        ds = float(np.linalg.norm(np.array([0.0, 0.0, d]) - lamp))
+        cos = (d - lamp[2]) / ds
+        e = 5000.0 * RHO_P * (LAMP_R / (ds + LAMP_R)) ** 2 * cos * np.exp(-np.asarray(attenuation) * (d + ds))
+        out.append(np.ones(SHAPE + (3,)) * e)
+    return out
+
+
+def test_absolute_attenuation_without_per_pixel_rays_is_that_of_the_frames():
+    lamp = np.array([0.1, -0.05, 0.02])
+    c = np.array([0.4, 0.1, 0.05])
+    profile = calibrate_with_details(_uniform_lamp_frames(c, lamp), [1.0, 2.0],
+                                     _inputs(lamp_position_m=tuple(lamp), lamp_radius_m=LAMP_R)).profile
+    np.testing.assert_allclose(profile.array("attenuation"), c, rtol=1e-9)
+
+
+def test_a_negative_absolute_attenuation_is_stored_as_zero():
+    """Frames that fade slower than spreading allows (c < 0 in every channel: impossible water, a
+    lamp or distance error): the profile keeps c = 0, not a negative attenuation."""
+    lamp = np.zeros(3)
+    c = np.array([-0.05, -0.1, -0.2])
+    profile = calibrate_with_details(_uniform_lamp_frames(c, lamp), [1.0, 2.0],
+                                     _inputs(lamp_radius_m=LAMP_R)).profile
+    assert list(profile.array("attenuation")) == [0.0, 0.0, 0.0]
+
+
+def _reference_absolute(frames, distances, boxes, intr, lamp):
+    """The spreading- and incidence-corrected ln E of every pixel whose 5×5 box lies in its target box,
+    averaged (with the path length d_c + d_s) over the pixels both distances measured when they are 16
+    or more, else over each distance's own; c from the two points' slope."""
+    from uwcam.optics.geometry import pixel_rays
+
+    rays = pixel_rays(intr, *SHAPE)
+    masks = [_inside(_box(SHAPE, *b), 2) for b in boxes]
+    common = masks[0] & masks[1]
+    ys, ts = [], []
+    for f, d, m in zip(frames, distances, masks):
+        use = common if common.sum() >= 16 else m
+        y_list, t_list = [], []
+        for py, px in zip(*np.nonzero(use)):
+            e = f[py - 2 : py + 3, px - 2 : px + 3].mean(axis=(0, 1))
+            u = rays[py, px]
+            dc = d / u[2]
+            ds = np.linalg.norm(dc * u - lamp)
+            cos = (dc * u[2] - lamp[2]) / ds
+            y_list.append(np.log(e) + 2 * np.log(ds + LAMP_R) - np.log(cos))
+            t_list.append(dc + ds)
+        ys.append(np.mean(y_list, axis=0))
+        ts.append(np.mean(t_list))
+    return -(ys[1] - ys[0]) / (ts[1] - ts[0]), int(common.sum())
+
+
+@pytest.mark.parametrize("boxes, common", [([(10, 10, 20, 20), (22, 22, 16, 16)], 16),
+                                           ([(10, 10, 19, 21), (22, 22, 16, 16)], 15)])
+def test_absolute_attenuation_uses_the_pixels_in_common_from_sixteen_of_them(boxes, common):
+    """A beam pattern that depends on the pixel's direction (unknown to the calibration) cancels only over
+    the same pixels at every distance: with 16 or more in common those are used, with fewer each
+    distance's own (docs/calibration.md)."""
+    from tests.synthetic import plate_frame
+    from uwcam.optics import Intrinsics
+
+    intr = Intrinsics.from_fov(SHAPE[1], SHAPE[0], 50.0)
+    lamp = np.array([0.2, -0.15, 0.05])
+    c = np.array([0.46, 0.11, 0.06])
+    distances = [1.0, 1.5]
+    yy, xx = np.mgrid[0 : SHAPE[0], 0 : SHAPE[1]].astype(float)
+    beam = np.exp(-(((xx - 20.0) / 15.0) ** 2) - ((yy - 15.0) / 12.0) ** 2)[..., None]
+    frames = [plate_frame(d, c, np.full(3, 4e5), RHO_P, SHAPE, lamp, LAMP_R)[0] * beam for d in distances]
+    profile = calibrate_with_details(frames, distances, _inputs(target_boxes=boxes, intrinsics=intr, lamp_position_m=tuple(lamp),
+                                                                lamp_radius_m=LAMP_R)).profile
+    want, n = _reference_absolute(frames, distances, boxes, intr, lamp)
+    assert n == common and np.all(want > 0)
+    np.testing.assert_allclose(profile.array("attenuation"), want, rtol=1e-9)
