@@ -580,3 +580,15 @@ def test_absolute_attenuation_uses_the_pixels_in_common_from_sixteen_of_them(box
     want, n = _reference_absolute(frames, distances, boxes, intr, lamp)
     assert n == common and np.all(want > 0)
     np.testing.assert_allclose(profile.array("attenuation"), want, rtol=1e-9)
+
+
+def test_a_lamp_level_with_the_plate_gives_a_finite_profile():
+    """Grazing light (the lamp as far forward as the nearer plate: cos θ = 0 there) is clipped, not a log
+    of 0: the calibration still finishes with finite values and no warning."""
+    lamp = np.array([0.3, 0.0, 1.0])
+    frames = []
+    for d in (1.0, 2.0):
+        e = 5000.0 * RHO_P * np.exp(-np.array([0.4, 0.1, 0.05]) * 2 * d) + 10.0
+        frames.append(np.ones(SHAPE + (3,)) * e)
+    profile = calibrate_with_details(frames, [1.0, 2.0], _inputs(lamp_position_m=tuple(lamp), lamp_radius_m=LAMP_R)).profile
+    assert np.all(np.isfinite(profile.array("attenuation")))
