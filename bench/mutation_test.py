@@ -100,7 +100,8 @@ TARGETS: dict[str, Target] = {
                      exclude=("RangeEstimator.warm_up",)),
     "calibration": Target("uwcam/calibration.py", "tests/test_calibration_helpers.py tests/test_independent_calibration.py tests/test_calibration_details.py "
                                                   "tests/test_calibration_closed_forms.py "
-                                                  "tests/test_calibration.py tests/test_calibration_statistics.py"),
+                                                  "tests/test_calibration.py tests/test_calibration_statistics.py "
+                                                  "tests/test_calibration_gaps.py"),
     "api.security": Target("uwcam/api/security.py", "tests/test_security_rules.py tests/test_auth.py", annotations_inert=False),
     "api.session": Target("uwcam/api/session.py", "tests/test_auth.py", annotations_inert=False),
     "api.models": Target("uwcam/api/settings.py", "tests/test_api_validation.py",
