@@ -120,11 +120,11 @@ TARGETS: dict[str, Target] = {
     "optics.kernels": Target("uwcam/optics/kernels.py", "tests/test_numpy_path.py tests/test_optics_contracts.py "
                                                         "tests/test_ranging_contracts.py tests/test_independent_estimator.py "
                                                         "tests/test_independent_geometry.py tests/test_independent_validity.py "
-                                                        "-W ignore::RuntimeWarning",
+                                                        "tests/test_kernel_edges.py -W ignore::RuntimeWarning",
                              env={"NUMBA_DISABLE_JIT": "1"}),
     "optics.kernels_numba": Target("uwcam/optics/kernels_numba.py", "tests/test_independent_estimator.py tests/test_independent_geometry.py "
                                                                     "tests/test_independent_validity.py tests/test_backscatter_terms.py "
-                                                                    "-W ignore::RuntimeWarning",
+                                                                    "tests/test_kernel_edges.py -W ignore::RuntimeWarning",
                                    env={"NUMBA_DISABLE_JIT": "1"}),
 }
 
