@@ -96,7 +96,8 @@ TARGETS: dict[str, Target] = {
                                           "tests/test_backscatter_terms.py tests/test_calibration_variance_edges.py "
                                           "tests/test_vehicle_mask.py::test_range_frame_masks_before_smoothing_so_the_vehicle_lends_no_range "
                                           "tests/test_vehicle_mask.py::test_mask_marks_its_boxes_clipped_to_the_image_and_nothing_else "
-                                          "tests/test_ranging_contracts.py tests/test_calibration_variance_weights.py",
+                                          "tests/test_ranging_contracts.py tests/test_calibration_variance_weights.py "
+                                          "tests/test_ranging_block_size.py",
                      exclude=("RangeEstimator.warm_up",)),
     "calibration": Target("uwcam/calibration.py", "tests/test_calibration_helpers.py tests/test_independent_calibration.py tests/test_calibration_details.py "
                                                   "tests/test_calibration_closed_forms.py "
