@@ -97,7 +97,12 @@ TARGETS: dict[str, Target] = {
                                           "tests/test_vehicle_mask.py::test_range_frame_masks_before_smoothing_so_the_vehicle_lends_no_range "
                                           "tests/test_vehicle_mask.py::test_mask_marks_its_boxes_clipped_to_the_image_and_nothing_else "
                                           "tests/test_ranging_contracts.py tests/test_calibration_variance_weights.py "
-                                          "tests/test_ranging_block_size.py",
+                                          "tests/test_ranging_block_size.py "
+                                          "tests/test_exposure.py::test_a_channel_exposed_m_times_ranges_exactly_as_at_the_calibration_exposure "
+                                          "tests/test_exposure.py::test_integer_frames_at_other_exposures_use_the_same_correction_in_the_lookup_path "
+                                          "tests/test_exposure.py::test_the_variance_is_that_of_the_raw_counts "
+                                          "tests/test_exposure.py::test_gain_scales_the_signal_and_the_noise_in_counts "
+                                          "tests/test_exposure.py::test_bad_exposures_are_refused",
                      exclude=("RangeEstimator.warm_up",)),
     "calibration": Target("uwcam/calibration.py", "tests/test_calibration_helpers.py tests/test_independent_calibration.py tests/test_calibration_details.py "
                                                   "tests/test_calibration_closed_forms.py "
