@@ -84,12 +84,12 @@ class Target:
 
 
 TARGETS: dict[str, Target] = {
-    "optics.noise": Target("uwcam/optics/noise.py", "tests/test_independent_noise.py"),
+    "optics.noise": Target("uwcam/optics/noise.py", "tests/test_independent_noise.py tests/test_noise_model_terms.py"),
     "optics.transform": Target("uwcam/optics/transform.py", "tests/test_independent_estimator.py"),
     "optics.fusion": Target("uwcam/optics/fusion.py", "tests/test_independent_estimator.py"),
     "optics.reflectance": Target("uwcam/optics/reflectance.py", "tests/test_optics_contracts.py tests/test_independent_estimator.py"),
     "optics.geometry": Target("uwcam/optics/geometry.py", "tests/test_optics_contracts.py tests/test_independent_geometry.py"),
-    "optics.validity": Target("uwcam/optics/validity.py", "tests/test_independent_validity.py tests/test_validity.py"),
+    "optics.validity": Target("uwcam/optics/validity.py", "tests/test_independent_validity.py tests/test_validity.py tests/test_reason_codes.py"),
     "ranging": Target("uwcam/ranging.py", "tests/test_independent_estimator.py tests/test_independent_geometry.py "
                                           "tests/test_smoothing.py tests/test_independent_validity.py "
                                           "tests/test_estimator.py tests/test_statistics.py tests/test_calibration_statistics.py "
