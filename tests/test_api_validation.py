@@ -202,3 +202,16 @@ def test_refused_settings_name_the_field_and_reason_without_echoing_the_settings
     r = patch(server, {"path_length_bounds": [5.0, 1.0]})
     assert r.status_code == 422 and "min < max" in r.text
     assert all("input" not in error for error in r.json()["detail"]), r.text
+
+
+@pytest.mark.parametrize("pair, message", [
+    (["X" * 64, "G"], "pair needs two different channels"),  # 64 characters: checked against the profile's names
+    (["R", "X" * 64], "pair needs two different channels"),
+    (["X" * 65, "G"], "at most 64 characters"),  # longer: refused before any lookup
+    (["R", "X" * 65], "at most 64 characters"),
+])
+def test_pair_names_up_to_64_characters_are_looked_up_and_longer_ones_refused(server, pair, message):
+    before = server.http.get("/api/v1/config").json()
+    r = patch(server, {"pair": pair})
+    assert r.status_code == 422 and message in r.text, r.text
+    assert server.http.get("/api/v1/config").json() == before
