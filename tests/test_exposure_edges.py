@@ -43,3 +43,14 @@ def test_exposures_shorter_than_a_microsecond_are_accepted():
     est.set_exposure((0.5, 0.25, 0.5))  # half and a quarter of the calibration's light
     out = est(light * np.array([0.5, 0.25, 0.5]) + DARK)
     np.testing.assert_allclose(out.range, truth, rtol=1e-4)
+
+
+def test_gains_of_a_profile_without_its_own_gain_are_taken_as_ratios_between_channels():
+    """Gain not recorded at calibration: only the channels' gain differences count, 20·log10(2) dB
+    more in red is twice red's signal (the noise model stays as measured)."""
+    profile = profile_with((1000.0,) * 3, None, read_noise=READ, shot_gain=SHOT)
+    light, truth = scene(3.0)
+    est = RangeEstimator(profile)
+    est.set_exposure((1000.0,) * 3, (20 * np.log10(2.0) + 3.0, 3.0, 3.0))
+    out = est(light * np.array([2.0, 1.0, 1.0]) + DARK)
+    np.testing.assert_allclose(out.range, truth, rtol=1e-4)
