@@ -84,19 +84,25 @@ class Target:
 
 
 TARGETS: dict[str, Target] = {
-    "optics.noise": Target("uwcam/optics/noise.py", "tests/test_independent_noise.py"),
+    "optics.noise": Target("uwcam/optics/noise.py", "tests/test_independent_noise.py tests/test_noise_model_terms.py"),
     "optics.transform": Target("uwcam/optics/transform.py", "tests/test_independent_estimator.py"),
     "optics.fusion": Target("uwcam/optics/fusion.py", "tests/test_independent_estimator.py"),
     "optics.reflectance": Target("uwcam/optics/reflectance.py", "tests/test_optics_contracts.py tests/test_independent_estimator.py"),
     "optics.geometry": Target("uwcam/optics/geometry.py", "tests/test_optics_contracts.py tests/test_independent_geometry.py"),
-    "optics.validity": Target("uwcam/optics/validity.py", "tests/test_independent_validity.py tests/test_validity.py"),
+    "optics.validity": Target("uwcam/optics/validity.py", "tests/test_independent_validity.py tests/test_validity.py tests/test_reason_codes.py"),
     "ranging": Target("uwcam/ranging.py", "tests/test_independent_estimator.py tests/test_independent_geometry.py "
                                           "tests/test_smoothing.py tests/test_independent_validity.py "
                                           "tests/test_estimator.py tests/test_statistics.py tests/test_calibration_statistics.py "
                                           "tests/test_backscatter_terms.py tests/test_calibration_variance_edges.py "
                                           "tests/test_vehicle_mask.py::test_range_frame_masks_before_smoothing_so_the_vehicle_lends_no_range "
                                           "tests/test_vehicle_mask.py::test_mask_marks_its_boxes_clipped_to_the_image_and_nothing_else "
-                                          "tests/test_ranging_contracts.py tests/test_calibration_variance_weights.py",
+                                          "tests/test_ranging_contracts.py tests/test_calibration_variance_weights.py "
+                                          "tests/test_ranging_block_size.py "
+                                          "tests/test_exposure.py::test_a_channel_exposed_m_times_ranges_exactly_as_at_the_calibration_exposure "
+                                          "tests/test_exposure.py::test_integer_frames_at_other_exposures_use_the_same_correction_in_the_lookup_path "
+                                          "tests/test_exposure.py::test_the_variance_is_that_of_the_raw_counts "
+                                          "tests/test_exposure.py::test_gain_scales_the_signal_and_the_noise_in_counts "
+                                          "tests/test_exposure.py::test_bad_exposures_are_refused tests/test_exposure_edges.py",
                      exclude=("RangeEstimator.warm_up",)),
     "calibration": Target("uwcam/calibration.py", "tests/test_calibration_helpers.py tests/test_independent_calibration.py tests/test_calibration_details.py "
                                                   "tests/test_calibration_closed_forms.py "
@@ -121,11 +127,11 @@ TARGETS: dict[str, Target] = {
     "optics.kernels": Target("uwcam/optics/kernels.py", "tests/test_numpy_path.py tests/test_optics_contracts.py "
                                                         "tests/test_ranging_contracts.py tests/test_independent_estimator.py "
                                                         "tests/test_independent_geometry.py tests/test_independent_validity.py "
-                                                        "-W ignore::RuntimeWarning",
+                                                        "tests/test_kernel_edges.py -W ignore::RuntimeWarning",
                              env={"NUMBA_DISABLE_JIT": "1"}),
     "optics.kernels_numba": Target("uwcam/optics/kernels_numba.py", "tests/test_independent_estimator.py tests/test_independent_geometry.py "
                                                                     "tests/test_independent_validity.py tests/test_backscatter_terms.py "
-                                                                    "-W ignore::RuntimeWarning",
+                                                                    "tests/test_kernel_edges.py tests/test_background_kernel_edges.py -W ignore::RuntimeWarning",
                                    env={"NUMBA_DISABLE_JIT": "1"}),
 }
 

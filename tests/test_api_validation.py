@@ -179,3 +179,39 @@ def test_without_a_lamp_its_routes_say_so():
         assert r.status_code == 404 and r.json()["detail"] == "no lamp configured"
         r = s.http.patch("/api/v1/config", json={"lamp_off_interval": 4}, headers=AUTH)
         assert r.status_code == 422 and "lamp" in r.json()["detail"]
+
+
+def test_settings_at_their_upper_limits_are_accepted(server):
+    """The limits README.md states are inclusive through the API too: a vehicle mask of 64 boxes,
+    a lamp-off interval of 100000 frames."""
+    before = server.http.get("/api/v1/config").json()
+    try:
+        r = patch(server, {"vehicle_mask": [[i, 0, 1, 1] for i in range(64)]})
+        assert r.status_code == 200 and len(r.json()["vehicle_mask"]) == 64, r.text
+        assert patch(server, {"vehicle_mask": [[i, 0, 1, 1] for i in range(65)]}).status_code == 422
+        r = patch(server, {"lamp_off_interval": 100000})
+        assert r.status_code == 200 and r.json()["lamp_off_interval"] == 100000, r.text
+    finally:
+        patch(server, {"vehicle_mask": before["vehicle_mask"], "lamp_off_interval": before["lamp_off_interval"]})
+    assert server.http.get("/api/v1/config").json() == before
+
+
+def test_refused_settings_name_the_field_and_reason_without_echoing_the_settings(server):
+    """A rule over the merged settings (min < max) fails on the whole settings object: the answer
+    names the rule, and does not send back every setting as the offending input."""
+    r = patch(server, {"path_length_bounds": [5.0, 1.0]})
+    assert r.status_code == 422 and "min < max" in r.text
+    assert all("input" not in error for error in r.json()["detail"]), r.text
+
+
+@pytest.mark.parametrize("pair, message", [
+    (["X" * 64, "G"], "pair needs two different channels"),  # 64 characters: checked against the profile's names
+    (["R", "X" * 64], "pair needs two different channels"),
+    (["X" * 65, "G"], "at most 64 characters"),  # longer: refused before any lookup
+    (["R", "X" * 65], "at most 64 characters"),
+])
+def test_pair_names_up_to_64_characters_are_looked_up_and_longer_ones_refused(server, pair, message):
+    before = server.http.get("/api/v1/config").json()
+    r = patch(server, {"pair": pair})
+    assert r.status_code == 422 and message in r.text, r.text
+    assert server.http.get("/api/v1/config").json() == before

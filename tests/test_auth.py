@@ -141,6 +141,17 @@ def sign_in(s: Server) -> tuple[str, str]:
     return cookie, r.json()["csrf_token"]
 
 
+def test_the_session_cookie_lasts_as_long_as_a_session_may(server):
+    """docs/api.md: a session ends after 12 hours without use or 7 days in all. The daemon ends
+    idle sessions itself; the cookie must not end first, or a browser in use would lose its
+    session 12 hours after signing in."""
+    r = server.http.post(SESSION_PATH, json={"token": TOKEN})
+    server.http.cookies.clear()
+    assert r.status_code == 200, r.text
+    max_age = re.search(r"max-age=(\d+)", r.headers["set-cookie"].lower())
+    assert max_age and int(max_age.group(1)) == 7 * 24 * 3600
+
+
 def test_browser_session_with_csrf_header_is_accepted_and_without_it_refused(server):
     cookie, csrf = sign_in(server)
     other_cookie, other_csrf = sign_in(server)

@@ -15,7 +15,9 @@ import time
 from uwcam.api.security import SESSION_PATH, Guard
 
 router = APIRouter(prefix=SESSION_PATH, tags=["session"])
-COOKIE_MAX_AGE_S = 12 * 3600
+# The cookie lasts as long as a session may (Sessions' lifetime, 7 days); the daemon itself ends a
+# session after 12 h without use. A cookie of 12 h from sign-in would end a session in use.
+COOKIE_MAX_AGE_S = 7 * 24 * 3600
 
 
 class SignIn(BaseModel):
