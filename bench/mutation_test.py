@@ -131,7 +131,7 @@ TARGETS: dict[str, Target] = {
                              env={"NUMBA_DISABLE_JIT": "1"}),
     "optics.kernels_numba": Target("uwcam/optics/kernels_numba.py", "tests/test_independent_estimator.py tests/test_independent_geometry.py "
                                                                     "tests/test_independent_validity.py tests/test_backscatter_terms.py "
-                                                                    "tests/test_kernel_edges.py tests/test_background_kernel_edges.py -W ignore::RuntimeWarning",
+                                                                    "tests/test_kernel_edges.py tests/test_background_kernel_edges.py tests/test_kernel_log.py -W ignore::RuntimeWarning",
                                    env={"NUMBA_DISABLE_JIT": "1"}),
 }
 

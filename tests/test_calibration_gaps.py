@@ -436,6 +436,70 @@ def test_backscatter_counts_as_measured_above_a_thousandth_of_the_plates_light(f
     assert got is measured
 
 
+class EqualToAnything:
+    """A bound equal to whatever it is compared with: a value exactly at its bound, which no real
+    data's rounding gives on demand. Python asks it when a float cannot compare with it."""
+
+    def __lt__(self, other):
+        return False
+
+    def __gt__(self, other):
+        return False
+
+    def __le__(self, other):
+        return True
+
+    def __ge__(self, other):
+        return True
+
+    def __eq__(self, other):
+        return True
+
+    __hash__ = None
+
+
+def test_a_chi2_exactly_at_its_bound_does_not_scale_the_covariance(monkeypatch):
+    """Scaled by χ² only when χ² *exceeds* its 5 % bound (docs/calibration.md)."""
+    from uwcam import calibration
+
+    d = np.array([1.0, 2.0, 3.0, 4.0])
+    c = np.array([0.0, -0.3, -0.4])  # V of G and B against R
+    ln_e = np.array([[8.0, 8.0 + 0.2, 8.0 + 0.5]]) + np.outer(d, c) + np.array([[0, 0.01, -0.02], [0, -0.02, 0.01],
+                                                                            [0, 0.015, 0.0], [0, -0.005, 0.01]])
+    variance = np.full_like(ln_e, 1e-5)  # far less than the scatter: χ² ≫ 1
+
+    def fit(bound):
+        monkeypatch.setattr(calibration, "chi2_upper", lambda dof, z=1.645: bound)
+        return calibration.fit_attenuation_differences(ln_e, d, 0, variance).covariance
+
+    unscaled, scaled = fit(np.inf), fit(0.0)
+    assert not np.allclose(unscaled, scaled)  # the scaling is live: χ² > 1 here
+    np.testing.assert_array_equal(fit(EqualToAnything()), unscaled)
+
+
+@pytest.mark.parametrize("rule", ["five sigma", "a thousandth"])
+def test_backscatter_exactly_at_a_threshold_does_not_count_as_measured(rule, monkeypatch):
+    """The rules are strict: more than 5σ and more than 0.1 % of the plate's light. The patch's
+    measurement is replaced by exactly representable values at one threshold, far beyond the other."""
+    from dataclasses import replace
+
+    from uwcam import calibration
+
+    real = calibration.backscatter_at_black_patch
+
+    def at_threshold(*args, **kwargs):
+        e = real(*args, **kwargs)
+        n = e.level.shape[0]
+        if rule == "five sigma":  # 1000 = 5·√40000 exactly; ≫ 0.1 % of any plate light here
+            return replace(e, level=np.full(n, 1000.0), variance=np.full(n, 40000.0))
+        # 0.001 = 0.001·e⁰ exactly (the plate's ln light set to 0); 5σ = 5e-6
+        return replace(e, level=np.full(n, 0.001), variance=np.full(n, 1e-12), plate_log=np.zeros(n))
+
+    monkeypatch.setattr(calibration, "backscatter_at_black_patch", at_threshold)
+    got, _ = _measured(np.zeros((2, 3)), 1.0)
+    assert got is False
+
+
 # ---------------------------------------------------------------------------------------------
 # Signals below 1 DN and below 0
 

@@ -148,3 +148,20 @@ def test_pixels_without_a_range_take_the_largest_share_among_their_neighbours(si
             reach = np.maximum(np.abs(np.arange(4)[:, None] - i), np.abs(np.arange(4)[None, :] - j))
             within = ranged & (reach == reach[ranged].min())
             assert got[i, j] == pytest.approx(share[within].max(), rel=1e-6), (i, j)
+
+
+def test_blocks_more_than_three_blocks_from_any_range_get_no_share():
+    """block=1, a 7×7 frame ranged along its top row only: rows 1–3 take the largest share within
+    their reach on that row (docs/calibration.md), rows 4–6, more than three blocks away, none."""
+    read, gain = 5.0, 0.3
+    profile = covariance_profile(read_noise=read, shot_gain=gain)
+    path = np.repeat(np.array([5.0, 2.0, 3.0, 4.5, 2.5, 3.5, 4.0])[None], 7, axis=0)
+    e = 4e4 * np.exp(-C * path[..., None])
+    ranged = np.zeros((7, 7), bool)
+    ranged[0] = True
+    got = RangeEstimator(profile).calibration_variance(np.where(ranged[..., None], e, 0.0), block=1)
+    share = reference(profile, e, e, np.ones(e.shape, bool), read**2, gain, 1.0)[0]
+    for i in range(1, 4):  # reach i on the top row: columns j − i … j + i
+        for j in range(7):
+            assert got[i, j] == pytest.approx(share[max(j - i, 0):j + i + 1].max(), rel=1e-6), (i, j)
+    assert np.all(got[4:] == 0.0)
