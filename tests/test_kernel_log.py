@@ -64,3 +64,17 @@ def test_a_strided_frame_with_a_background_ranges_as_its_contiguous_copy():
     np.testing.assert_array_equal(a.reasons, b.reasons)
     np.testing.assert_array_equal(a.range, b.range)
     assert np.isfinite(a.range).mean() > 0.2 and len(np.unique(a.reasons)) >= 2  # valid and invalid pixels compared
+
+
+@pytest.mark.skipif(kernels.fuse_background is None, reason="numba is not installed: no compiled kernel to test")
+def test_ln_within_three_and_a_half_units_in_the_last_place_around_one():
+    """Over the binade around 1 (and √2·2^k), where ln x is the series alone (plus k·ln 2), the float32
+    result is within 3.5 units in its last place of the exact value: each of the series' terms
+    matters at that precision (a coefficient off by one in its denominator costs ~8 units)."""
+    x = np.linspace(np.float32(0.70710677), np.float32(1.4142135), 200_001).astype(np.float32)
+    x = np.unique(np.concatenate([x, np.float32(1.4142135) * np.float32(2.0) ** np.arange(-20, 21, dtype=np.float32)]))
+    x = x[x != 1.0]  # ln 1 = 0 exactly: no unit in the last place to measure by
+    got = ln_row(list(x.astype(np.float64)))
+    exact = np.log(x.astype(np.float64))
+    ulp = np.spacing(np.abs(exact).astype(np.float32)).astype(np.float64)
+    assert np.max(np.abs(got.astype(np.float64) - exact) / ulp) <= 3.5
