@@ -321,6 +321,9 @@ def test_controls_without_a_token(server, browser):
         assert abs(server.daemon.lamp.last_status.percent - 85) < 1
     finally:
         page.close()
+        # The module's other tests expect the lamp at full intensity (σ of the scene, the readout).
+        server.http.put("/api/v1/lamp", json={"intensity": 100})
+        assert wait_for(lambda: abs(server.daemon.lamp.last_status.percent - 100) < 1, 10.0)
 
 
 # ---------------------------------------------------------------- behind BlueOS's reverse proxy

@@ -90,6 +90,27 @@ async function change(what, path, options) {
   }
 }
 
+// Lamp intensity: one request at a time, the newest value sent last. A slider dragged across
+// fires change after change; requests in flight together may be applied in any order (the API
+// serves them on several threads), and the lamp would stay at whichever came last rather than
+// where the slider stopped.
+let intensityInFlight = false;
+let intensityWanted = null;
+async function sendIntensity(value) {
+  intensityWanted = value;
+  if (intensityInFlight) return;
+  intensityInFlight = true;
+  try {
+    while (intensityWanted !== null) {
+      const v = intensityWanted;
+      intensityWanted = null;
+      await change("Lamp intensity", "api/v1/lamp", { method: "PUT", body: { intensity: v } });
+    }
+  } finally {
+    intensityInFlight = false;
+  }
+}
+
 // ---------------------------------------------------------------- sign-in
 
 function renderAuth() {
@@ -632,7 +653,7 @@ function wireControls() {
   $("lamp-on").onclick = () => change("Lamp on", "api/v1/lamp", { method: "PUT", body: { on: true } });
   $("lamp-off").onclick = () => change("Lamp off", "api/v1/lamp", { method: "PUT", body: { on: false } });
   $("lamp-intensity").oninput = () => { $("lamp-intensity-value").textContent = $("lamp-intensity").value; };
-  $("lamp-intensity").onchange = () => change("Lamp intensity", "api/v1/lamp", { method: "PUT", body: { intensity: Number($("lamp-intensity").value) } });
+  $("lamp-intensity").onchange = () => sendIntensity(Number($("lamp-intensity").value));
   $("pair").onchange = () => {
     const v = $("pair").value;
     patchConfig("Channels", v === "fuse" ? { fuse: true } : { pair: v.split(",") });
