@@ -111,7 +111,7 @@ class BackscatterCompensator:
         # Each pixel's own response (several open-water frames), at full and at the coarse resolution.
         response = self.model.response
         self._response = None if response is None else response.astype(np.float32)
-        coarse = (max(w // COARSE, 1), max(h // COARSE, 1))
+        self._coarse_size = coarse = (max(w // COARSE, 1), max(h // COARSE, 1))  # (w, h)
         self._response_coarse = None if response is None else cv2.resize(
             self._response, coarse, interpolation=cv2.INTER_AREA).reshape(coarse[1], coarse[0], -1)
         # Once backscatter is subtracted, the floor that stays is the black patch's own noise
@@ -126,8 +126,8 @@ class BackscatterCompensator:
         coarse_profile = compensated
         if intr is not None:
             f = COARSE
-            coarse_profile = compensated.model_copy(update={"intrinsics": {"fx": intr.fx / f, "fy": intr.fy / f,
-                                                                  "cx": (intr.cx + 0.5) / f - 0.5, "cy": (intr.cy + 0.5) / f - 0.5}})
+            coarse_profile = compensated.model_copy(update={"intrinsics": {
+                "fx": intr.fx / f, "fy": intr.fy / f, "cx": (intr.cx + 0.5) / f - 0.5, "cy": (intr.cy + 0.5) / f - 0.5}})
         self._coarse = RangeEstimator(coarse_profile, calibration_variance=False, **options)
         self._axis_cos_coarse = cv2.resize(self._axis_cos, coarse, interpolation=cv2.INTER_AREA)
         for est in (self.estimator, self._coarse):  # compiled (or loaded from the cache) now, not mid-frame
@@ -150,7 +150,7 @@ class BackscatterCompensator:
             block_depth = np.where(count > 0.05, depth_sum / count, np.nan)
         fraction = self.model.fraction(block_depth, self._rows, self._cols, self._corners)
         small = (self._pattern * fraction * scale).astype(np.float32)
-        size = (max(w // COARSE, 1), max(h // COARSE, 1)) if coarse else (w, h)
+        size = self._coarse_size if coarse else (w, h)
         out = cv2.resize(small, size, interpolation=cv2.INTER_LINEAR).reshape(size[1], size[0], -1)
         response = self._response_coarse if coarse else self._response
         if response is not None:
@@ -174,9 +174,8 @@ class BackscatterCompensator:
         for est in (self.estimator, self._coarse):
             est.set_attenuation_differences(attenuation_differences)
             est.set_log_constants(log_constants)
-        coarse = (max(w // COARSE, 1), max(h // COARSE, 1))
-        small = block_means(np.asarray(frame), coarse)
-        small_ambient = None if ambient is None else cv2.resize(ambient, coarse, interpolation=cv2.INTER_AREA)
+        small = block_means(np.asarray(frame), self._coarse_size)
+        small_ambient = None if ambient is None else cv2.resize(ambient, self._coarse_size, interpolation=cv2.INTER_AREA)
         # The first pass subtracts the ambient light alone; without any, it is plain ranging (the
         # lookup-table kernel for integer frames: the same terms as with a zero background).
         result = self._coarse(small, background=small_ambient)
