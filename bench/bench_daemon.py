@@ -14,12 +14,14 @@ latency from capture to WebSocket send (from the stream's own header), daemon CP
 memory (RSS, sampled every second; the peak is printed).
 
     python3 bench/bench_daemon.py [--seconds 30] [--fps 60] [--rigs replay,sim,sim-backscatter] [--frames 8] [--startup-seconds 20]
-                                  [--record FOLDER]
+                                  [--record FOLDER [--record-raw-only] [--compression lz4|zstd|none]]
 
 --record FOLDER: the replay rig records the whole run into FOLDER (MCAP, every topic) as
 `uwcam run --record` does; the recorder's own figures (frames written and dropped, MB written)
 are printed. Give a folder on the disk the vehicle would record to (a tmpfs measures the CPU
-cost alone); it must have room for the run.
+cost alone); it must have room for the run. --record-raw-only records the raw frames and what
+`uwcam reprocess` needs to range them again, not the results (recording.results: false);
+--compression sets recording.compression.
 
 sim-backscatter: the embedded default with backscatter compensation switched on through the API
 as soon as the daemon answers; with "sim" in the same run, the ratio of the two is printed.
@@ -66,7 +68,8 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def write_replay_rig(folder: str, size: tuple[int, int], fps: float, frames: int, port: int) -> str:
+def write_replay_rig(folder: str, size: tuple[int, int], fps: float, frames: int, port: int,
+                     recording: dict | None = None) -> str:
     """Frames, a matching calibration profile and a configuration for the replay camera; returns the config path."""
     import yaml
 
@@ -92,6 +95,7 @@ def write_replay_rig(folder: str, size: tuple[int, int], fps: float, frames: int
             "camera": {"driver": "replay", "options": {"source": os.path.join(folder, "frames"), "fps": float(fps)}},
             "calibration": os.path.join(folder, "profile.yaml"),
             "api": {"host": "127.0.0.1", "port": port, "stream_rate_hz": 120.0},
+            **({"recording": recording} if recording else {}),
         }, fh)
     return cfg
 
@@ -209,6 +213,8 @@ def main() -> None:
     parser.add_argument("--rigs", default="replay,sim", help="which rigs to run, comma-separated")
     parser.add_argument("--startup-seconds", type=float, default=20.0, help="start-up window")
     parser.add_argument("--record", metavar="FOLDER", help="the replay rig records into this folder (MCAP)")
+    parser.add_argument("--record-raw-only", action="store_true", help="record without the results (recording.results: false)")
+    parser.add_argument("--compression", choices=("lz4", "zstd", "none"), help="recording.compression")
     args = parser.parse_args()
     global STARTUP_S
     STARTUP_S = args.startup_seconds
@@ -218,13 +224,16 @@ def main() -> None:
     if "replay" in rigs:
         with tempfile.TemporaryDirectory() as tmp:
             port = free_port()
-            cfg = write_replay_rig(tmp, (w, h), args.fps, args.frames, port)
+            recording = {**({"results": False} if args.record_raw_only else {}),
+                         **({"compression": args.compression} if args.compression else {})}
+            cfg = write_replay_rig(tmp, (w, h), args.fps, args.frames, port, recording)
             record = []
             if args.record:
                 record = ["--record", os.path.join(os.path.abspath(args.record), f"bench-{time.strftime('%Y%m%dT%H%M%S')}.mcap")]
             r = measure(["--config", cfg, *record], port, args.seconds)
         report(f"replay {w}x{h}x3 uint16 at {args.fps:g} fps (a real-rig configuration"
-               f"{', recording' if record else ''})", r, args.seconds, args.fps)
+               f"{', recording' if record else ''}{' raw frames only' if args.record_raw_only else ''}"
+               f"{', ' + args.compression if record and args.compression else ''})", r, args.seconds, args.fps)
     sim = {}
     if "sim" in rigs:
         port = free_port()

@@ -164,6 +164,44 @@ def test_reprocess_with_the_recorded_profile_reproduces_the_recorded_depth(dive,
         reprocess([dive["path"]], out, progress=False)
 
 
+def test_a_raw_only_recording_has_no_results_and_reprocesses_to_the_live_depth(tmp_path):
+    """recording.results: false writes the raw frames, their metadata and the ranging records but
+    no depth, variance or reasons; reprocessing it makes the depth the loop published live (range
+    along each ray times u_z, computed here from the intrinsics), and reading it back needs no
+    more than what was written."""
+    published = {}
+    keep = lambda p: published.setdefault(int(p.frame.wall_time * 1e9), p.result.range.copy())  # noqa: E731
+    path = str(tmp_path / "raw.mcap")
+    with running(recording_config(tmp_path, results=False)) as d:
+        d.pipeline.subscribe(keep)
+        d.recorder.start(path)
+        assert wait_for(lambda: d.recorder.status()["frames_written"] >= 20, 60.0)
+        final = d.recorder.stop()
+        d.pipeline.unsubscribe(keep)
+        profile = d.pipeline.profile
+    fh, reader = stock(path)
+    with fh:
+        topics = {ch.topic for ch in reader.get_summary().channels.values()}
+    assert {rec.IMAGE, rec.IMAGE_METADATA, rec.RANGING, rec.CALIBRATION} <= topics
+    assert not topics & {rec.DEPTH, rec.VARIANCE, rec.REASONS}
+    meta = dict(decoded(path, rec.IMAGE_METADATA))
+    assert len(meta) == final["frames_written"] and final["frames_dropped"] == 0
+    ranged = sorted(t for t, m in meta.items() if m["ranged"] == "ranged")
+    assert sorted(t for t, _ in decoded(path, rec.RANGING)) == ranged
+
+    out = str(tmp_path / "ranged.mcap")
+    reprocess([path], out, progress=False)
+    depth = dict(decoded(out, rec.DEPTH))
+    assert sorted(depth) == ranged
+    intr = profile.camera_intrinsics()
+    y, x = np.mgrid[0:120, 0:160]
+    uz = 1.0 / np.sqrt(1.0 + ((x - intr.cx) / intr.fx) ** 2 + ((y - intr.cy) / intr.fy) ** 2)
+    checked = [t for t in ranged if t in published]
+    assert len(checked) >= 15
+    for t in checked:
+        np.testing.assert_allclose(image(depth[t]), published[t] * uz, rtol=1e-6, equal_nan=True)
+
+
 def test_reprocess_with_another_profile(dive, tmp_path):
     """A profile file with the same calibration under another name: the recorded corrections are
     carried over relative to it, so the depth is the recorded one to rounding."""

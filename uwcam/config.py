@@ -242,10 +242,15 @@ class RecordingConfig(Strict):
     """Most megabytes of frames (raw frame, range, variance, reasons) waiting for the disk: at
     1920×1080 a frame and its results are 31 MB, so this, not queue_frames, bounds the memory
     a slow disk can take; beyond it the oldest is dropped and counted."""
+    results: bool = True
+    """Record each ranged frame's depth, variance and reasons too (19 MB of a 1920×1080 16-bit
+    frame's 31 MB). False: the raw frames with their metadata, the ranging records and the
+    ambient light only, from which ``uwcam reprocess`` makes depth, variance and reasons bit for
+    bit; what a disk that cannot take every frame's results at full rate needs."""
     compression: Literal["lz4", "zstd", "none"] = "lz4"
-    """Compression of each MCAP chunk. lz4 keeps up with 1080p60 on one core; zstd makes files
-    about a third smaller but costs ~9× the CPU (~140 MB/s on one core here: it drops frames
-    beyond about 720p at 10 fps); none only copies."""
+    """Compression of each MCAP chunk. lz4 costs little more than a copy; zstd makes files about
+    a third smaller but costs ~9× the CPU (~140 MB/s on one core here: it drops frames beyond
+    about 720p at 10 fps); none only copies."""
     chunk_kb: Annotated[FiniteFloat, Field(ge=16, le=65536)] = 1024
     """MCAP chunk size: a crash loses at most the chunk being filled; reprocessing splits at chunks."""
     status_interval_s: Annotated[FiniteFloat, Field(gt=0, le=3600)] = 1.0

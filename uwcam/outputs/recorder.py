@@ -369,6 +369,8 @@ class Recorder:
             c = p.ambient.shape[-1]
             f.write(rec.AMBIENT, "foxglove.RawImage", rec.raw_image(p.ambient.astype(np.float32), t, f"32FC{c}"), t)
         f.write_json(rec.RANGING, ranging_record(p, profile, processing), t)
+        if not self.config.results:
+            return
         depth, variance = to_depth(p.result.range, p.result.variance, self._uz)
         f.write(rec.DEPTH, "foxglove.RawImage", rec.raw_image(depth, t, "32FC1"), t)
         f.write(rec.VARIANCE, "foxglove.RawImage", rec.raw_image(variance, t, "32FC1"), t)
