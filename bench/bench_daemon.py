@@ -33,6 +33,7 @@ import argparse
 import asyncio
 import json
 import os
+import struct
 import subprocess
 import sys
 import tempfile
@@ -44,7 +45,11 @@ import websockets
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
-from uwcam.api import HEADER  # noqa: E402
+# The stream's header as docs/api.md gives it. The measuring process imports nothing of uwcam's
+# (the rig is written by a child process): a process here that loaded numba would share the
+# compiler library's pages with the daemon, which then cannot drop them (madvise MADV_PAGEOUT
+# leaves shared pages alone) and would show ~40 MB more resident memory than it has alone.
+HEADER = struct.Struct("<4sIqqHHB3xf")
 
 STARTUP_S = 20.0  # the start-up window, changed by --startup-seconds
 
@@ -205,6 +210,9 @@ def report(name: str, r: dict, seconds: float, fps: float | None) -> None:
 
 
 def main() -> None:
+    if sys.argv[1:2] == ["--write-rig"]:
+        write_replay_rig(*json.loads(sys.argv[2]))
+        return
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=30.0, help="measured after the 20 s start-up window")
     parser.add_argument("--fps", type=float, default=60.0, help="replay frame rate")
@@ -226,7 +234,10 @@ def main() -> None:
             port = free_port()
             recording = {**({"results": False} if args.record_raw_only else {}),
                          **({"compression": args.compression} if args.compression else {})}
-            cfg = write_replay_rig(tmp, (w, h), args.fps, args.frames, port, recording)
+            # In a child process: see HEADER above.
+            subprocess.run([sys.executable, __file__, "--write-rig", json.dumps(
+                [tmp, [w, h], args.fps, args.frames, port, recording])], check=True)
+            cfg = os.path.join(tmp, "rig.yaml")
             record = []
             if args.record:
                 record = ["--record", os.path.join(os.path.abspath(args.record), f"bench-{time.strftime('%Y%m%dT%H%M%S')}.mcap")]

@@ -11,7 +11,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import tifffile
 from numpy.typing import NDArray
 
 from uwcam.fileio import UserInputError, atomic_write
@@ -37,6 +36,7 @@ def read_frame(path: str | os.PathLike[str]) -> NDArray:
         if suffix == ".npy":
             frame = np.load(p, allow_pickle=False)
         elif suffix in (".tif", ".tiff"):
+            import tifffile  # only when a TIFF is read or written: ~2 MB of the daemon's memory
             frame = tifffile.imread(p)
             # Planar TIFFs store (C, H, W); a small leading axis with a larger last one is planar.
             if frame.ndim == 3 and frame.shape[0] <= 16 and frame.shape[-1] > 16:
@@ -73,6 +73,7 @@ def write_map(path: str | os.PathLike[str], data: NDArray) -> None:
         if suffix == ".npy":
             np.save(fh, data, allow_pickle=False)
         else:
+            import tifffile  # only when a TIFF is read or written: ~2 MB of the daemon's memory
             tifffile.imwrite(fh, data)
 
 

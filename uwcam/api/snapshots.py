@@ -7,7 +7,6 @@ from typing import Annotated, Literal
 
 import cv2
 import numpy as np
-import tifffile
 from fastapi import APIRouter, Depends, HTTPException, Query
 from fastapi.responses import Response
 
@@ -33,6 +32,7 @@ def array_response(data: np.ndarray, format: str, headers: dict) -> Response:
     # Three samples per pixel are stored as RGB only for the colour image; other arrays (normals)
     # as plain samples.
     rgb = data.ndim == 3 and data.shape[2] == 3 and data.dtype.kind == "u"
+    import tifffile  # only when a TIFF is read or written: ~2 MB of the daemon's memory
     tifffile.imwrite(buf, data, photometric="rgb" if rgb else "minisblack")
     return Response(buf.getvalue(), media_type="image/tiff", headers=headers)
 

@@ -94,6 +94,9 @@ async def _serve(ws: WebSocket, rate: float, encoding: str) -> None:
 
     async def send_frame(published: Published) -> None:
         data = await asyncio.to_thread(encode_range, published, encoding)  # a 1080p map: off the loop
+        # Sending may outlast the frame's turn as the newest: the frame (a 1080p one, raw and
+        # results, is 31 MB) is not kept alive for it, only the encoded map.
+        del published
         await ws.send_bytes(data)
 
     def telemetry() -> str:
@@ -123,10 +126,11 @@ async def _serve(ws: WebSocket, rate: float, encoding: str) -> None:
                 next_telemetry = now + 0.1
                 in_flight = asyncio.create_task(ws.send_text(telemetry()))
                 continue
-            published = b.latest
-            if published is not None and published.number != last_sent and now >= next_frame:
-                last_sent, next_frame = published.number, now + period
-                in_flight = asyncio.create_task(send_frame(published))
+            if b.latest is not None and b.latest.number != last_sent and now >= next_frame:
+                newest = b.latest  # read once: the loop's thread replaces it at any time
+                last_sent, next_frame = newest.number, now + period
+                in_flight = asyncio.create_task(send_frame(newest))
+                del newest  # held by the task alone, and only until it is encoded
     except (WebSocketDisconnect, RuntimeError, OSError):
         return
     finally:
