@@ -408,6 +408,8 @@ class FramePipeline:
         self._open_water_capture: str | None = None
         """How the last open-water request ended (None: none made)."""
         self._compensation_ms: collections.deque[float] = collections.deque(maxlen=100)
+        self._frame_shape: tuple[int, ...] | None = None
+        """(H, W, N) of the last frame taken, for building the compensator before it is needed."""
         self._lock = threading.Lock()  # guards configuration swaps and the published result
         self._apply(processing, profile)
         self.previous_processing: ProcessingConfig | None = None
@@ -459,6 +461,11 @@ class FramePipeline:
         # Compile or load the kernels and build lookup tables here, in the caller's thread (start-up
         # or an API request), not on the loop's first frame, which would stall it for seconds.
         estimator.warm_up(background=bool(processing.lamp_off_interval))
+        # So is the backscatter compensator (0.3-0.6 s at 720p: 10-17 frames of a 30 fps loop)
+        # once frames have come; before that, the loop builds it on the first frame.
+        water, compensator = self.open_water, None
+        if processing.backscatter is not None and self._frame_shape is not None:
+            compensator = self._make_compensator(processing, profile, self._frame_shape, water)
         with self._lock:  # one swap: a frame sees the old set or the new set, never a mix
             self.profile = profile
             self.processing = processing
@@ -468,7 +475,8 @@ class FramePipeline:
             self.orientation = orientation
             self.exposure = exposure
             self._hdr = hdr
-            self._compensator = None  # rebuilt for the new profile and settings on the next frame
+            # An open-water frame taken meanwhile makes the one built here stale: the loop builds anew.
+            self._compensator = compensator if self.open_water is water else None
 
     def check(self, processing: ProcessingConfig | None = None, profile: CalibrationProfile | None = None) -> None:
         """ValueError if these settings or this profile would not work; changes nothing."""
@@ -554,20 +562,26 @@ class FramePipeline:
         if self.on_open_water is not None:
             self.on_open_water(mean, info)
 
+    @staticmethod
+    def _make_compensator(processing: ProcessingConfig, profile: CalibrationProfile, frame_shape: tuple[int, ...],
+                          open_water: NDArray | None):
+        """A backscatter compensator for frames of ``frame_shape`` (H, W, N), with the open-water
+        frame if it is of that shape."""
+        from uwcam.backscatter_loop import BackscatterCompensator
+
+        water = open_water if open_water is not None and open_water.shape == tuple(frame_shape) else None
+        return BackscatterCompensator(profile, tuple(frame_shape[:2]), processing.backscatter.iterations, water,
+                                      pair=processing.pair, path_length_bounds=processing.path_length_bounds)
+
     def _compensation(self, frame: Frame, processing: ProcessingConfig, profile: CalibrationProfile,
                       estimator: RangeEstimator, ambient: NDArray | None):
         """The transform of range_frame that subtracts backscatter, or None."""
         config = processing.backscatter
         if config is None:
             return None
-        from uwcam.backscatter_loop import BackscatterCompensator
-
-        shape = frame.data.shape[:2]
         comp = self._compensator
-        if comp is None or comp.shape != shape:
-            water = self.open_water if self.open_water is not None and self.open_water.shape == frame.data.shape else None
-            comp = BackscatterCompensator(profile, shape, config.iterations, water, pair=processing.pair,
-                                          path_length_bounds=processing.path_length_bounds)
+        if comp is None or comp.shape != frame.data.shape[:2]:
+            comp = self._make_compensator(processing, profile, frame.data.shape, self.open_water)
             self._compensator = comp
 
         # The modelled backscatter is in the counts of the light it came from: scaled to this frame's exposure.
@@ -730,6 +744,7 @@ class FramePipeline:
         return frame.lamp_on is False and not commander.failing
 
     def _process(self, frame: Frame) -> None:
+        self._frame_shape = frame.data.shape
         if frame.lamp_on is None and self.lamp is not None:
             # The camera cannot know: record the lamp's last reported state with the frame.
             last = getattr(self.lamp, "last_status", None)
