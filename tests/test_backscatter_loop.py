@@ -85,9 +85,10 @@ def test_compensation_in_the_loop_with_an_open_water_frame_taken_through_the_api
 
 
 def test_switching_compensation_on_builds_it_in_the_requests_thread_not_the_loops(tmp_path, monkeypatch):
-    """Building the compensator takes 0.3-0.6 s at 720p (10-17 frames at 30 fps): a settings change
-    or a new profile builds it before it answers, so the loop goes on at its pace; the loop builds
-    one itself only before any frame has come (the frame size unknown) or for a new frame size."""
+    """Building the compensator takes 0.3-0.6 s at 720p (10-17 frames at 30 fps): a settings change,
+    a new profile or a new open-water frame builds it apart from the loop, which goes on at its
+    pace; the loop builds one itself only before any frame has come (the frame size unknown) or
+    for a new frame size."""
     import threading
 
     from uwcam.pipeline import FramePipeline
@@ -112,7 +113,18 @@ def test_switching_compensation_on_builds_it_in_the_requests_thread_not_the_loop
         assert again.status_code == 200, again.text
         fresh(s, 3)
         assert s.http.get("/api/v1/backscatter").json()["ms_per_frame"] > 0  # the loop compensates
-    assert len(built_in) == 2 and "frame-pipeline" not in built_in, built_in
+        # An open-water frame taken by the loop is put in use by a thread of its own; one forgotten
+        # through the API, by the request's thread.
+        s.daemon.rig.show("open-water")
+        fresh(s)
+        taken = s.http.post("/api/v1/backscatter/open-water", json={"frames": 2}, headers=auth)
+        assert taken.status_code == 202, taken.text
+        assert wait_for(lambda: s.http.get("/api/v1/backscatter").json()["capture"] == "done", 20.0)
+        assert s.http.get("/api/v1/backscatter").json()["model"].startswith("open-water frame")
+        assert s.http.delete("/api/v1/backscatter/open-water", headers=auth).status_code == 200
+        s.daemon.rig.show("seabed")
+        fresh(s, 3)
+    assert len(built_in) == 4 and "frame-pipeline" not in built_in, built_in
 
 
 def test_compensation_needs_a_profile_with_backscatter_measurements():

@@ -405,6 +405,7 @@ class FramePipeline:
         self.on_open_water: Callable[[NDArray[np.float32], dict], None] | None = None
         """Called (from the processing thread) when an open-water frame has been taken."""
         self._open_water_request: dict | None = None
+        self._open_water_thread: threading.Thread | None = None
         self._open_water_capture: str | None = None
         """How the last open-water request ended (None: none made)."""
         self._compensation_ms: collections.deque[float] = collections.deque(maxlen=100)
@@ -503,11 +504,20 @@ class FramePipeline:
 
     def set_open_water(self, frame: NDArray | None, info: dict | None = None) -> None:
         """Use this open-water frame (H, W, N; raw DN less ambient light) for backscatter from the
-        next frame on; None forgets it (the profile's black-patch measurements are used alone)."""
+        next frame on; None forgets it (the profile's black-patch measurements are used alone).
+        The compensator for it is built here, in the caller's thread (0.3-0.6 s at 720p), while
+        the loop goes on with the one it has."""
+        water = None if frame is None else np.asarray(frame, np.float32)
+        processing, profile, shape = self.processing, self.profile, self._frame_shape
+        compensator = None
+        if processing.backscatter is not None and shape is not None:
+            compensator = self._make_compensator(processing, profile, shape, water)
         with self._lock:
-            self.open_water = None if frame is None else np.asarray(frame, np.float32)
+            self.open_water = water
             self.open_water_info = dict(info or {})
-            self._compensator = None
+            # Settings or profile changed meanwhile: the loop builds one for what it has now.
+            current = self.processing is processing and self.profile is profile
+            self._compensator = compensator if current else None
 
     def request_open_water(self, frames: int = 4, timeout_s: float = 10.0) -> threading.Event:
         """Average the next ``frames`` lamp-lit frames into the open-water frame; the event is set
@@ -553,10 +563,22 @@ class FramePipeline:
                 "shape": list(frame.data.shape)}
         if request.get("exposure") is not None:
             info["exposure"] = [float(v) for v in request["exposure"]]  # per channel, exposure × gain (µs)
-        mean = total / count
-        self.set_open_water(mean, info)
         with self._lock:
-            self._open_water_request = None
+            self._open_water_request = None  # no more frames taken; still "capturing" until in use
+        # Put in use by a thread of its own: building its compensator would stall the loop.
+        self._open_water_thread = threading.Thread(target=self._use_open_water, args=(total / count, info, request),
+                                                   name="open-water", daemon=True)
+        self._open_water_thread.start()
+
+    def _use_open_water(self, mean: NDArray, info: dict, request: dict) -> None:
+        try:
+            self.set_open_water(mean, info)
+        except Exception as exc:  # e.g. the profile changed to one the frame does not fit
+            log.exception("the open-water frame could not be put in use")
+            with self._lock:
+                self._open_water_capture = f"failed: {exc}"
+            return
+        with self._lock:
             self._open_water_capture = "done"
         request["done"].set()
         if self.on_open_water is not None:
@@ -653,6 +675,8 @@ class FramePipeline:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=10.0)
+        if self._open_water_thread is not None:
+            self._open_water_thread.join(timeout=10.0)
         if self._lamp_commander is not None:
             self._lamp_commander.stop()
 
