@@ -102,7 +102,8 @@ TARGETS: dict[str, Target] = {
                                           "tests/test_exposure.py::test_integer_frames_at_other_exposures_use_the_same_correction_in_the_lookup_path "
                                           "tests/test_exposure.py::test_the_variance_is_that_of_the_raw_counts "
                                           "tests/test_exposure.py::test_gain_scales_the_signal_and_the_noise_in_counts "
-                                          "tests/test_exposure.py::test_bad_exposures_are_refused tests/test_exposure_edges.py",
+                                          "tests/test_exposure.py::test_bad_exposures_are_refused tests/test_exposure_edges.py "
+                                          "tests/test_ranging_gaps.py",
                      exclude=("RangeEstimator.warm_up",)),
     "calibration": Target("uwcam/calibration.py", "tests/test_calibration_helpers.py tests/test_independent_calibration.py tests/test_calibration_details.py "
                                                   "tests/test_calibration_closed_forms.py "
