@@ -511,7 +511,10 @@ class FramePipeline:
         processing, profile, shape = self.processing, self.profile, self._frame_shape
         compensator = None
         if processing.backscatter is not None and shape is not None:
-            compensator = self._make_compensator(processing, profile, shape, water)
+            try:
+                compensator = self._make_compensator(processing, profile, shape, water)
+            except Exception:  # the frame is kept all the same; the loop tries again, and says why
+                log.exception("could not build backscatter compensation for the open-water frame")
         with self._lock:
             self.open_water = water
             self.open_water_info = dict(info or {})
