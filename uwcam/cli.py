@@ -354,10 +354,54 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def require_websocket_support() -> None:
+    """uvicorn serves WebSockets only with a WebSocket library beside it; without one it logs a
+    warning and answers every WebSocket route with 404, so the page would have no live view."""
+    import importlib
+
+    for name in ("websockets", "wsproto"):  # what uvicorn tries, in its order
+        try:
+            importlib.import_module(name)
+            return
+        except ImportError:
+            continue
+    raise UserInputError("the Python package 'websockets' is missing (the page's live view and /api/v1/stream "
+                         "need it): install it with '.venv/bin/pip install websockets', or run deploy/install.sh again")
+
+
+def _orderly_server_class() -> type:
+    import contextlib
+    import signal
+    import threading
+
+    import uvicorn
+
+    class OrderlyServer(uvicorn.Server):
+        """uvicorn's server, stopped by Ctrl-C or SIGTERM in order (the lifespan stops the loop,
+        switches the lamp off, releases the devices) and then done: uvicorn would raise the signal
+        again afterwards, which only adds a traceback and a failed exit status to a clean stop."""
+
+        @contextlib.contextmanager
+        def capture_signals(self):  # type: ignore[override]
+            if threading.current_thread() is not threading.main_thread():
+                yield
+                return
+            original = {sig: signal.signal(sig, self.handle_exit) for sig in (signal.SIGINT, signal.SIGTERM)}
+            try:
+                yield
+            finally:
+                for sig, handler in original.items():
+                    signal.signal(sig, handler)
+
+    return OrderlyServer
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     import gc
     import logging
     import os
+
+    require_websocket_support()
 
     from uwcam.memory import limit_malloc_arenas
 
@@ -408,7 +452,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         # and releases the devices.
         # No per-message deflate: zlib on every multi-megabyte range map cost a third of the CPU
         # (measured with py-spy) and float maps barely compress.
-        server = uvicorn.Server(uvicorn.Config(app, log_level="warning", ws_per_message_deflate=False))
+        server = _orderly_server_class()(uvicorn.Config(app, log_level="warning", ws_per_message_deflate=False))
         # Everything made so far (modules, the calibration, FastAPI's routes and models: ~125,000
         # objects) lives as long as the process: out of the cyclic collector's sight, its full
         # collections no longer stop every thread for ~50 ms (a 60 fps loop then skips frames).
@@ -417,6 +461,37 @@ def cmd_run(args: argparse.Namespace) -> int:
     finally:
         daemon.stop()
         sock.close()
+    return 0
+
+
+def cmd_warmup(args: argparse.Namespace) -> int:
+    """Run the embedded default until its first range, then stop: numba compiles every kernel the
+    daemon's start needs into its on-disk cache, so the first ``uwcam run`` compiles nothing."""
+    import logging
+    import time
+
+    from uwcam.config import default_config
+    from uwcam.daemon import Daemon
+    from uwcam.optics import kernels
+
+    if not 1.0 <= args.timeout <= 86400.0:  # also refuses nan
+        raise UserInputError(f"--timeout must be 1 to 86400 seconds, got {args.timeout}")
+    if kernels.BACKEND != "numba":
+        print("nothing to compile: numba is not installed here (the numpy path is used)")
+        return 0
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    started = time.monotonic()
+    daemon = Daemon(default_config())
+    try:
+        daemon.start()
+        deadline = time.monotonic() + args.timeout
+        while daemon.pipeline.processed < 1:
+            if time.monotonic() > deadline:
+                raise UserInputError(f"no range within {args.timeout:g} s; try again with a longer --timeout")
+            time.sleep(0.05)
+    finally:
+        daemon.stop()
+    print(f"compiled uwcam's kernels in {time.monotonic() - started:.0f} s (kept in numba's cache)")
     return 0
 
 
@@ -534,6 +609,11 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--port", type=int, help="API port (default 8080)")
     run.add_argument("--record", metavar="FILE.mcap", help="record the dive into this MCAP file from start to stop")
     run.set_defaults(func=cmd_run)
+
+    warm = sub.add_parser("warmup", help="compile the ranging and simulation kernels now (deploy/install.sh runs it), "
+                                         "so the first start compiles nothing")
+    warm.add_argument("--timeout", type=float, default=600.0, metavar="S", help="give up after S seconds (default 600)")
+    warm.set_defaults(func=cmd_warmup)
 
     rep = sub.add_parser("reprocess", help="range recorded dives (MCAP) again, here or on a Dask cluster")
     rep.add_argument("inputs", nargs="+", metavar="IN.mcap", help="recordings made by uwcam run")
