@@ -488,28 +488,32 @@ def smooth_range_map(result: RangeResult, kind: str = "mean") -> RangeResult:
     """
     if kind not in ("mean", "median"):
         raise UserInputError(f"smoothing must be 'mean' or 'median', got '{kind}'")
-    r = result.range.astype(np.float64)
+    r = result.range
     valid = np.isfinite(r)
-    padded = np.pad(np.where(valid, r, np.nan), 1, constant_values=np.nan)
-    h, w = r.shape
-    windows = np.stack([padded[dy : dy + h, dx : dx + w] for dy in range(3) for dx in range(3)])
-    count = np.isfinite(windows).sum(axis=0)
     # The calibration's share is common to neighbouring pixels: averaging does not reduce it.
     cal = 0.0 if result.calibration_variance is None else result.calibration_variance
-    with np.errstate(invalid="ignore", divide="ignore"):
-        if kind == "mean":
-            smoothed = np.nansum(windows, axis=0) / count
-            # The noise of independent neighbours averages as Σσ_k²/n²; the calibration's share does not.
-            noise = np.where(valid, result.variance.astype(np.float64) - cal, 0.0)
-            v = np.pad(noise, 1)
-            variance = sum(v[dy : dy + h, dx : dx + w] for dy in range(3) for dx in range(3)) / np.maximum(count, 1) ** 2 + cal
-        else:
-            import warnings
+    if kind == "mean":
+        # Window sums as box filters (outside the image and at invalid pixels: 0, not counted),
+        # in float32 like the maps themselves (sums of nine: within 3 units in the last place):
+        # ~10× faster at 720p than over nine shifted float64 copies, so it can be on by default.
+        def window_sum(a: NDArray[np.float32]) -> NDArray[np.float32]:
+            return cv2.boxFilter(a, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
 
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows
-                smoothed = np.nanmedian(windows, axis=0)
-            variance = result.variance
+        zero = np.float32(0)
+        count = window_sum(valid.astype(np.float32))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            smoothed = window_sum(np.where(valid, r, zero)) / count
+        # The noise of independent neighbours averages as Σσ_k²/n²; the calibration's share does not.
+        noise = np.where(valid, result.variance.astype(np.float32) - np.float32(cal), zero)
+        variance = window_sum(noise) / np.maximum(count, np.float32(1)) ** 2 + np.float32(cal)
+    else:
+        padded = np.pad(np.where(valid, r.astype(np.float64), np.nan), 1, constant_values=np.nan)
+        h, w = r.shape
+        windows = np.stack([padded[dy : dy + h, dx : dx + w] for dy in range(3) for dx in range(3)])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows
+            smoothed = np.nanmedian(windows, axis=0)
+        variance = result.variance
     return RangeResult(
         np.where(valid, smoothed, np.nan).astype(np.float32),
         np.where(valid, variance, np.nan).astype(np.float32),
