@@ -16,6 +16,11 @@ length and layout:
 * ``colour``: a JPEG of the colour image, display-stretched from the sensor's full bit depth
   (per-channel percentiles, smoothed over frames, gamma 1/2.2) at half the image resolution.
 
+Resolution: ``step`` fixes it; or ``width`` (pixels) says how wide the page draws the range map,
+and each frame is sent at the coarsest step whose map is still that wide (full resolution for a
+720p image costs 1.8 MB a frame; a pane half a screen wide shows no more than every other pixel).
+The page sends ``{"width": N}`` when its layout changes.
+
 Flow control: a page acknowledges each frame it has painted (``{"ack": N}``); the daemon keeps at
 most ``window`` frames unacknowledged per page and otherwise skips to the newest, so a slow page
 or link shows fresh frames at a lower rate and never a backlog.
@@ -47,6 +52,17 @@ MAGIC = b"UWV1"
 INVALID_BASE = 65500
 WINDOW = 2
 """Frames a page may have in flight (sent, not yet painted)."""
+MAX_WIDTH = 16384
+"""The widest drawing a page may ask for, pixels."""
+
+
+def step_for_width(width: int, image_width: int) -> int:
+    """The coarsest step (4, 2 or 1) whose range map (``ceil(image_width / step)`` wide) is still at
+    least ``width`` pixels wide."""
+    for step in (4, 2):
+        if -(-image_width // step) >= width:
+            return step
+    return 1
 
 
 def range_plane(range_m: NDArray[np.float32], reasons: NDArray[np.uint8], step: int) -> NDArray[np.uint16]:
@@ -180,18 +196,24 @@ def hello(d: Daemon, step: int) -> dict:
 
 
 @router.websocket("/view")
-async def view(ws: WebSocket, step: int = 1, colour: bool = True) -> None:
+async def view(ws: WebSocket, step: int = 1, colour: bool = True, width: int | None = None) -> None:
     """The operator page's stream: hello (JSON), then one binary message per frame (see module doc);
-    the page answers ``{"ack": frame}`` once it has painted a frame. ``step``: 1, 2 or 4 (resolution);
-    ``colour=false`` leaves the colour image out (the Cockpit widget needs range only)."""
+    the page answers ``{"ack": frame}`` once it has painted a frame. ``step``: 1, 2 or 4 (resolution),
+    or ``width``: the pixels the page draws the range map across, which picks the step per frame
+    (``{"width": N}`` from the page changes it); ``colour=false`` leaves the colour image out (the
+    Cockpit widget needs range only)."""
     await ws.accept()
     if step not in (1, 2, 4):
         await ws.close(code=1008, reason="step must be 1, 2 or 4")
         return
+    if width is not None and not 1 <= width <= MAX_WIDTH:
+        await ws.close(code=1008, reason=f"width must be 1 to {MAX_WIDTH} pixels")
+        return
+    drawn = {"width": width}
     b: Broadcaster = ws.app.state.broadcaster
     encoder: ViewEncoder = ws.app.state.view_encoder
     d: Daemon = ws.app.state.daemon
-    await ws.send_text(json.dumps(hello(d, step)))
+    await ws.send_text(json.dumps(hello(d, step if width is None else None)))  # with width: per frame
     last_sent = 0
     unacked: set[int] = set()
     changed = b.listen()
@@ -202,8 +224,14 @@ async def view(ws: WebSocket, step: int = 1, colour: bool = True) -> None:
             if message["type"] == "websocket.disconnect":
                 return
             try:
-                n = int(json.loads(message.get("text") or "")["ack"])
-            except (ValueError, KeyError, TypeError):
+                answer = json.loads(message.get("text") or "")
+                if "width" in answer:
+                    w = answer["width"]
+                    if isinstance(w, int) and not isinstance(w, bool) and 1 <= w <= MAX_WIDTH:
+                        drawn["width"] = w
+                    continue
+                n = int(answer["ack"])
+            except (ValueError, KeyError, TypeError, OverflowError):
                 continue  # a page's noise (binary, malformed) must not end its stream
             unacked.difference_update({k for k in unacked if k <= n})
             changed.set()  # a slot opened: look for the newest frame now
@@ -218,7 +246,8 @@ async def view(ws: WebSocket, step: int = 1, colour: bool = True) -> None:
                 waiter.cancel()
                 changed.clear()
                 continue
-            payload = await encoder.get(published, step, colour)
+            frame_step = step if drawn["width"] is None else step_for_width(drawn["width"], published.result.range.shape[1])
+            payload = await encoder.get(published, frame_step, colour)
             await ws.send_bytes(payload)
             last_sent = published.number
             unacked.add(published.number)
