@@ -331,7 +331,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         raise UserInputError(f"--slabs must be at least 1, got {args.slabs}")
     world = SimulatedWorld(
         scene=args.scene, distance=args.range, size=(width, height), fov_deg=args.fov, channels=channels, water=water,
-        lamp=lamp, camera=CameraModel(bits=args.bits, peak_code=args.peak), ambient=ambient, slabs=args.slabs,
+        lamp=lamp, camera=CameraModel(bits=args.bits, peak_code=args.peak, response=args.response,
+                                                  jpeg_quality=args.jpeg_quality), ambient=ambient, slabs=args.slabs,
         gate_width=args.gate_width if args.gated else None, rig=rig, seed=args.seed, material=args.material,
         fixed_exposure=args.exposure,
     )
@@ -511,6 +512,10 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--gate-width", type=float, default=0.05, metavar="M", help="depth of the range gate (default 0.05 m)")
     sim.add_argument("--slabs", type=int, default=32, help="water-column slabs for backscatter (default 32)")
     sim.add_argument("--bits", type=int, default=16, choices=(8, 12, 16), help="sensor bit depth (default 16)")
+    sim.add_argument("--response", default="linear", choices=("linear", "srgb", "rec709"),
+                     help="tone curve of the camera's 8-bit output (default linear); needs --bits 8")
+    sim.add_argument("--jpeg-quality", type=int, metavar="Q",
+                     help="JPEG-compress the frame at quality Q (1–100), as an MJPEG camera does; needs --bits 8")
     sim.add_argument("--size", default="640x480", metavar="WxH", help="image size (default 640x480)")
     sim.add_argument("--fov", type=float, default=60.0, metavar="DEG", help="horizontal field of view (default 60)")
     sim.add_argument("--channels", metavar="NAME:NM,...", help="channel names and centre wavelengths (default R:675,G:575,B:475)")
