@@ -174,3 +174,40 @@ def recover(frames: Sequence[NDArray], exposures_s: Sequence[float], method: str
     curve[:, 0] = 0.0  # code 0 is no light (anything darker is clipped there)
     return ResponseCurve(curve, kind="table", method=f"{method} from {len(frames)} frames at "
                                                         f"{', '.join(f'{t * 1e3:g}' for t in times)} ms")
+
+
+RESPONSE_FORMAT = "uwcam-response"
+
+
+def save_response(curve: ResponseCurve, path) -> None:
+    """Write a response curve as YAML (written atomically)."""
+    import yaml
+
+    from uwcam.fileio import atomic_write
+
+    with atomic_write(path, "w") as fh:
+        yaml.safe_dump({"format": RESPONSE_FORMAT, "version": 1, **curve.to_record()}, fh, sort_keys=False, width=200)
+
+
+def load_response(name_or_path: str, channels: int, bits: int = 8) -> ResponseCurve:
+    """``srgb``, ``rec709`` or a response file written by ``uwcam response``."""
+    if name_or_path in DECODE:
+        return ResponseCurve.standard(name_or_path, bits, channels)
+    from pathlib import Path
+
+    from uwcam.fileio import load_yaml_mapping
+    from uwcam.profile import ResponseRecord
+
+    path = Path(name_or_path)
+    if not path.is_file():
+        raise UserInputError(f"--response must be srgb, rec709 or a response file from 'uwcam response'; "
+                             f"{name_or_path} is none of these")
+    data = load_yaml_mapping(path, "response file")
+    if data.get("format") != RESPONSE_FORMAT:
+        raise UserInputError(f"{path} is not a response file (its format is {data.get('format')!r}, "
+                             f"expected {RESPONSE_FORMAT!r})")
+    try:
+        record = ResponseRecord(**{k: v for k, v in data.items() if k not in ("format", "version")})
+    except Exception as exc:
+        raise UserInputError(f"{path}: {str(exc).splitlines()[0]}") from None
+    return ResponseCurve.from_record(record, channels)
