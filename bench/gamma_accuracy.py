@@ -7,8 +7,11 @@ lamp 0.3 m to the side) at 1, 2, 3 and 5 m over several noisy frames, backscatte
 with two lamp-lit open-water frames at the same exposure, and prints, per range:
 the median absolute range error in % of the true range, the fraction of pixels with a range,
 and the sd and mean of z = (estimate − truth)/σ over the pixels ranged (the goal for an honest
-σ: sd 0.8–1.25). A last row takes the sRGB camera's codes as linear light, as uwcam did
-before response curves: what the curve corrects.
+σ: sd 0.8–1.25). A row takes the sRGB camera's codes as linear light, as uwcam did
+before response curves: what the curve corrects. The last rows send the sRGB camera's frames
+through a real RTSP server (gst-rtsp-server, x264 at 15 frames/s, tests/rtsp_server.py) and the
+``stream`` driver, at 4 and 0.3 Mbit/s (at 320×240 that is 3.5 and 0.26 bit per pixel per frame;
+a 1080p30 stream at 8 Mbit/s has 0.13).
 
     python3 bench/gamma_accuracy.py [--size 320x240] [--frames 3] [--json out.json]
 """
@@ -36,10 +39,47 @@ CAMERAS = {
     "8-bit sRGB JPEG q90": dict(bits=8, response="srgb", jpeg_quality=90),
     "8-bit sRGB, curve ignored": dict(bits=8, response="srgb"),
 }
+STREAMS = {  # the 8-bit sRGB camera's frames through a real RTSP server (x264) and the stream driver
+    "8-bit sRGB RTSP H.264 4 Mbit/s": 4000,
+    "8-bit sRGB RTSP H.264 0.3 Mbit/s": 300,
+}
+SERVER = os.path.join(os.path.dirname(__file__), "..", "tests", "rtsp_server.py")
+
+
+def through_rtsp(frames: list, bitrate_kbps: int) -> list:
+    """The frames as the stream driver receives them from gst-rtsp-server (H.264, x264 at 15 frames/s)."""
+    import select
+    import socket
+    import subprocess
+    import tempfile
+
+    from uwcam.drivers.base import CameraSettings
+    from uwcam.drivers.stream import StreamCamera
+
+    with tempfile.TemporaryDirectory() as tmp, socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+        s.close()
+        path = os.path.join(tmp, "frames.npy")
+        np.save(path, np.stack(frames))
+        proc = subprocess.Popen([sys.executable, SERVER, str(port), path, "h264", str(bitrate_kbps)],
+                                stdout=subprocess.PIPE, text=True)
+        try:
+            select.select([proc.stdout], [], [], 30.0)
+            assert proc.stdout.readline().startswith("ready"), "the RTSP server did not start"
+            cam = StreamCamera(f"rtsp://127.0.0.1:{port}/cam", open_timeout_s=10.0)
+            cam.open()
+            cam.configure(CameraSettings())
+            got = [cam.read(10.0).data for _ in range(len(frames) + 15)][15:]  # past the first GOP's ramp-up
+            cam.close()
+            return got
+        finally:
+            proc.terminate()
+            proc.wait(10)
 RANGES = (1.0, 2.0, 3.0, 5.0)
 
 
-def measure(label: str, camera: dict, size: tuple[int, int], frames: int) -> dict:
+def measure(label: str, camera: dict, size: tuple[int, int], frames: int, bitrate_kbps: int | None = None) -> dict:
     water = water_preset(WATER, [675.0, 575.0, 475.0])
     profile = calibrate_in_simulation(water, LAMP, size, CameraModel(**camera), frames_per_distance=4,
                                       linearise="ignored" not in label)
@@ -51,8 +91,11 @@ def measure(label: str, camera: dict, size: tuple[int, int], frames: int) -> dic
                                     camera=CameraModel(**camera), fixed_exposure=world.exposure, seed=6)
         model = BackscatterModel.from_profile(profile, np.stack([open_water.frame(k) for k in range(2)]))
         rel, z, valid = [], [], []
-        for k in range(frames):
-            result = compensated_range(profile, world.frame(k), model)
+        images = [world.frame(k) for k in range(frames)]
+        if bitrate_kbps is not None:
+            images = through_rtsp(images, bitrate_kbps)
+        for image in images:
+            result = compensated_range(profile, image, model)
             truth = world.camera_range
             ok = np.isfinite(result.range) & (result.variance > 0)
             valid.append(ok.mean())
@@ -78,6 +121,11 @@ def main() -> int:
     print(f"{'camera':22s} {'range':>6s} {'median |err|':>13s} {'valid':>6s} {'z sd':>6s} {'z mean':>7s}")
     for label, camera in CAMERAS.items():
         results[label] = measure(label, camera, size, args.frames)
+        for r, row in results[label].items():
+            print(f"{label:22s} {r + ' m':>6s} {row['median_error_pct']:12.2f}% {row['valid']:6.1%} "
+                  f"{row['z_sd']:6.2f} {row['z_mean']:+7.2f}", flush=True)
+    for label, bitrate in STREAMS.items():
+        results[label] = measure(label, CAMERAS["8-bit sRGB"], size, args.frames, bitrate)
         for r, row in results[label].items():
             print(f"{label:22s} {r + ' m':>6s} {row['median_error_pct']:12.2f}% {row['valid']:6.1%} "
                   f"{row['z_sd']:6.2f} {row['z_mean']:+7.2f}", flush=True)
