@@ -194,8 +194,8 @@ class System:
 SYSTEM = System()
 
 
-class Refused(Exception):
-    """The device refused a request; ``errno`` says how (EINVAL, ERANGE, EACCES, EBUSY...)."""
+class Refused(ConfigurationError):
+    """The device refused a request; ``errno`` says how (EINVAL, ERANGE, EACCES...)."""
 
     def __init__(self, what: str, error: OSError) -> None:
         super().__init__(f"{what}: {os.strerror(error.errno or 0)}")
@@ -311,6 +311,9 @@ class NativeDevice:
     def _lost_or(self, exc: OSError, what: str) -> Exception:
         if exc.errno in (errno.ENODEV, errno.EIO, errno.ENXIO):
             return DeviceLost(f"{self.path} ({self.card}) went away during {what}: {exc.strerror}")
+        if exc.errno == errno.EBUSY:
+            return DeviceLost(f"{self.path} is busy ({what}): another program (mavlink-camera-manager on BlueOS?) is "
+                              "streaming from it; use the 'stream' camera driver on its RTSP stream instead")
         return Refused(what, exc)
 
     # -- controls ----------------------------------------------------------------------------
@@ -392,9 +395,6 @@ class NativeDevice:
                 ioctl(self.fd, IOC.QBUF, buf)
             ioctl(self.fd, IOC.STREAMON, ctypes.c_int(CAPTURE))
         except OSError as exc:
-            if exc.errno == errno.EBUSY:
-                raise DeviceLost(f"{self.path} is busy: another program (mavlink-camera-manager on BlueOS?) is "
-                                 "streaming from it; use the 'stream' camera driver on its RTSP stream instead") from None
             raise self._lost_or(exc, "starting the stream") from None
         self._streaming = True
 
