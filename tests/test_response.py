@@ -160,3 +160,44 @@ def test_simulator_refuses_a_curve_on_a_deep_camera():
         CameraModel(bits=16, response="srgb")
     with pytest.raises(UserInputError, match="JPEG quality must be 1 to 100"):
         CameraModel(bits=8, jpeg_quality=0)
+
+
+def test_the_daemon_pipeline_ranges_a_gamma_camera_through_its_curve(gamma_rig):
+    """The frame loop linearises each frame before tracking, compensation and ranging, and keeps
+    the camera's own codes for what it shows and records."""
+    import threading
+    import time
+
+    from tests.waiting import wait_for
+    from uwcam.config import ProcessingConfig
+    from uwcam.drivers.base import Frame
+    from uwcam.pipeline import FramePipeline
+
+    right, _, world = gamma_rig
+    data = world.frame(1)
+
+    class OneFrame:
+        def __init__(self):
+            self.frames = [Frame(data=data, sequence=1, host_monotonic_ns=time.monotonic_ns(), wall_time=time.time())]
+            self.lock = threading.Lock()
+
+        def get(self, timeout_s):
+            with self.lock:
+                if self.frames:
+                    return self.frames.pop()
+            time.sleep(min(timeout_s, 0.01))
+            return None
+
+    pipeline = FramePipeline(OneFrame(), right, ProcessingConfig(smoothing="mean", smoothing_stage="before"))
+    published = []
+    pipeline.subscribe(published.append)
+    pipeline.start()
+    try:
+        assert wait_for(lambda: published, 30.0)
+    finally:
+        pipeline.stop()
+    p = published[0]
+    assert p.frame.data.dtype == np.uint8 and np.array_equal(p.frame.data, data)  # shown as the camera sent it
+    centre = (slice(40, 80), slice(60, 100))
+    truth = np.median(world.camera_range[centre])
+    assert abs(np.nanmedian(p.result.range[centre]) / truth - 1) < 0.03

@@ -152,3 +152,15 @@ def test_stream_options_are_checked():
     with pytest.raises(ConfigurationError, match="unknown RTSP transport 'quic'"):
         StreamCamera("rtsp://x/y", transport="quic")
     assert os.environ.get("OPENCV_FFMPEG_CAPTURE_OPTIONS") is None  # nothing left behind in the environment
+
+
+def test_a_stream_rig_configuration_validates():
+    from uwcam.drivers import registry
+    from uwcam.drivers.base import ConfigurationError
+
+    options = {"url": "rtsp://127.0.0.1:8554/video_stream_0", "transport": "tcp", "exposure_us": 10000}
+    assert registry.validate_options("camera", "stream", options) == options
+    with pytest.raises(ConfigurationError, match="camera driver 'stream'.*exposure_us"):
+        registry.validate_options("camera", "stream", {"url": "rtsp://x:1/y", "exposure_us": -5})
+    with pytest.raises(ConfigurationError, match="camera driver 'v4l2'.*white_balance_k"):
+        registry.validate_options("camera", "v4l2", {"white_balance_k": 50})

@@ -276,6 +276,8 @@ class RangeEstimator:
         for frames of these pixel types, and for frames with a background when ``background``, so
         that the first real frame is as fast as the rest. Call it before the frame loop starts."""
         zeros = np.zeros((2, 8, self.n_channels), np.float32)
+        if self.response is not None:  # codes of the curve's depth, and the linearised (float) frames
+            dtypes = tuple(d for d in dtypes if np.dtype(d).itemsize * 8 == self.response.bits) + (np.float32,)
         for dtype in dtypes:
             frame = np.zeros((2, 8, self.n_channels), dtype)
             self(frame)
