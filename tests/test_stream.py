@@ -98,6 +98,7 @@ def test_frames_arrive_from_an_h264_rtsp_stream(server, plate):
     assert np.allclose(f.data.reshape(-1, 3).mean(0), frames.reshape(-1, 3).mean(0), atol=2.0)
 
 
+@pytest.mark.slow
 def test_stream_comes_back_after_the_server_restarts(server):
     driver = StreamCamera(server.url, open_timeout_s=3.0)
     cam = SupervisedCamera(driver, CameraSettings(), read_timeout_s=3.0, watchdog_s=6.0, backoff_s=(0.2, 1.0))
@@ -112,6 +113,7 @@ def test_stream_comes_back_after_the_server_restarts(server):
         assert cam.get(30.0) is not None
 
 
+@pytest.mark.slow
 def test_a_plate_ranged_through_the_stream_is_within_the_codec_error(server, plate):
     """8-bit sRGB frames, H.264 at 4 Mbit/s: the profile's response curve linearises the decoded
     frames; range is expected within 1 % of that of the frames before encoding, and within 4 % of
