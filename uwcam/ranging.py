@@ -84,6 +84,8 @@ class RangeEstimator:
         self.read_noise = profile.array("read_noise")
         self.shot_gain = profile.array("shot_gain")
         self.fixed_pattern = profile.array("fixed_pattern")
+        self.response = profile.response_curve()
+        """A gamma camera's response curve: integer frames are codes, linearised before anything else."""
         self.covariance = profile.covariance_blocks()
         self.with_calibration_variance = bool(calibration_variance) and any(np.any(m != 0) for m in self.covariance)
         self._low_res_rays: dict[tuple[int, int, int, int], NDArray | None] = {}
@@ -209,6 +211,10 @@ class RangeEstimator:
         with np.errstate(divide="ignore", invalid="ignore"):
             total = e if background is None else e + background
             var = signal_variance(total, self.read_noise, self.shot_gain, self.profile.quantisation_step, self.fixed_pattern)
+            if self.response is not None:
+                # A linearised code is known only to its width in linear DN (width²/12): the least
+                # variance it can have, whatever the noise model measured (see uwcam.response).
+                var = np.maximum(var, self.response.quantisation_variance(total + self.dark))
             # A profile without any noise model (float data, nothing measured) counts as 1 DN of noise.
             var = np.where(var > 0, var, 1.0)
             if samples is not None:
@@ -245,6 +251,11 @@ class RangeEstimator:
         bits = np.dtype(dtype).itemsize * 8
         if bits not in self._tables:
             codes = np.arange(2**bits, dtype=np.float64)[:, None].repeat(self.n_channels, axis=1)
+            if self.response is not None:  # the table over codes holds their linear values' terms
+                if self.response.bits != bits:
+                    raise UserInputError(f"the profile's response curve is for {self.response.bits}-bit codes; "
+                                         f"this frame has {bits}-bit pixels: use a profile made with this camera mode")
+                codes = self.response.table.T.copy()
             y, w, state = self.channel_terms(codes)
             ln_e = np.where(w > 0, y + self.effective_log_constant, 0.0)
             # A common offset of ln E changes nothing; removing it keeps float32 digits for differences.
@@ -265,6 +276,8 @@ class RangeEstimator:
         for frames of these pixel types, and for frames with a background when ``background``, so
         that the first real frame is as fast as the rest. Call it before the frame loop starts."""
         zeros = np.zeros((2, 8, self.n_channels), np.float32)
+        if self.response is not None:  # codes of the curve's depth, and the linearised (float) frames
+            dtypes = tuple(d for d in dtypes if np.dtype(d).itemsize * 8 == self.response.bits) + (np.float32,)
         for dtype in dtypes:
             frame = np.zeros((2, 8, self.n_channels), dtype)
             self(frame)
@@ -293,11 +306,15 @@ class RangeEstimator:
         if out is None:
             out = RangeResult(np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w), np.uint8))
         common = (self._geo, self.bounds, out.range, out.variance, out.reasons)
+        if self.response is not None and np.issubdtype(frame.dtype, np.integer) and (
+                background is not None or samples is not None):
+            frame = self.response.linearise(frame)  # codes → linear DN; the tables path does it per code
         if background is None and samples is None and frame.dtype in (np.uint8, np.uint16):
             table, offset = self._lookup_tables(frame.dtype)
             b = tuple(float(v) for v in self.effective_log_constant - offset)
             kernels.fuse_lookup(frame, table, self._c, b, *common)
         elif background is not None and samples is None and kernels.fuse_background is not None and (
+                self.response is None) and (
                 np.issubdtype(frame.dtype, np.integer) or np.issubdtype(frame.dtype, np.floating)):
             # Compiled: the per-channel terms of channel_terms, computed row by row in the kernel.
             bg = np.ascontiguousarray(np.broadcast_to(background, frame.shape), dtype=np.float32)
@@ -326,6 +343,8 @@ class RangeEstimator:
         interpolated bilinearly; blocks without a range take their neighbours' largest value.
         """
         h, w = frame.shape[:2]
+        if self.response is not None and np.issubdtype(frame.dtype, np.integer):
+            frame = self.response.linearise(frame)
         gh, gw = max(h // block, 1), max(w // block, 1)
         if block > 1:
             small = block_means(frame, (gw, gh)).astype(np.float64)
@@ -465,6 +484,8 @@ def range_frame(estimator: RangeEstimator, frame: NDArray, smoothing: str = "non
     no range to its neighbours). The frame loop and ``uwcam reprocess`` both range through here."""
     samples = None
     if smoothing != "none" and stage == "before":
+        if estimator.response is not None and np.issubdtype(frame.dtype, np.integer):
+            frame = estimator.response.linearise(frame)  # average light, not codes of a tone curve
         frame, samples = smooth_frame(frame, smoothing, estimator.profile.saturation_level)
     if transform is not None:
         result = transform(frame, samples)
