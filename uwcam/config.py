@@ -220,6 +220,12 @@ class ApiConfig(Strict):
     """Web origins (``http://host:port``) besides the daemon's own whose pages may change state
     and call the API from the browser (CORS), e.g. Cockpit served from another port; and that
     may show uwcam's pages in a frame."""
+    cockpit_actions_token: bool = False
+    """Put the API token into the lamp actions of ``/cockpit_extras.json`` so that Cockpit's
+    actions are authorised. Anyone who can reach the daemon can read that document, so set this
+    only where they could read the token anyway: on BlueOS, whose terminal and file browser
+    (the token file included) are open to the vehicle's network. Off: the actions carry no token
+    and get 401 while a token is set (add the header in Cockpit's action editor)."""
 
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
