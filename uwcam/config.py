@@ -10,7 +10,7 @@ import os
 import re
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator, StrictInt
 from pydantic import Strict as NoCoercion
 
 from uwcam.fileio import UserInputError, explain_validation_error, load_yaml_mapping
@@ -336,9 +336,10 @@ class MavlinkConfig(Strict):
     """Below this fraction of valid pixels in the region nothing is sent."""
     max_age_s: Annotated[float, Field(gt=0, le=10, allow_inf_nan=False)] = 0.5
     """Nothing is sent while the newest processed frame is older than this (seconds)."""
-    orientation: str = "PITCH_270"
-    """MAV_SENSOR_ORIENTATION name (with or without MAV_SENSOR_ROTATION_): PITCH_270 looks down,
-    NONE forward; it must equal the autopilot's RNGFNDx_ORIENT."""
+    orientation: str | StrictInt = "PITCH_270"
+    """MAV_SENSOR_ORIENTATION name (with or without MAV_SENSOR_ROTATION_) or number, as ArduPilot's
+    RNGFNDx_ORIENT takes it: PITCH_270 (25) looks down, NONE (0) forward; it must equal the
+    autopilot's RNGFNDx_ORIENT. Kept as the name."""
     sensor_id: Annotated[int, Field(ge=0, le=255)] = 0
     """DISTANCE_SENSOR ``id``, distinct from the vehicle's other rangefinders."""
     obstacle_distance: bool = False
@@ -348,10 +349,19 @@ class MavlinkConfig(Strict):
     @model_validator(mode="after")
     def _check(self) -> "MavlinkConfig":
         parse_mavlink_connection(self.connection)
+        if isinstance(self.orientation, int):
+            names = {v: k for k, v in SENSOR_ORIENTATIONS.items()}
+            if self.orientation not in names:
+                raise ValueError(f"unknown orientation number {self.orientation}; MAV_SENSOR_ORIENTATION numbers are "
+                                 f"{min(names)}–{max(names)}, e.g. 25 (PITCH_270, down) or 0 (NONE, forward)")
+            self.orientation = names[self.orientation]
         name = self.orientation.upper().removeprefix("MAV_SENSOR_ROTATION_")
+        if name.isdigit():  # a number written as a string: "25"
+            self.orientation = int(name)
+            return self._check()
         if name not in SENSOR_ORIENTATIONS:
-            raise ValueError(f"unknown orientation '{self.orientation}'; e.g. PITCH_270 (down), NONE (forward), "
-                             "YAW_90 (right), PITCH_90 (up)")
+            raise ValueError(f"unknown orientation '{self.orientation}'; e.g. PITCH_270 or 25 (down), NONE or 0 "
+                             "(forward), YAW_90 or 2 (right), PITCH_90 or 24 (up)")
         self.orientation = name
         if self.obstacle_distance and SENSOR_ORIENTATIONS[name] > 7:
             raise ValueError(f"obstacle_distance needs a camera looking horizontally (orientation NONE or YAW_*), "
