@@ -162,12 +162,13 @@ def test_dropped_frames_metric_equals_the_status_count_when_frames_drop():
             s.daemon.pipeline.unsubscribe(slow)
         counts = []  # the loop ranges what was queued, then the counts hold still
 
-        def still() -> bool:
+        def still() -> bool:  # unchanged for 2 s: the queue is drained and the loop idle
             frames = s.http.get("/api/v1/status").json()["frames"]
-            counts.append((frames["captured"], frames["processed"], frames["dropped"]))
-            return len(counts) > 2 and counts[-1] == counts[-2] == counts[-3]
+            counts.append((time.monotonic(), (frames["captured"], frames["processed"], frames["dropped"])))
+            recent = [c for t, c in counts if t >= counts[-1][0] - 2.0]
+            return counts[-1][0] - counts[0][0] > 2.0 and len(set(recent)) == 1 and len(recent) > 3
 
-        assert wait_for(still, 20.0)
+        assert wait_for(still, 30.0)
         status = s.http.get("/api/v1/status").json()["frames"]
         dropped = value(scrape(s)[1], "uwcam_frames_dropped", "uwcam_frames_dropped_total")
     assert dropped == status["dropped"] >= 5

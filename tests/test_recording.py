@@ -459,7 +459,8 @@ def test_recordings_api_starts_stops_lists_and_downloads(tmp_path):
     assert len(decoded(str(tmp_path / "dl.mcap"), rec.DEPTH)) == stopped["frames_written"]
 
 
-def test_foxglove_server_carries_the_topics_and_a_point_cloud(tmp_path):
+@pytest.mark.parametrize("protocol", ["foxglove.sdk.v1", "foxglove.websocket.v1"])
+def test_foxglove_server_carries_the_topics_and_a_point_cloud(tmp_path, protocol):
     """A real client of the Foxglove WebSocket protocol: subscribe, receive, decode with the
     advertised protobuf schema (stock protobuf runtime)."""
     import asyncio
@@ -483,9 +484,9 @@ def test_foxglove_server_carries_the_topics_and_a_point_cloud(tmp_path):
         return message_factory.GetMessageClass(pool.FindMessageTypeByName(channel["schemaName"].lstrip(".")))
 
     async def client(port):
-        async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"],
-                                      max_size=None) as ws:
-            assert ws.subprotocol in ("foxglove.sdk.v1", "foxglove.websocket.v1")
+        # foxglove.sdk.v1: Foxglove with the SDK; foxglove.websocket.v1: Lichtblick and older Foxglove.
+        async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[protocol], max_size=None) as ws:
+            assert ws.subprotocol == protocol
             channels = {}
             while not {rec.DEPTH, "/uwcam/points", rec.IMAGE, rec.CALIBRATION, rec.STATUS, rec.RANGEFINDER} <= set(channels):
                 msg = json.loads(await ws.recv())
@@ -504,14 +505,16 @@ def test_foxglove_server_carries_the_topics_and_a_point_cloud(tmp_path):
                         got.setdefault(topic, json.loads(data[13:]))
                     else:
                         got.setdefault(topic, decoder(channels[topic]).FromString(data[13:]))
-            return channels, got
+            return channels, got, d.status()["foxglove"]["clients"]
 
     with running(cfg) as d:
-        channels, got = asyncio.run(client(d.foxglove.port))
+        channels, got, clients_while_connected = asyncio.run(client(d.foxglove.port))
         status = d.status()["foxglove"]
+        assert wait_for(lambda: d.status()["foxglove"]["clients"] == 0, 10.0)
         intr = d.pipeline.profile.camera_intrinsics()
     assert channels[rec.DEPTH]["schemaName"] == "foxglove.RawImage" and channels["/uwcam/points"]["schemaName"] == "foxglove.PointCloud"
     assert status["frames_sent"] > 0 and status["error"] is None
+    assert status["connections_by_protocol"][protocol] == 1 and clients_while_connected == 1
     assert got[rec.STATUS]["camera"]["health"]["state"] == "ok" and got[rec.STATUS]["foxglove"]["url"].startswith("ws://")
     depth = got[rec.DEPTH]
     assert (depth.width, depth.height, depth.encoding) == (160, 120, "32FC1")

@@ -124,6 +124,11 @@ class DaemonCollector(Collector):
             yield from recorder_metrics(s["recording"], self.daemon.config.recording.folder)
         yield GaugeMetricFamily("uwcam_websocket_clients", "WebSocket stream clients connected now.",
                                 value=getattr(self.app_state, "stream_clients", 0))
+        if s["foxglove"] is not None:
+            yield GaugeMetricFamily("uwcam_foxglove_clients", "Foxglove (or Lichtblick) clients connected now.",
+                                    value=s["foxglove"]["clients"])
+            yield CounterMetricFamily("uwcam_foxglove_frames_sent", "Frames sent to the Foxglove server.",
+                                      value=s["foxglove"]["frames_sent"])
 
         mav = s.get("mavlink")
         if mav is not None:
