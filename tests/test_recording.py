@@ -33,7 +33,8 @@ SEABED_Z_M = 2.0  # the simulated seabed is a plane square to the optical axis a
 
 def recording_config(tmp_path, **kw) -> DaemonConfig:
     cfg = small_config()
-    cfg.recording = RecordingConfig(folder=str(tmp_path / "recordings"), chunk_kb=64, **kw)
+    # Results recorded unless a test says otherwise (the default leaves them to `uwcam reprocess`).
+    cfg.recording = RecordingConfig(folder=str(tmp_path / "recordings"), chunk_kb=64, **{"results": True, **kw})
     return cfg
 
 

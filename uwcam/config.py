@@ -248,11 +248,17 @@ class RecordingConfig(Strict):
     """Most megabytes of frames (raw frame, range, variance, reasons) waiting for the disk: at
     1920×1080 a frame and its results are 31 MB, so this, not queue_frames, bounds the memory
     a slow disk can take; beyond it the oldest is dropped and counted."""
-    results: bool = True
+    results: bool = False
     """Record each ranged frame's depth, variance and reasons too (19 MB of a 1920×1080 16-bit
-    frame's 31 MB). False: the raw frames with their metadata, the ranging records and the
-    ambient light only, from which ``uwcam reprocess`` makes depth, variance and reasons bit for
-    bit; what a disk that cannot take every frame's results at full rate needs."""
+    frame's 31 MB, 560 MB/s at 30 frames/s). False (the default): the raw frames with their
+    metadata, the ranging records and the ambient light only, from which ``uwcam reprocess``
+    makes depth, variance and reasons bit for bit."""
+    budget_mb_s: Annotated[FiniteFloat, Field(gt=0, le=100000)] | None = 40.0
+    """Most megabytes a second the recording writes on average (a 2-second burst allowed): raw
+    frames beyond it are decimated, evenly, and counted (``frames_decimated``); every frame's
+    metadata and ranging record and the previews are always kept. 40 MB/s is 144 GB an hour;
+    raw 16-bit frames at 30 frames/s are 166 MB/s at 1280×720 and 373 MB/s at 1920×1080, and
+    lossless compression gains only 2–25 % on sensor noise (docs/recording.md). None: no budget."""
     compression: Literal["lz4", "zstd", "none"] = "lz4"
     """Compression of each MCAP chunk. lz4 costs little more than a copy; zstd makes files about
     a third smaller but costs ~9× the CPU (~140 MB/s on one core here: it drops frames beyond
@@ -261,6 +267,30 @@ class RecordingConfig(Strict):
     """MCAP chunk size: a crash loses at most the chunk being filled; reprocessing splits at chunks."""
     status_interval_s: Annotated[FiniteFloat, Field(gt=0, le=3600)] = 1.0
     """How often the daemon's status is written into the recording."""
+    preview_rate_hz: Annotated[FiniteFloat, Field(ge=0, le=60)] = 2.0
+    """Colour previews per second on ``/uwcam/image/preview`` (foxglove.CompressedImage, JPEG,
+    display-stretched like the operator page, half resolution): what Foxglove draws, since it
+    cannot draw the 16-bit raw frames. 0: none."""
+    preview_quality: Annotated[int, Field(ge=1, le=100)] = 80
+    """JPEG quality of the previews."""
+
+
+class MountingConfig(Strict):
+    """Where the camera sits on the vehicle: the transform from the vehicle's frame to the
+    camera's (x right, y down, z forward, the frame ``uwcam_camera`` of every recorded image),
+    recorded as foxglove.FrameTransform so that Foxglove places images and points on the vehicle."""
+
+    parent_frame: Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_./-]+$")] = "base_link"
+    """The vehicle's frame, e.g. base_link (ROS REP 103: x forward, y left, z up)."""
+    translation_m: tuple[Annotated[FiniteFloat, Field(ge=-100, le=100)], Annotated[FiniteFloat, Field(ge=-100, le=100)],
+                         Annotated[FiniteFloat, Field(ge=-100, le=100)]] = (0.0, 0.0, 0.0)
+    """The camera's optical centre in the vehicle's frame, metres."""
+    rotation_deg: tuple[Annotated[FiniteFloat, Field(ge=-360, le=360)], Annotated[FiniteFloat, Field(ge=-360, le=360)],
+                        Annotated[FiniteFloat, Field(ge=-360, le=360)]] = (-90.0, 0.0, -90.0)
+    """Roll, pitch, yaw in degrees of the camera's frame in the vehicle's, as ROS gives them: the
+    camera's axes are the columns of Rz(yaw)·Ry(pitch)·Rx(roll). The default, (−90, 0, −90), is a
+    camera looking forward (its z along the vehicle's x); (180, 0, −90) looks down with the top of
+    the image toward the bow."""
 
 
 class FoxgloveConfig(Strict):
@@ -378,6 +408,8 @@ class DaemonConfig(Strict):
     camera: CameraConfig = CameraConfig()
     lamp: DeviceConfig | None = None
     rangefinder: DeviceConfig | None = None
+    mounting: MountingConfig | None = None
+    """The camera's place on the vehicle, recorded as a transform; None: no transform recorded."""
     calibration: str | None = None
     """Path of the calibration profile; None only with the simulated camera (calibrated at start)."""
     profiles_dir: str | None = None

@@ -22,8 +22,6 @@ falling, ``uwcam_lamp_temperature_celsius`` climbing, ``uwcam_mavlink_sending`` 
 
 from __future__ import annotations
 
-import os
-import shutil
 from collections.abc import Iterator
 from datetime import datetime
 
@@ -121,7 +119,7 @@ class DaemonCollector(Collector):
 
         yield from calibration_metrics(s["calibration"]["created"])
         if s["recording"] is not None:
-            yield from recorder_metrics(s["recording"], self.daemon.config.recording.folder)
+            yield from recorder_metrics(s["recording"])
         yield GaugeMetricFamily("uwcam_websocket_clients", "WebSocket stream clients connected now.",
                                 value=getattr(self.app_state, "stream_clients", 0))
         if s["foxglove"] is not None:
@@ -173,7 +171,7 @@ def calibration_metrics(created: str | None) -> Iterator[Metric]:
                             "When the calibration in use was made, Unix time; its age is time() minus this.", value=when)
 
 
-def recorder_metrics(recording: dict, folder: str) -> Iterator[Metric]:
+def recorder_metrics(recording: dict) -> Iterator[Metric]:
     """The recorder's counts (of the recording in progress or the last one) and the disk it writes to."""
     yield GaugeMetricFamily("uwcam_recording_active", "1 while a recording is being written.",
                             value=float(recording["state"] == "recording"))
@@ -182,25 +180,14 @@ def recorder_metrics(recording: dict, folder: str) -> Iterator[Metric]:
     yield CounterMetricFamily("uwcam_recorder_frames_dropped", "Frames the recorder dropped because the disk fell "
                               "behind (since the recording started).", value=recording["frames_dropped"])
     yield GaugeMetricFamily("uwcam_recording_size_bytes", "Bytes in the recording's files so far.", value=recording["bytes"])
+    yield CounterMetricFamily("uwcam_recorder_frames_decimated", "Raw frames left out to keep within "
+                              "recording.budget_mb_s (their metadata kept; since the recording started).",
+                              value=recording["frames_decimated"])
     yield GaugeMetricFamily("uwcam_recorder_queue_bytes", "Bytes of frames waiting for the disk.",
                             value=recording["queued_mb"] * 1e6)
-    free = disk_free_bytes(recording["file"] or folder)
+    free = recording["disk_free_bytes"]
     if free is not None:
         yield GaugeMetricFamily("uwcam_recording_disk_free_bytes", "Free bytes on the disk recordings go to.", value=free)
-
-
-def disk_free_bytes(path: str) -> int | None:
-    """Free bytes (to an unprivileged user) of the file system holding ``path`` or its nearest existing parent."""
-    path = os.path.abspath(path)
-    while not os.path.exists(path):
-        parent = os.path.dirname(path)
-        if parent == path:
-            return None
-        path = parent
-    try:
-        return shutil.disk_usage(path).free
-    except OSError:
-        return None
 
 
 class Metrics:

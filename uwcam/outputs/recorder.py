@@ -17,14 +17,17 @@ import datetime as dt
 import errno
 import logging
 import os
+import shutil
 import threading
 import time
 from collections.abc import Callable
 
+import cv2
 import numpy as np
 
 from uwcam import recording as rec
-from uwcam.config import RecordingConfig
+from uwcam.api.view import Stretch
+from uwcam.config import MountingConfig, RecordingConfig
 from uwcam.drivers.base import Frame
 from uwcam.fileio import UserInputError
 from uwcam.pipeline import FramePipeline, Published
@@ -58,6 +61,45 @@ def item_bytes(item: tuple) -> int:
     return published.frame.data.nbytes + r.range.nbytes + r.variance.nbytes + r.reasons.nbytes
 
 
+class DiskBudget:
+    """A token bucket in bytes on the frames' capture clock: ``rate`` bytes a second accrue, at
+    most ``burst_s`` seconds' worth; each write spends what it costs on disk, estimated from the
+    payload by the compression measured so far. A raw frame that would overdraw it is decimated.
+    Tokens accrue with capture time, not the writer's clock, so a writer that falls behind does
+    not decimate more (the queue's own limits handle that, counted apart)."""
+
+    def __init__(self, rate_bytes_s: float, burst_s: float = 2.0) -> None:
+        self.rate = rate_bytes_s
+        self.capacity = rate_bytes_s * burst_s
+        self.tokens = self.capacity
+        self.last_ns: int | None = None
+
+    def accrue(self, t_ns: int) -> None:
+        if self.last_ns is not None and t_ns > self.last_ns:
+            self.tokens = min(self.capacity, self.tokens + self.rate * (t_ns - self.last_ns) / 1e9)
+        self.last_ns = t_ns if self.last_ns is None else max(self.last_ns, t_ns)
+
+    def affords(self, cost_bytes: float) -> bool:
+        return self.tokens >= cost_bytes
+
+    def spend(self, cost_bytes: float) -> None:
+        self.tokens -= cost_bytes
+
+
+def disk_free_bytes(path: str) -> int | None:
+    """Free bytes (to an unprivileged user) of the file system holding ``path`` or its nearest existing parent."""
+    path = os.path.abspath(path)
+    while not os.path.exists(path):
+        parent = os.path.dirname(path)
+        if parent == path:
+            return None
+        path = parent
+    try:
+        return shutil.disk_usage(path).free
+    except OSError:
+        return None
+
+
 def time_name(now: float | None = None) -> str:
     """File name of a recording started at ``now``: uwcam-YYYYmmddTHHMMSSZ.mcap (UTC)."""
     t = dt.datetime.fromtimestamp(time.time() if now is None else now, dt.timezone.utc)
@@ -77,9 +119,11 @@ class Recorder:
     """Records the pipeline's frames on request; idle (no thread, not subscribed) otherwise."""
 
     def __init__(self, pipeline: FramePipeline, config: RecordingConfig,
-                 status: Callable[[], dict] | None = None, rangefinder: object | None = None) -> None:
+                 status: Callable[[], dict] | None = None, rangefinder: object | None = None,
+                 mounting: MountingConfig | None = None) -> None:
         self.pipeline = pipeline
         self.config = config
+        self.mounting = mounting
         self._status_fn = status
         self.rangefinder = rangefinder
         self._lock = threading.Lock()  # guards the queue and the counters read by status()
@@ -96,7 +140,10 @@ class Recorder:
         self._file_started = 0.0
         self.frames_written = 0
         self.frames_dropped = 0
+        self.frames_decimated = 0
         self.bytes_closed = 0
+        self.payload_closed = 0
+        self._budget: DiskBudget | None = None
         self.last_stop_reason: str | None = None
 
     # ---------------------------------------------------------------- loop-thread callbacks
@@ -163,13 +210,18 @@ class Recorder:
         with self._lock:
             self._files = [path]
             self._clear_queue()
-            self.frames_written = self.frames_dropped = self.bytes_closed = 0
+            self.frames_written = self.frames_dropped = self.frames_decimated = self.bytes_closed = 0
+            self.payload_closed = 0
+            budget = self.config.budget_mb_s
+            self._budget = DiskBudget(budget * 1e6) if budget else None
             self._stop_reason = None
             self._state = "recording"
             self._started_wall = time.time()
             self._thread = threading.Thread(target=self._run, name="mcap-recorder", daemon=True)
         self._last_reading_ns: int | None = None
         self._next_status = 0.0
+        self._next_preview_ns = 0
+        self._stretch = Stretch()  # the operator page's display stretch, smoothed over the previews
         self.pipeline.subscribe(self._on_published)
         self.pipeline.subscribe_unranged(self._on_unranged)
         self._thread.start()
@@ -219,11 +271,27 @@ class Recorder:
             "duration_s": round(time.time() - self._started_wall, 1) if recording and self._started_wall else None,
             "frames_written": self.frames_written,
             "frames_dropped": self.frames_dropped,
+            "frames_decimated": self.frames_decimated,
+            "raw_kept_ratio": None if not self.frames_written else
+            round(1.0 - self.frames_decimated / self.frames_written, 4),
+            "budget_mb_s": self.config.budget_mb_s,
+            **self._disk_outlook(size, recording),
             "queued": len(self._queue),
             "queued_mb": round(self._queued_bytes / 1e6, 1),
             "bytes": size,
             "last_stop_reason": self.last_stop_reason,
         }
+
+    def _disk_outlook(self, size: int, recording: bool) -> dict:
+        """Free disk where recordings go, and the hours of recording it holds at the budget (or,
+        without one, at the rate measured while recording)."""
+        free = disk_free_bytes(self._files[-1] if self._files else self.config.folder)
+        rate = self.config.budget_mb_s * 1e6 if self.config.budget_mb_s else None
+        if rate is None and recording and self._started_wall:
+            elapsed = time.time() - self._started_wall
+            rate = size / elapsed if elapsed > 5 and size > 0 else None
+        hours = None if free is None or not rate else round(free / rate / 3600, 2)
+        return {"disk_free_bytes": free, "hours_left": hours}
 
     # ---------------------------------------------------------------------- writer thread
     def _open(self, path: str) -> None:
@@ -233,10 +301,18 @@ class Recorder:
         self._last_profile = None
         self._last_ambient = None
         self._rotate_due = False
-        # Every file carries the calibration in use from its start (self-contained parts).
+        # Every file carries the calibration in use and the camera's mounting from its start
+        # (self-contained parts).
         profile = self.pipeline.profile
         self._file.attach_profile(profile, time.time_ns())
         self._attached.add(profile.name)
+        self._write_transform(time.time_ns())
+
+    def _write_transform(self, t: int) -> None:
+        m = self.mounting
+        if m is not None:
+            self._file.write(rec.TRANSFORM, "foxglove.FrameTransform",
+                             rec.frame_transform(m.parent_frame, m.translation_m, m.rotation_deg, t), t)
 
     def _run(self) -> None:
         reason = "stopped"
@@ -276,6 +352,7 @@ class Recorder:
         if self._file is not None:
             self._file.finish()  # on an error, _failed() cuts the file at its last complete record
             self.bytes_closed += os.path.getsize(self._file.path) if os.path.exists(self._file.path) else 0
+            self.payload_closed += self._file.payload_bytes
             self._file = None
 
     def _failed(self, exc: Exception) -> str:
@@ -310,7 +387,9 @@ class Recorder:
                                                     "wall_time": reading.wall_time}, int(reading.wall_time * 1e9))
         if self._status_fn is not None and now >= self._next_status:
             self._next_status = now + self.config.status_interval_s
-            self._file.write_json(rec.STATUS, self._status_fn(), time.time_ns())
+            t = time.time_ns()
+            self._file.write_json(rec.STATUS, self._status_fn(), t)
+            self._write_transform(t)  # again now and then: a reader that seeks still finds one near
         c = self.config
         if (c.max_size_mb and self._file.size() >= c.max_size_mb * 1e6) or \
                 (c.max_duration_s and now - self._file_started >= c.max_duration_s):
@@ -329,16 +408,55 @@ class Recorder:
             self._files.append(path)
         log.info("recording continues in %s", path)
 
-    def _frame_messages(self, frame: Frame, t: int, ranged: str, number: int | None) -> None:
+    def _disk_per_payload(self) -> float:
+        """Bytes on disk per byte of message data, as measured so far (1 until a few chunks are out)."""
         f = self._file
-        f.write(rec.IMAGE, "foxglove.RawImage", rec.raw_image(frame.data, t), t)
+        payload = self.payload_closed + f.payload_bytes
+        disk = self.bytes_closed + f.size()
+        return max(0.05, disk / payload) if payload > 8 * self.config.chunk_kb * 1024 and disk > 0 else 1.0
+
+    def _keep_raw(self, frame: Frame, t: int) -> bool:
+        """Whether the disk budget has room for this raw frame (and its results); spends it if so."""
+        budget = self._budget
+        if budget is None:
+            return True
+        budget.accrue(t)
+        h, w = frame.data.shape[:2]
+        results = h * w * (4 + 4 + 1) if self.config.results else 0  # depth, variance float32; reasons uint8
+        cost = (frame.data.nbytes + results) * self._disk_per_payload()
+        if not budget.affords(cost):
+            with self._lock:
+                self.frames_decimated += 1
+            return False
+        budget.spend(cost)
+        return True
+
+    def _spend(self, payload_bytes: int) -> None:
+        if self._budget is not None:
+            self._budget.spend(payload_bytes * self._disk_per_payload())
+
+    def _frame_messages(self, frame: Frame, t: int, ranged: str, number: int | None) -> bool:
+        """The raw frame (unless decimated), its metadata and, when due, a preview; whether the raw frame was kept."""
+        f = self._file
+        kept = self._keep_raw(frame, t)
+        if kept:
+            f.write(rec.IMAGE, "foxglove.RawImage", rec.raw_image(frame.data, t), t)
         exposure, gain = frame.exposures()  # per channel: one value each, alike where the camera has one
         f.write_json(rec.IMAGE_METADATA, {
             "sequence": frame.sequence, "device_timestamp_ns": frame.device_timestamp_ns,
             "host_monotonic_ns": frame.host_monotonic_ns, "wall_time": frame.wall_time,
             "exposure_us": None if exposure is None else list(exposure), "gain_db": None if gain is None else list(gain),
             "lamp_on": frame.lamp_on, "channel_names": list(frame.channel_names), "bit_depth": frame.bit_depth,
-            "dtype": frame.data.dtype.name, "ranged": ranged, "number": number}, t)
+            "dtype": frame.data.dtype.name, "ranged": ranged, "number": number, "raw_kept": kept}, t)
+        self._spend(700)  # the metadata record, about
+        rate = self.config.preview_rate_hz
+        if rate > 0 and t >= self._next_preview_ns:
+            self._next_preview_ns = t + int(1e9 / rate)
+            bgr = self._stretch(frame.data)
+            jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, self.config.preview_quality])[1].tobytes()
+            f.write(rec.PREVIEW, "foxglove.CompressedImage", rec.compressed_image(jpeg, t, "jpeg"), t)
+            self._spend(len(jpeg))
+        return kept
 
     def _write_item(self, item: tuple) -> None:
         if self._rotate_due:
@@ -363,13 +481,13 @@ class Recorder:
             if profile.name not in self._attached:
                 f.attach_profile(profile, t)
                 self._attached.add(profile.name)
-        self._frame_messages(frame, t, "ranged", p.number)
+        kept = self._frame_messages(frame, t, "ranged", p.number)
         if p.ambient is not None and p.ambient is not self._last_ambient:
             self._last_ambient = p.ambient
             c = p.ambient.shape[-1]
             f.write(rec.AMBIENT, "foxglove.RawImage", rec.raw_image(p.ambient.astype(np.float32), t, f"32FC{c}"), t)
         f.write_json(rec.RANGING, ranging_record(p, profile, processing), t)
-        if not self.config.results:
+        if not self.config.results or not kept:
             return
         depth, variance = to_depth(p.result.range, p.result.variance, self._uz)
         f.write(rec.DEPTH, "foxglove.RawImage", rec.raw_image(depth, t, "32FC1"), t)
