@@ -35,6 +35,9 @@ from uwcam.profile import CalibrationProfile
 
 log = logging.getLogger(__name__)
 
+SUMMARY_BYTES = 1000
+"""About what a frame's metadata and ranging records take (JSON)."""
+
 WRITER_NICENESS = 10
 """How much less CPU priority the writer thread has than the frame loop (Linux nice levels)."""
 
@@ -53,7 +56,10 @@ def lower_this_threads_priority(niceness: int) -> bool:
 
 
 def item_bytes(item: tuple) -> int:
-    """Bytes a queued item holds: the raw frame and, for a ranged frame, its result arrays."""
+    """Bytes a queued item holds: the raw frame and, for a ranged frame, its result arrays; for
+    a decimated frame's summary, its preview's pixels if it carries one."""
+    if item[0] == "summary":
+        return SUMMARY_BYTES + (0 if item[1]["preview"] is None else item[1]["preview"].nbytes)
     if item[0] == "unranged":
         return item[1].data.nbytes
     published = item[1]
@@ -144,6 +150,10 @@ class Recorder:
         self.bytes_closed = 0
         self.payload_closed = 0
         self._budget: DiskBudget | None = None
+        self._disk_ratio = 1.0
+        """Bytes on disk per byte of message data, as measured by the writer (read by the loop's thread)."""
+        self._next_preview_ns = 0
+        self._next_drop_log = 0.0
         self.last_stop_reason: str | None = None
 
     # ---------------------------------------------------------------- loop-thread callbacks
@@ -151,12 +161,20 @@ class Recorder:
         size = item_bytes(item)
         limit = self.config.queue_mb * 1e6
         with self._lock:
+            dropped = 0
             while self._queue and (len(self._queue) >= self.config.queue_frames or self._queued_bytes + size > limit):
                 self._dequeue()  # the disk cannot keep up: lose the oldest, count it
                 self.frames_dropped += 1
+                dropped += 1
             self._queue.append(item)
             self._queued_bytes += size
             self._ready.notify()
+            total = self.frames_dropped
+        now = time.monotonic()
+        if dropped and now >= self._next_drop_log:  # said, not only counted; at most every 10 s
+            self._next_drop_log = now + 10.0
+            log.warning("recorder behind: %d frames dropped so far (the disk or the recorder's CPU share cannot "
+                        "keep up; lower recording.budget_mb_s or the frame rate)", total)
 
     def _dequeue(self) -> tuple | None:
         """The oldest queued item, or None; the caller holds the lock."""
@@ -173,10 +191,47 @@ class Recorder:
 
     def _on_published(self, published: Published) -> None:
         # Profile and settings are read here, in the loop's thread, so they match the frame.
-        self._enqueue(("ranged", published, self.pipeline.profile, self.pipeline.processing))
+        profile, processing = self.pipeline.profile, self.pipeline.processing
+        frame, t = published.frame, int(published.frame.wall_time * 1e9)
+        preview = self._preview_due(t)
+        if self._admit(frame, t):
+            self._enqueue(("ranged", published, profile, processing, preview))
+        else:  # decimated: its summary only, so that its pixels never wait in the queue
+            self._enqueue(("summary", {"t": t, "metadata": frame_metadata(frame, "ranged", published.number, False),
+                                       "ranging": ranging_record(published, profile, processing),
+                                       "preview": frame.data if preview else None}))
 
     def _on_unranged(self, frame: Frame, why: str) -> None:
-        self._enqueue(("unranged", frame, why))
+        t = int(frame.wall_time * 1e9)
+        preview = self._preview_due(t)
+        if self._admit(frame, t):
+            self._enqueue(("unranged", frame, why, preview))
+        else:
+            self._enqueue(("summary", {"t": t, "metadata": frame_metadata(frame, why, None, False), "ranging": None,
+                                       "preview": frame.data if preview else None}))
+
+    def _preview_due(self, t: int) -> bool:
+        rate = self.config.preview_rate_hz
+        if rate <= 0 or t < self._next_preview_ns:
+            return False
+        self._next_preview_ns = t + int(1e9 / rate)
+        return True
+
+    def _admit(self, frame: Frame, t: int) -> bool:
+        """Whether the disk budget has room for this raw frame (and its results); spends it if so.
+        Runs in the loop's thread: arithmetic only."""
+        budget = self._budget
+        if budget is None:
+            return True
+        h, w = frame.data.shape[:2]
+        results = h * w * (4 + 4 + 1) if self.config.results else 0  # depth, variance float32; reasons uint8
+        cost = (frame.data.nbytes + results) * self._disk_ratio
+        with self._lock:
+            budget.accrue(t)
+            if not budget.affords(cost):
+                return False
+            budget.spend(cost)
+            return True
 
     # -------------------------------------------------------------------------- control
     def start(self, path: str | None = None) -> dict:
@@ -214,13 +269,14 @@ class Recorder:
             self.payload_closed = 0
             budget = self.config.budget_mb_s
             self._budget = DiskBudget(budget * 1e6) if budget else None
+            self._disk_ratio = 1.0
+            self._next_preview_ns = 0
             self._stop_reason = None
             self._state = "recording"
             self._started_wall = time.time()
             self._thread = threading.Thread(target=self._run, name="mcap-recorder", daemon=True)
         self._last_reading_ns: int | None = None
         self._next_status = 0.0
-        self._next_preview_ns = 0
         self._stretch = Stretch()  # the operator page's display stretch, smoothed over the previews
         self.pipeline.subscribe(self._on_published)
         self.pipeline.subscribe_unranged(self._on_unranged)
@@ -408,69 +464,60 @@ class Recorder:
             self._files.append(path)
         log.info("recording continues in %s", path)
 
-    def _disk_per_payload(self) -> float:
-        """Bytes on disk per byte of message data, as measured so far (1 until a few chunks are out)."""
+    def _measure_disk_ratio(self) -> None:
+        """Bytes on disk per byte of message data so far (1 until a few chunks are out), for the budget."""
         f = self._file
         payload = self.payload_closed + f.payload_bytes
         disk = self.bytes_closed + f.size()
-        return max(0.05, disk / payload) if payload > 8 * self.config.chunk_kb * 1024 and disk > 0 else 1.0
-
-    def _keep_raw(self, frame: Frame, t: int) -> bool:
-        """Whether the disk budget has room for this raw frame (and its results); spends it if so."""
-        budget = self._budget
-        if budget is None:
-            return True
-        budget.accrue(t)
-        h, w = frame.data.shape[:2]
-        results = h * w * (4 + 4 + 1) if self.config.results else 0  # depth, variance float32; reasons uint8
-        cost = (frame.data.nbytes + results) * self._disk_per_payload()
-        if not budget.affords(cost):
-            with self._lock:
-                self.frames_decimated += 1
-            return False
-        budget.spend(cost)
-        return True
+        if payload > 8 * self.config.chunk_kb * 1024 and disk > 0:
+            self._disk_ratio = max(0.05, disk / payload)
 
     def _spend(self, payload_bytes: int) -> None:
         if self._budget is not None:
-            self._budget.spend(payload_bytes * self._disk_per_payload())
+            with self._lock:
+                self._budget.spend(payload_bytes * self._disk_ratio)
 
-    def _frame_messages(self, frame: Frame, t: int, ranged: str, number: int | None) -> bool:
-        """The raw frame (unless decimated), its metadata and, when due, a preview; whether the raw frame was kept."""
-        f = self._file
-        kept = self._keep_raw(frame, t)
-        if kept:
-            f.write(rec.IMAGE, "foxglove.RawImage", rec.raw_image(frame.data, t), t)
-        exposure, gain = frame.exposures()  # per channel: one value each, alike where the camera has one
-        f.write_json(rec.IMAGE_METADATA, {
-            "sequence": frame.sequence, "device_timestamp_ns": frame.device_timestamp_ns,
-            "host_monotonic_ns": frame.host_monotonic_ns, "wall_time": frame.wall_time,
-            "exposure_us": None if exposure is None else list(exposure), "gain_db": None if gain is None else list(gain),
-            "lamp_on": frame.lamp_on, "channel_names": list(frame.channel_names), "bit_depth": frame.bit_depth,
-            "dtype": frame.data.dtype.name, "ranged": ranged, "number": number, "raw_kept": kept}, t)
-        self._spend(700)  # the metadata record, about
-        rate = self.config.preview_rate_hz
-        if rate > 0 and t >= self._next_preview_ns:
-            self._next_preview_ns = t + int(1e9 / rate)
-            bgr = self._stretch(frame.data)
-            jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, self.config.preview_quality])[1].tobytes()
-            f.write(rec.PREVIEW, "foxglove.CompressedImage", rec.compressed_image(jpeg, t, "jpeg"), t)
-            self._spend(len(jpeg))
-        return kept
+    def _frame_messages(self, frame: Frame, t: int, ranged: str, number: int | None, preview: bool) -> None:
+        """The raw frame, its metadata and, when due, a preview."""
+        self._file.write(rec.IMAGE, "foxglove.RawImage", rec.raw_image(frame.data, t), t)
+        self._file.write_json(rec.IMAGE_METADATA, frame_metadata(frame, ranged, number, True), t)
+        if preview:
+            self._write_preview(frame.data, t)
+
+    def _write_preview(self, data: np.ndarray, t: int) -> None:
+        bgr = self._stretch(data)
+        jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, self.config.preview_quality])[1].tobytes()
+        self._file.write(rec.PREVIEW, "foxglove.CompressedImage", rec.compressed_image(jpeg, t, "jpeg"), t)
+        self._spend(len(jpeg))
+
+    def _write_summary(self, summary: dict) -> None:
+        """A decimated frame: its metadata, ranging record and, when due, its preview."""
+        t = summary["t"]
+        self._file.write_json(rec.IMAGE_METADATA, summary["metadata"], t)
+        if summary["ranging"] is not None:
+            self._file.write_json(rec.RANGING, summary["ranging"], t)
+        self._spend(SUMMARY_BYTES)
+        if summary["preview"] is not None:
+            self._write_preview(summary["preview"], t)
+        with self._lock:
+            self.frames_decimated += 1
 
     def _write_item(self, item: tuple) -> None:
         if self._rotate_due:
             self._rotate()
-        if item[0] == "unranged":
-            _, frame, why = item
-            self._frame_messages(frame, int(frame.wall_time * 1e9), why, None)
+        if item[0] == "summary":
+            self._write_summary(item[1])
+        elif item[0] == "unranged":
+            _, frame, why, preview = item
+            self._frame_messages(frame, int(frame.wall_time * 1e9), why, None, preview)
         else:
-            _, published, profile, processing = item
-            self._write_published(published, profile, processing)
+            _, published, profile, processing, preview = item
+            self._write_published(published, profile, processing, preview)
+        self._measure_disk_ratio()
         with self._lock:
             self.frames_written += 1
 
-    def _write_published(self, p: Published, profile: CalibrationProfile, processing) -> None:
+    def _write_published(self, p: Published, profile: CalibrationProfile, processing, preview: bool) -> None:
         f = self._file
         frame, t = p.frame, int(p.frame.wall_time * 1e9)
         h, w = frame.data.shape[:2]
@@ -481,13 +528,14 @@ class Recorder:
             if profile.name not in self._attached:
                 f.attach_profile(profile, t)
                 self._attached.add(profile.name)
-        kept = self._frame_messages(frame, t, "ranged", p.number)
+        self._frame_messages(frame, t, "ranged", p.number, preview)
         if p.ambient is not None and p.ambient is not self._last_ambient:
             self._last_ambient = p.ambient
             c = p.ambient.shape[-1]
             f.write(rec.AMBIENT, "foxglove.RawImage", rec.raw_image(p.ambient.astype(np.float32), t, f"32FC{c}"), t)
         f.write_json(rec.RANGING, ranging_record(p, profile, processing), t)
-        if not self.config.results or not kept:
+        self._spend(SUMMARY_BYTES)
+        if not self.config.results:
             return
         depth, variance = to_depth(p.result.range, p.result.variance, self._uz)
         f.write(rec.DEPTH, "foxglove.RawImage", rec.raw_image(depth, t, "32FC1"), t)
@@ -508,6 +556,16 @@ def repair_folder(folder: str) -> list[str]:
             except (OSError, rec.RecordingError) as exc:
                 log.warning("could not repair %s: %s", path, exc)
     return repaired
+
+
+def frame_metadata(frame: Frame, ranged: str, number: int | None, raw_kept: bool) -> dict:
+    """A frame's /uwcam/image/metadata record; ``raw_kept`` False for a frame decimated to fit the disk budget."""
+    exposure, gain = frame.exposures()  # per channel: one value each, alike where the camera has one
+    return {"sequence": frame.sequence, "device_timestamp_ns": frame.device_timestamp_ns,
+            "host_monotonic_ns": frame.host_monotonic_ns, "wall_time": frame.wall_time,
+            "exposure_us": None if exposure is None else list(exposure), "gain_db": None if gain is None else list(gain),
+            "lamp_on": frame.lamp_on, "channel_names": list(frame.channel_names), "bit_depth": frame.bit_depth,
+            "dtype": frame.data.dtype.name, "ranged": ranged, "number": number, "raw_kept": raw_kept}
 
 
 def ranging_record(p: Published, profile: CalibrationProfile, processing) -> dict:
