@@ -141,7 +141,10 @@ def measure(args: list[str], port: int, seconds: float, settings: dict | None = 
             async with websockets.connect(f"ws://127.0.0.1:{port}/api/v1/stream?rate=120", max_size=None) as ws:
                 await ws.recv()  # hello
                 next_sample = 0.0
-                while (now := time.monotonic() - t0) < STARTUP_S + seconds:
+                # Measured for `seconds` after the start-up snapshot, however late a loaded machine
+                # lets the daemon start (its first status can come after STARTUP_S).
+                while "startup" not in frames_at or (now := time.monotonic() - t0) < frames_at["t_startup"] - t0 + seconds:
+                    now = time.monotonic() - t0
                     if now >= next_sample:
                         rss.append(proc_figures(proc.pid)[1:])
                         next_sample += 1.0
