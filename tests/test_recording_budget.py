@@ -13,6 +13,7 @@ from tests.test_recording import recording_config, running
 from tests.waiting import wait_for
 from uwcam import recording as rec
 from uwcam.outputs.recorder import DiskBudget
+from uwcam.reprocess import ranged_frame_count, reprocess
 
 RAW_FRAME_BYTES = 160 * 120 * 3 * 2  # the test rig's 16-bit RGB frames
 FPS = 20.0
@@ -47,7 +48,8 @@ def test_a_budget_below_the_raw_rate_decimates_counts_and_keeps_every_summary(tm
     metadata = [json.loads(m.data) for m in topics[rec.IMAGE_METADATA]]
     images = topics[rec.IMAGE]
     # Every frame has its summary; only the kept ones their raw image, and the count says so.
-    assert len(metadata) == final["frames_written"] and len(topics[rec.RANGING]) >= len(metadata) - 2
+    assert len(metadata) == final["frames_written"]
+    assert len(topics[rec.RANGING]) == sum(m["ranged"] == "ranged" for m in metadata)  # others: skipped for newer
     assert sum(not m["raw_kept"] for m in metadata) == final["frames_decimated"] > 0
     assert len(images) == final["frames_written"] - final["frames_decimated"]
     assert {m.log_time for m in images} == {m.log_time for m, meta in zip(topics[rec.IMAGE_METADATA], metadata)
@@ -80,5 +82,16 @@ def test_frames_recorded_with_a_budget_reprocess(tmp_path):
         final = d.recorder.stop()
     with open(path, "rb") as fh:
         frames = list(rec.iter_recorded_frames(rec.open_reader(fh)))
+    with open(path, "rb") as fh:
+        metadata = [json.loads(m.data) for _s, _c, m in make_reader(fh).iter_messages(topics=[rec.IMAGE_METADATA])]
     assert len(frames) == final["frames_written"] - final["frames_decimated"]
     assert all(f.metadata["raw_kept"] for f in frames)
+    # Reprocessing ranges every kept ranged frame and passes over the decimated ones.
+    kept_ranged = sum(m["raw_kept"] and m["ranged"] == "ranged" for m in metadata)
+    # The progress bar's total: an upper bound (frames skipped for a newer one have an image, no range).
+    assert kept_ranged <= ranged_frame_count(str(path)) <= len(frames)
+    out = tmp_path / "out"
+    (made,) = reprocess([str(path)], str(out), progress=False)
+    with open(made, "rb") as fh:
+        depth = sum(1 for _ in make_reader(fh).iter_messages(topics=[rec.DEPTH]))
+    assert depth == kept_ranged > 0
