@@ -559,7 +559,10 @@ def test_a_slow_disk_drops_counted_frames_and_stop_is_prompt(tmp_path, monkeypat
         took = time.monotonic() - began
     assert status["state"] == "idle" and status["frames_dropped"] >= 5 and peak <= 4
     assert took < 5.0  # at most the 4 queued frames (~0.4 s) plus closing the file
-    assert len(decoded(str(tmp_path / "slow.mcap"), rec.IMAGE)) == status["frames_written"]
+    metadata = [m for _t, m in decoded(str(tmp_path / "slow.mcap"), rec.IMAGE_METADATA)]
+    # Every frame handed over has its metadata; the dropped ones say so and have no raw image.
+    assert len(metadata) == status["frames_written"] and sum(not m["raw_kept"] for m in metadata) >= 5
+    assert len(decoded(str(tmp_path / "slow.mcap"), rec.IMAGE)) == sum(m["raw_kept"] for m in metadata)
 
 
 def test_lamp_off_frames_and_ambient_are_recorded_and_reprocessed(tmp_path):

@@ -37,6 +37,9 @@ log = logging.getLogger(__name__)
 
 SUMMARY_BYTES = 1000
 """About what a frame's metadata and ranging records take (JSON)."""
+SUMMARIES_PER_FRAME = 64
+"""The queue holds at most this many items per raw frame it may hold (``queue_frames``)."""
+BUDGET = "decimated to fit recording.budget_mb_s"
 
 WRITER_NICENESS = 10
 """How much less CPU priority the writer thread has than the frame loop (Linux nice levels)."""
@@ -137,6 +140,7 @@ class Recorder:
         self._ready = threading.Condition(self._lock)
         self._queue: collections.deque = collections.deque()
         self._queued_bytes = 0
+        self._queued_raw = 0
         self._thread: threading.Thread | None = None
         self._stop_reason: str | None = None
         self._state = "idle"
@@ -147,6 +151,8 @@ class Recorder:
         self.frames_written = 0
         self.frames_dropped = 0
         self.frames_decimated = 0
+        self.frames_lost = 0
+        """Frames of which not even the summary could be kept (a queue of nothing but summaries)."""
         self.bytes_closed = 0
         self.payload_closed = 0
         self._budget: DiskBudget | None = None
@@ -160,12 +166,22 @@ class Recorder:
     def _enqueue(self, item: tuple) -> None:
         size = item_bytes(item)
         limit = self.config.queue_mb * 1e6
+        raw = item[0] != "summary"
         with self._lock:
             dropped = 0
-            while self._queue and (len(self._queue) >= self.config.queue_frames or self._queued_bytes + size > limit):
-                self._dequeue()  # the disk cannot keep up: lose the oldest, count it
-                self.frames_dropped += 1
+            while self._queue and ((raw and self._queued_raw >= self.config.queue_frames)
+                                   or self._queued_bytes + size > limit
+                                   or len(self._queue) >= SUMMARIES_PER_FRAME * self.config.queue_frames):
+                # The disk cannot keep up: the oldest raw frame goes, its summary stays (counted);
+                # only a queue of nothing but summaries loses whole frames.
+                if self._shed_oldest_raw():
+                    self.frames_dropped += 1
+                else:
+                    self._dequeue()
+                    self.frames_lost += 1
                 dropped += 1
+            if raw:
+                self._queued_raw += 1
             self._queue.append(item)
             self._queued_bytes += size
             self._ready.notify()
@@ -182,33 +198,41 @@ class Recorder:
             return None
         item = self._queue.popleft()
         self._queued_bytes -= item_bytes(item)
+        if item[0] != "summary":
+            self._queued_raw -= 1
         return item
+
+    def _shed_oldest_raw(self) -> bool:
+        """Replace the oldest queued raw frame by its summary; False if none is queued. The caller holds the lock."""
+        for k, item in enumerate(self._queue):
+            if item[0] != "summary":
+                summary = ("summary", summary_of(item, "the recorder fell behind"))
+                self._queue[k] = summary
+                self._queued_bytes += item_bytes(summary) - item_bytes(item)
+                self._queued_raw -= 1
+                return True
+        return False
 
     def _clear_queue(self) -> None:
         """Forget every queued item; the caller holds the lock."""
         self._queue.clear()
         self._queued_bytes = 0
+        self._queued_raw = 0
 
     def _on_published(self, published: Published) -> None:
         # Profile and settings are read here, in the loop's thread, so they match the frame.
         profile, processing = self.pipeline.profile, self.pipeline.processing
         frame, t = published.frame, int(published.frame.wall_time * 1e9)
         preview = self._preview_due(t)
-        if self._admit(frame, t):
-            self._enqueue(("ranged", published, profile, processing, preview))
-        else:  # decimated: its summary only, so that its pixels never wait in the queue
-            self._enqueue(("summary", {"t": t, "metadata": frame_metadata(frame, "ranged", published.number, False),
-                                       "ranging": ranging_record(published, profile, processing),
-                                       "preview": frame.data if preview else None}))
+        item = ("ranged", published, profile, processing, preview)
+        # Decimated: its summary only, so that its pixels never wait in the queue.
+        self._enqueue(item if self._admit(frame, t) else ("summary", summary_of(item, BUDGET)))
 
     def _on_unranged(self, frame: Frame, why: str) -> None:
         t = int(frame.wall_time * 1e9)
         preview = self._preview_due(t)
-        if self._admit(frame, t):
-            self._enqueue(("unranged", frame, why, preview))
-        else:
-            self._enqueue(("summary", {"t": t, "metadata": frame_metadata(frame, why, None, False), "ranging": None,
-                                       "preview": frame.data if preview else None}))
+        item = ("unranged", frame, why, preview)
+        self._enqueue(item if self._admit(frame, t) else ("summary", summary_of(item, BUDGET)))
 
     def _preview_due(self, t: int) -> bool:
         rate = self.config.preview_rate_hz
@@ -265,7 +289,7 @@ class Recorder:
         with self._lock:
             self._files = [path]
             self._clear_queue()
-            self.frames_written = self.frames_dropped = self.frames_decimated = self.bytes_closed = 0
+            self.frames_written = self.frames_dropped = self.frames_decimated = self.frames_lost = self.bytes_closed = 0
             self.payload_closed = 0
             budget = self.config.budget_mb_s
             self._budget = DiskBudget(budget * 1e6) if budget else None
@@ -328,8 +352,9 @@ class Recorder:
             "frames_written": self.frames_written,
             "frames_dropped": self.frames_dropped,
             "frames_decimated": self.frames_decimated,
+            "frames_lost": self.frames_lost,
             "raw_kept_ratio": None if not self.frames_written else
-            round(1.0 - self.frames_decimated / self.frames_written, 4),
+            round(max(0.0, 1.0 - (self.frames_decimated + self.frames_dropped) / self.frames_written), 4),
             "budget_mb_s": self.config.budget_mb_s,
             **self._disk_outlook(size, recording),
             "queued": len(self._queue),
@@ -480,7 +505,7 @@ class Recorder:
     def _frame_messages(self, frame: Frame, t: int, ranged: str, number: int | None, preview: bool) -> None:
         """The raw frame, its metadata and, when due, a preview."""
         self._file.write(rec.IMAGE, "foxglove.RawImage", rec.raw_image(frame.data, t), t)
-        self._file.write_json(rec.IMAGE_METADATA, frame_metadata(frame, ranged, number, True), t)
+        self._file.write_json(rec.IMAGE_METADATA, frame_metadata(frame, ranged, number), t)
         if preview:
             self._write_preview(frame.data, t)
 
@@ -491,7 +516,8 @@ class Recorder:
         self._spend(len(jpeg))
 
     def _write_summary(self, summary: dict) -> None:
-        """A decimated frame: its metadata, ranging record and, when due, its preview."""
+        """A frame without its raw image (decimated, or shed by a recorder behind): its metadata,
+        ranging record and, when due, its preview."""
         t = summary["t"]
         self._file.write_json(rec.IMAGE_METADATA, summary["metadata"], t)
         if summary["ranging"] is not None:
@@ -499,8 +525,9 @@ class Recorder:
         self._spend(SUMMARY_BYTES)
         if summary["preview"] is not None:
             self._write_preview(summary["preview"], t)
-        with self._lock:
-            self.frames_decimated += 1
+        if summary["metadata"]["raw_left_out"] == BUDGET:
+            with self._lock:
+                self.frames_decimated += 1
 
     def _write_item(self, item: tuple) -> None:
         if self._rotate_due:
@@ -558,14 +585,31 @@ def repair_folder(folder: str) -> list[str]:
     return repaired
 
 
-def frame_metadata(frame: Frame, ranged: str, number: int | None, raw_kept: bool) -> dict:
-    """A frame's /uwcam/image/metadata record; ``raw_kept`` False for a frame decimated to fit the disk budget."""
+def summary_of(item: tuple, why: str) -> dict:
+    """A queued raw item reduced to what is kept of a frame without its raw image: its metadata
+    (``raw_left_out``: ``why``), its ranging record, and its preview if one was due (only when
+    decimated: a recorder behind sheds the pixels of previews too)."""
+    if item[0] == "ranged":
+        _, published, profile, processing, preview = item
+        frame, ranging = published.frame, ranging_record(published, profile, processing)
+        metadata = frame_metadata(frame, "ranged", published.number, why)
+    else:
+        _, frame, ranged, preview = item
+        ranging, metadata = None, frame_metadata(frame, ranged, None, why)
+    return {"t": int(frame.wall_time * 1e9), "metadata": metadata, "ranging": ranging,
+            "preview": frame.data if preview and why == BUDGET else None}
+
+
+def frame_metadata(frame: Frame, ranged: str, number: int | None, raw_left_out: str | None = None) -> dict:
+    """A frame's /uwcam/image/metadata record; ``raw_left_out``: why its raw image is not in the
+    file (None: it is), ``raw_kept`` the same as a flag."""
     exposure, gain = frame.exposures()  # per channel: one value each, alike where the camera has one
     return {"sequence": frame.sequence, "device_timestamp_ns": frame.device_timestamp_ns,
             "host_monotonic_ns": frame.host_monotonic_ns, "wall_time": frame.wall_time,
             "exposure_us": None if exposure is None else list(exposure), "gain_db": None if gain is None else list(gain),
             "lamp_on": frame.lamp_on, "channel_names": list(frame.channel_names), "bit_depth": frame.bit_depth,
-            "dtype": frame.data.dtype.name, "ranged": ranged, "number": number, "raw_kept": raw_kept}
+            "dtype": frame.data.dtype.name, "ranged": ranged, "number": number, "raw_kept": raw_left_out is None,
+            "raw_left_out": raw_left_out}
 
 
 def ranging_record(p: Published, profile: CalibrationProfile, processing) -> dict:
