@@ -177,12 +177,15 @@ def recorder_metrics(recording: dict) -> Iterator[Metric]:
                             value=float(recording["state"] == "recording"))
     yield CounterMetricFamily("uwcam_recorder_frames_written", "Frames written to the recording (since it started).",
                               value=recording["frames_written"])
-    yield CounterMetricFamily("uwcam_recorder_frames_dropped", "Frames the recorder dropped because the disk fell "
-                              "behind (since the recording started).", value=recording["frames_dropped"])
+    yield CounterMetricFamily("uwcam_recorder_frames_dropped", "Raw frames the recorder dropped because the disk "
+                              "fell behind, their metadata kept (since the recording started).",
+                              value=recording["frames_dropped"])
     yield GaugeMetricFamily("uwcam_recording_size_bytes", "Bytes in the recording's files so far.", value=recording["bytes"])
     yield CounterMetricFamily("uwcam_recorder_frames_decimated", "Raw frames left out to keep within "
                               "recording.budget_mb_s (their metadata kept; since the recording started).",
                               value=recording["frames_decimated"])
+    yield CounterMetricFamily("uwcam_recorder_frames_lost", "Frames of which not even the metadata could be kept "
+                              "(since the recording started).", value=recording["frames_lost"])
     yield GaugeMetricFamily("uwcam_recorder_queue_bytes", "Bytes of frames waiting for the disk.",
                             value=recording["queued_mb"] * 1e6)
     free = recording["disk_free_bytes"]
