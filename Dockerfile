@@ -41,9 +41,10 @@ RUN apt-get update \
 RUN --mount=type=bind,from=build,source=/wheels,target=/wheels pip install --no-deps /wheels/*.whl
 COPY deploy/blueos/uwcam.yaml /usr/share/uwcam/uwcam.yaml
 COPY deploy/blueos/entrypoint.sh /usr/local/bin/uwcam-entrypoint
-EXPOSE 8080
+# 6480: no BlueOS service uses it (BlueOS's own services and its MAVLink inspector's :8080; docs/blueos.md).
+EXPOSE 6480
 HEALTHCHECK --interval=30s --timeout=5s --start-period=120s \
-  CMD python -c "import os, urllib.request; urllib.request.urlopen('http://127.0.0.1:%s/api/v1/status' % os.environ.get('UWCAM_PORT', '8080'), timeout=4)"
+  CMD python -c "import os, urllib.request; urllib.request.urlopen('http://127.0.0.1:%s/api/v1/status' % os.environ.get('UWCAM_PORT', '6480'), timeout=4)"
 ENTRYPOINT ["/usr/local/bin/uwcam-entrypoint"]
 
 # BlueOS extension metadata (read by BlueOS's extension manager and the extensions store).
@@ -53,7 +54,7 @@ ENTRYPOINT ["/usr/local/bin/uwcam-entrypoint"]
 ARG REPO=uwcam/uwcam
 LABEL version="0.1.0"
 LABEL permissions='{\
-  "NetworkMode": "host",\
+  "ExposedPorts": {"6480/tcp": {}},\
   "HostConfig": {\
     "NetworkMode": "host",\
     "Privileged": true,\
@@ -74,7 +75,7 @@ LABEL company='{\
   "email": "uwcam@users.noreply.github.com"\
 }'
 LABEL readme="https://raw.githubusercontent.com/${REPO}/{tag}/README.md"
-LABEL links="{\"source\": \"https://github.com/${REPO}\", \"support\": \"https://github.com/${REPO}/issues\", \"documentation\": \"https://github.com/${REPO}#blueos-extension\"}"
+LABEL links="{\"website\": \"https://github.com/${REPO}\", \"source\": \"https://github.com/${REPO}\", \"support\": \"https://github.com/${REPO}/issues\", \"documentation\": \"https://github.com/${REPO}#blueos-extension\"}"
 LABEL type="device-integration"
 LABEL tags='["camera", "rangefinder", "sonar", "mavlink", "navigation", "data-collection"]'
 LABEL requirements="core >= 1.1"

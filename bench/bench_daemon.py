@@ -14,13 +14,15 @@ latency from capture to WebSocket send (from the stream's own header), daemon CP
 memory (RSS, sampled every second; the peak is printed).
 
     python3 bench/bench_daemon.py [--seconds 30] [--fps 60] [--rigs replay,sim,sim-backscatter] [--frames 8] [--startup-seconds 20]
-                                  [--record FOLDER [--record-raw-only] [--compression lz4|zstd|none]]
+                                  [--record FOLDER [--record-results] [--budget MB_S] [--compression lz4|zstd|none]]
 
 --record FOLDER: the replay rig records the whole run into FOLDER (MCAP, every topic) as
 `uwcam run --record` does; the recorder's own figures (frames written and dropped, MB written)
 are printed. Give a folder on the disk the vehicle would record to (a tmpfs measures the CPU
-cost alone); it must have room for the run. --record-raw-only records the raw frames and what
-`uwcam reprocess` needs to range them again, not the results (recording.results: false);
+cost alone); it must have room for the run. By default the recording holds the raw frames and
+what `uwcam reprocess` needs to range them again (recording.results: false); --record-results
+adds the results. --budget sets recording.budget_mb_s (0: no budget; default the
+configuration's, 40 MB/s): the MB/s written and the share of raw frames kept are printed.
 --compression sets recording.compression.
 
 sim-backscatter: the embedded default with backscatter compensation switched on through the API
@@ -139,7 +141,10 @@ def measure(args: list[str], port: int, seconds: float, settings: dict | None = 
             async with websockets.connect(f"ws://127.0.0.1:{port}/api/v1/stream?rate=120", max_size=None) as ws:
                 await ws.recv()  # hello
                 next_sample = 0.0
-                while (now := time.monotonic() - t0) < STARTUP_S + seconds:
+                # Measured for `seconds` after the start-up snapshot, however late a loaded machine
+                # lets the daemon start (its first status can come after STARTUP_S).
+                while "startup" not in frames_at or (now := time.monotonic() - t0) < frames_at["t_startup"] - t0 + seconds:
+                    now = time.monotonic() - t0
                     if now >= next_sample:
                         rss.append(proc_figures(proc.pid)[1:])
                         next_sample += 1.0
@@ -207,6 +212,10 @@ def report(name: str, r: dict, seconds: float, fps: float | None) -> None:
         print(f"  recording ({rec['state']}): {rec['frames_written']} frames written, {rec['frames_dropped']} dropped by the "
               f"recorder (the disk or its share of the CPU could not keep up), "
               f"{rec['bytes'] / 1e6:.0f} MB, {rec['queued']} queued at the end")
+        if rec.get("duration_s"):
+            print(f"  recording rate {rec['bytes'] / 1e6 / rec['duration_s']:.1f} MB/s over {rec['duration_s']:.0f} s "
+                  f"(budget {rec.get('budget_mb_s')} MB/s); raw frames kept {100 * (rec.get('raw_kept_ratio') or 0):.0f} % "
+                  f"({rec.get('frames_decimated', 0)} decimated); {rec.get('hours_left')} h of disk left at that budget")
 
 
 def main() -> None:
@@ -221,7 +230,9 @@ def main() -> None:
     parser.add_argument("--rigs", default="replay,sim", help="which rigs to run, comma-separated")
     parser.add_argument("--startup-seconds", type=float, default=20.0, help="start-up window")
     parser.add_argument("--record", metavar="FOLDER", help="the replay rig records into this folder (MCAP)")
-    parser.add_argument("--record-raw-only", action="store_true", help="record without the results (recording.results: false)")
+    parser.add_argument("--record-raw-only", action="store_true", help="record without the results (the default now)")
+    parser.add_argument("--record-results", action="store_true", help="record the results too (recording.results: true)")
+    parser.add_argument("--budget", type=float, help="recording.budget_mb_s (0: none)")
     parser.add_argument("--compression", choices=("lz4", "zstd", "none"), help="recording.compression")
     args = parser.parse_args()
     global STARTUP_S
@@ -232,7 +243,8 @@ def main() -> None:
     if "replay" in rigs:
         with tempfile.TemporaryDirectory() as tmp:
             port = free_port()
-            recording = {**({"results": False} if args.record_raw_only else {}),
+            recording = {"results": bool(args.record_results),
+                         **({"budget_mb_s": args.budget or None} if args.budget is not None else {}),
                          **({"compression": args.compression} if args.compression else {})}
             # In a child process: see HEADER above.
             subprocess.run([sys.executable, __file__, "--write-rig", json.dumps(
@@ -243,7 +255,7 @@ def main() -> None:
                 record = ["--record", os.path.join(os.path.abspath(args.record), f"bench-{time.strftime('%Y%m%dT%H%M%S')}.mcap")]
             r = measure(["--config", cfg, *record], port, args.seconds)
         report(f"replay {w}x{h}x3 uint16 at {args.fps:g} fps (a real-rig configuration"
-               f"{', recording' if record else ''}{' raw frames only' if args.record_raw_only else ''}"
+               f"{', recording' if record else ''}{' with results' if args.record_results else ''}"
                f"{', ' + args.compression if record and args.compression else ''})", r, args.seconds, args.fps)
     sim = {}
     if "sim" in rigs:

@@ -31,7 +31,7 @@ def record_dive(path: str, size: tuple[int, int], frames: int) -> None:
                        rangefinder=DeviceConfig(driver="sim-ping1d"),
                        simulation={"scene": "seabed-patch", "distance": 2.0, "size": list(size), "water": "jerlov-IB",
                                    "lamp_offset": [0.3, 0.0, 0.0], "material": "grey"},
-                       recording=RecordingConfig(folder=os.path.dirname(path)))
+                       recording=RecordingConfig(folder=os.path.dirname(path), budget_mb_s=None))  # every raw frame
     d = Daemon(cfg)
     d.start()
     try:

@@ -62,3 +62,11 @@ def test_orientation_benchmark_runs():
     assert "× ranging" in out and "within 2°" in out
     row = out.strip().splitlines()[-1].split()
     assert row[0] == "16" and row[3] == "100.0%"  # every block of the tilted plane gets an angle
+
+
+@pytest.mark.slow
+def test_recording_budget_benchmark_runs():
+    out = subprocess.run([sys.executable, str(ROOT / "bench" / "bench_recording_budget.py"), "--frames", "1"],
+                         check=True, capture_output=True, text=True, timeout=600).stdout
+    assert "1280×720: raw frame 5.53 MB" in out and "1920×1080: raw frame 12.44 MB" in out  # 2 bytes × 3 channels a pixel
+    assert out.count("% of raw frames") == 10

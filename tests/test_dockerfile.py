@@ -23,6 +23,12 @@ from uwcam.config import load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 BLUEOS_LABELS = {"version", "permissions", "authors", "company", "readme", "links", "type", "tags", "requirements"}
+PORT = 6480
+BLUEOS_PORTS = {22, 80, 81, 2748, 2770, 5201, 5555, 5777, 6020, 6021, 6030, 6040, 7000, 7777, 8000, 8081, 8088, 8554, 9000,
+                9002, 9090, 9100, 9101, 9110, 9111, 9120, 9134, 9150, 9151, 9152, 27353, 7117, 7118, 8080}
+"""Ports BlueOS's own services use (bluerobotics/BlueOS 8e16119: core/services/helper/main.py
+BLUEOS_SYSTEM_SERVICES_PORTS and SKIP_PORTS, core/tools/nginx/nginx.conf's proxy_pass targets),
+and 8080, from which its MAVLink inspector view loads an iframe (core/frontend/src/views/MavlinkInspectorView.vue)."""
 
 
 def instructions() -> list[tuple[str, str]]:
@@ -69,6 +75,9 @@ def test_every_blueos_label_is_there_and_its_json_parses():
     assert found["readme"].startswith("https://raw.githubusercontent.com/") and "{tag}" in found["readme"]
 
     permissions = json.loads(found["permissions"])
+    # Docker's container-create options: NetworkMode belongs in HostConfig, nowhere else.
+    assert set(permissions) <= {"ExposedPorts", "HostConfig", "Env", "Labels"}, set(permissions)
+    assert permissions["ExposedPorts"] == {f"{PORT}/tcp": {}}
     host = permissions["HostConfig"]
     assert host["NetworkMode"] == "host"  # GigE Vision discovery is UDP broadcast
     assert host["Privileged"] is True and "/dev:/dev" in host["Binds"]
@@ -79,7 +88,8 @@ def test_every_blueos_label_is_there_and_its_json_parses():
     company = json.loads(found["company"])
     assert {"name", "about", "email"} <= set(company)
     links = json.loads(found["links"])
-    assert links and all(url.startswith("https://") for url in links.values())
+    assert {"website", "source", "support", "documentation"} <= set(links)
+    assert all(url.startswith("https://") for url in links.values())
     tags = json.loads(found["tags"])
     assert isinstance(tags, list) and tags and all(isinstance(t, str) for t in tags)
 
@@ -125,6 +135,14 @@ def test_requirements_refuse_an_unknown_architecture():
     assert done.returncode != 0 and "unknown target architecture 'riscv64'" in done.stderr
 
 
+def test_the_image_listens_on_a_port_no_blueos_service_uses():
+    assert PORT not in BLUEOS_PORTS
+    exposed = [rest for keyword, rest in instructions() if keyword == "EXPOSE"]
+    health = next(rest for keyword, rest in instructions() if keyword == "HEALTHCHECK")
+    assert exposed == [str(PORT)] and f"'UWCAM_PORT', '{PORT}'" in health
+    assert f"{PORT}" in (ROOT / "docs/blueos.md").read_text()
+
+
 def test_entrypoint_seeds_the_configuration_and_a_token(tmp_path):
     """Run the entry point with a stand-in ``uwcam`` that records how it was started."""
     bin_dir = tmp_path / "bin"
@@ -138,7 +156,7 @@ def test_entrypoint_seeds_the_configuration_and_a_token(tmp_path):
     script = str(ROOT / "deploy/blueos/entrypoint.sh")
     subprocess.run(["sh", script], env=env, check=True, capture_output=True)
     args, token = (tmp_path / "record").read_text().splitlines()
-    assert args == f"run --config {conf}/uwcam.yaml --host 0.0.0.0 --port 8080"
+    assert args == f"run --config {conf}/uwcam.yaml --host 0.0.0.0 --port {PORT}"
     assert len(token) >= 32 and (conf / "token").read_text().strip() == token
     assert oct((conf / "token").stat().st_mode & 0o777) == "0o600"
     # A second start keeps the token and the (edited) configuration.

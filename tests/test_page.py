@@ -7,11 +7,7 @@ from __future__ import annotations
 import io
 import json
 import re
-import os
-import shutil
-import socket
 import struct
-import subprocess
 import threading
 import time
 from pathlib import Path
@@ -21,6 +17,7 @@ import numpy as np
 import pytest
 import websockets.sync.client
 
+from tests.blueos_proxy import blueos_nginx
 from tests.served import Server
 from tests.test_api import SERIAL, small_config
 from tests.waiting import wait_for
@@ -190,19 +187,13 @@ def test_view_resolution_follows_the_width_the_page_draws(server):
         assert closed.value.rcvd.code == 1008 and "width must be" in closed.value.rcvd.reason
 
 
-def test_register_service_and_cockpit_extras_follow_blueos_conventions(server):
+def test_register_service_follows_blueos_conventions(server):
     meta = server.http.get("/register_service").json()
     for key in ("name", "description", "icon", "company", "version", "webpage", "api"):
         assert isinstance(meta[key], str) and meta[key], key
     assert meta["icon"].startswith("mdi-") and meta["works_in_relative_paths"] is True
-    assert not meta["api"].startswith("/") and not meta["extras"]["cockpit"].startswith("/")
-    extras = server.http.get("/" + meta["extras"]["cockpit"]).json()
-    widget = extras["widgets"][0]
-    assert {"name", "iframe_url", "iframe_icon"} <= widget.keys() and not widget["iframe_url"].startswith("/")
-    assert server.http.get("/" + widget["iframe_url"]).status_code == 200
-    assert server.http.get("/" + widget["iframe_icon"]).status_code == 200
-    bodies = {json.loads(a["config"]["body"])["on"] for a in extras["actions"]}
-    assert bodies == {True, False} and all(a["config"]["url"] == "api/v1/lamp" for a in extras["actions"])
+    assert not meta["api"].startswith("/") and meta["webpage"].startswith("https://")
+    # Cockpit's join of the extras path is tested, with Cockpit's own rules, in tests/test_cockpit.py.
 
 
 def test_docs_work_offline_from_the_package(server):
@@ -360,81 +351,22 @@ def test_controls_without_a_token(server, browser):
 
 # ---------------------------------------------------------------- behind BlueOS's reverse proxy
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture
 def proxy(server, tmp_path):
-    """nginx with BlueOS's extension route (core/services/helper: `location /extensionv2/<name>/`,
-    `proxy_pass http://127.0.0.1:<port>/`, `Host $host`) plus WebSocket upgrade, and a host page
-    that embeds uwcam's page and widget in iframes as BlueOS and Cockpit do."""
-    nginx = shutil.which("nginx") or "/usr/sbin/nginx"
-    assert Path(nginx).exists(), "nginx is needed for the reverse-proxy test: .ci/run installs nginx-light"
-    port = free_port()
-    (tmp_path / "www").mkdir()
-    (tmp_path / "www" / "host.html").write_text(
-        '<!doctype html><title>vehicle</title><link rel="icon" href="data:,">'
-        '<iframe id="page" src="/extensionv2/uwcam/" width="1200" height="800"></iframe>'
-        '<iframe id="widget" src="/extensionv2/uwcam/widget" width="300" height="200"></iframe>')
-    conf = tmp_path / "nginx.conf"
-    # As root, nginx's workers would drop to "nobody", who cannot read pytest's private tmp folder.
-    user = "user root root;" if os.geteuid() == 0 else ""
-    conf.write_text(f"""
-{user}
-worker_processes 1;
-daemon off;
-pid {tmp_path}/nginx.pid;
-error_log {tmp_path}/error.log warn;
-events {{}}
-http {{
-  access_log off;
-  client_body_temp_path {tmp_path}/body; proxy_temp_path {tmp_path}/proxy;
-  fastcgi_temp_path {tmp_path}/fastcgi; uwsgi_temp_path {tmp_path}/uwsgi; scgi_temp_path {tmp_path}/scgi;
-  map $http_upgrade $connection_upgrade {{ default upgrade; '' close; }}
-  server {{
-    listen 127.0.0.1:{port};
-    location = /host.html {{ root {tmp_path}/www; }}
-    location /extensionv2/uwcam/ {{
-      proxy_pass http://127.0.0.1:{server.port}/;
-      proxy_set_header Host $host;
-      proxy_set_header X-Real-IP $remote_addr;
-      proxy_set_header X-Forwarded-For $proxy_add_x_forwarded_for;
-      proxy_set_header X-Forwarded-Proto $scheme;
-      # BlueOS serves on port 80, the Origin's default; this test's nginx listens elsewhere and says so.
-      proxy_set_header X-Forwarded-Port $server_port;
-      proxy_http_version 1.1;
-      proxy_set_header Upgrade $http_upgrade;
-      proxy_set_header Connection $connection_upgrade;
-    }}
-  }}
-}}
-""")
-    proc = subprocess.Popen([nginx, "-p", str(tmp_path), "-c", str(conf)], stderr=subprocess.PIPE)
-    url = f"http://127.0.0.1:{port}"
-    try:
-        assert wait_for(lambda: _answers(url + "/host.html"), 10.0), "nginx did not start"
+    """nginx with BlueOS's extension route (tests/blueos_proxy.py) and a host page that embeds
+    uwcam's page and widget in iframes as BlueOS and Cockpit do."""
+    host = ('<!doctype html><title>vehicle</title><link rel="icon" href="data:,">'
+            '<iframe id="page" src="/extensionv2/uwcam/" width="1200" height="800"></iframe>'
+            '<iframe id="widget" src="/extensionv2/uwcam/widget" width="300" height="200"></iframe>')
+    with blueos_nginx(tmp_path, server.port, pages={"host.html": host}) as url:
         yield url
-    finally:
-        proc.terminate()
-        proc.wait(timeout=10)
-        proc.stderr.close()
-
-
-def _answers(url: str) -> bool:
-    try:
-        return httpx.get(url, timeout=1.0).status_code == 200
-    except httpx.HTTPError:
-        return False
 
 
 def test_page_and_widget_work_in_iframes_under_a_path_prefix(server, browser, proxy):
     prefix = proxy + "/extensionv2/uwcam/"
     meta = httpx.get(prefix + "register_service").json()
     assert httpx.get(prefix + meta["api"]).status_code == 200
-    assert httpx.get(prefix + meta["extras"]["cockpit"]).json()["widgets"]
+    assert httpx.get(prefix + meta["extras"]["cockpit"].lstrip("/")).json()["widgets"]
     page = open_page(browser, proxy + "/host.html", proxy)
     try:
         frame = page.frame_locator("#page")

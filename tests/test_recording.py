@@ -33,7 +33,8 @@ SEABED_Z_M = 2.0  # the simulated seabed is a plane square to the optical axis a
 
 def recording_config(tmp_path, **kw) -> DaemonConfig:
     cfg = small_config()
-    cfg.recording = RecordingConfig(folder=str(tmp_path / "recordings"), chunk_kb=64, **kw)
+    # Results recorded unless a test says otherwise (the default leaves them to `uwcam reprocess`).
+    cfg.recording = RecordingConfig(folder=str(tmp_path / "recordings"), chunk_kb=64, **{"results": True, **kw})
     return cfg
 
 
@@ -456,10 +457,14 @@ def test_recordings_api_starts_stops_lists_and_downloads(tmp_path):
         for bad in ("..%2Frig.yaml", "nothing.mcap", ".hidden.mcap"):
             assert s.http.get(f"/api/v1/recordings/{bad}").status_code == 404
     (tmp_path / "dl.mcap").write_bytes(got.content)
-    assert len(decoded(str(tmp_path / "dl.mcap"), rec.DEPTH)) == stopped["frames_written"]
+    metadata = [m for _t, m in decoded(str(tmp_path / "dl.mcap"), rec.IMAGE_METADATA)]
+    assert len(metadata) == stopped["frames_written"]
+    # Results for every ranged frame; a loaded machine may also hand over frames it skipped for a newer one.
+    assert len(decoded(str(tmp_path / "dl.mcap"), rec.DEPTH)) == sum(m["ranged"] == "ranged" for m in metadata)
 
 
-def test_foxglove_server_carries_the_topics_and_a_point_cloud(tmp_path):
+@pytest.mark.parametrize("protocol", ["foxglove.sdk.v1", "foxglove.websocket.v1"])
+def test_foxglove_server_carries_the_topics_and_a_point_cloud(tmp_path, protocol):
     """A real client of the Foxglove WebSocket protocol: subscribe, receive, decode with the
     advertised protobuf schema (stock protobuf runtime)."""
     import asyncio
@@ -483,9 +488,9 @@ def test_foxglove_server_carries_the_topics_and_a_point_cloud(tmp_path):
         return message_factory.GetMessageClass(pool.FindMessageTypeByName(channel["schemaName"].lstrip(".")))
 
     async def client(port):
-        async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"],
-                                      max_size=None) as ws:
-            assert ws.subprotocol in ("foxglove.sdk.v1", "foxglove.websocket.v1")
+        # foxglove.sdk.v1: Foxglove with the SDK; foxglove.websocket.v1: Lichtblick and older Foxglove.
+        async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[protocol], max_size=None) as ws:
+            assert ws.subprotocol == protocol
             channels = {}
             while not {rec.DEPTH, "/uwcam/points", rec.IMAGE, rec.CALIBRATION, rec.STATUS, rec.RANGEFINDER} <= set(channels):
                 msg = json.loads(await ws.recv())
@@ -504,14 +509,16 @@ def test_foxglove_server_carries_the_topics_and_a_point_cloud(tmp_path):
                         got.setdefault(topic, json.loads(data[13:]))
                     else:
                         got.setdefault(topic, decoder(channels[topic]).FromString(data[13:]))
-            return channels, got
+            return channels, got, d.status()["foxglove"]["clients"]
 
     with running(cfg) as d:
-        channels, got = asyncio.run(client(d.foxglove.port))
+        channels, got, clients_while_connected = asyncio.run(client(d.foxglove.port))
         status = d.status()["foxglove"]
+        assert wait_for(lambda: d.status()["foxglove"]["clients"] == 0, 10.0)
         intr = d.pipeline.profile.camera_intrinsics()
     assert channels[rec.DEPTH]["schemaName"] == "foxglove.RawImage" and channels["/uwcam/points"]["schemaName"] == "foxglove.PointCloud"
     assert status["frames_sent"] > 0 and status["error"] is None
+    assert status["connections_by_protocol"][protocol] == 1 and clients_while_connected == 1
     assert got[rec.STATUS]["camera"]["health"]["state"] == "ok" and got[rec.STATUS]["foxglove"]["url"].startswith("ws://")
     depth = got[rec.DEPTH]
     assert (depth.width, depth.height, depth.encoding) == (160, 120, "32FC1")
@@ -552,7 +559,10 @@ def test_a_slow_disk_drops_counted_frames_and_stop_is_prompt(tmp_path, monkeypat
         took = time.monotonic() - began
     assert status["state"] == "idle" and status["frames_dropped"] >= 5 and peak <= 4
     assert took < 5.0  # at most the 4 queued frames (~0.4 s) plus closing the file
-    assert len(decoded(str(tmp_path / "slow.mcap"), rec.IMAGE)) == status["frames_written"]
+    metadata = [m for _t, m in decoded(str(tmp_path / "slow.mcap"), rec.IMAGE_METADATA)]
+    # Every frame handed over has its metadata; the dropped ones say so and have no raw image.
+    assert len(metadata) == status["frames_written"] and sum(not m["raw_kept"] for m in metadata) >= 5
+    assert len(decoded(str(tmp_path / "slow.mcap"), rec.IMAGE)) == sum(m["raw_kept"] for m in metadata)
 
 
 def test_lamp_off_frames_and_ambient_are_recorded_and_reprocessed(tmp_path):

@@ -57,18 +57,34 @@ def test_the_queue_is_bounded_in_bytes_dropping_the_oldest():
     recorder = Recorder(SimpleNamespace(), RecordingConfig(queue_frames=1000, queue_mb=1.0))
     for k in range(10):
         recorder._on_unranged(frame_of(300_000, k), "lamp off")  # 0.3 MB each: three fit in 1 MB
-    assert [item[1].sequence for item in recorder._queue] == [7, 8, 9]
+    # The oldest raw frames went; their summaries (metadata) stay, in order.
+    assert [item[1].sequence for item in recorder._queue if item[0] != "summary"] == [7, 8, 9]
+    summaries = [item[1]["metadata"] for item in recorder._queue if item[0] == "summary"]
+    assert [m["sequence"] for m in summaries] == list(range(7))
+    assert all(not m["raw_kept"] and m["raw_left_out"] == "the recorder fell behind" for m in summaries)
     assert recorder.frames_dropped == 7 and recorder.status()["queued_mb"] == pytest.approx(0.9)
     while recorder._dequeue() is not None:
         pass
     assert recorder.status()["queued_mb"] == 0.0
 
 
+def test_the_frame_limit_counts_raw_frames_and_sheds_them_to_summaries():
+    recorder = Recorder(SimpleNamespace(), RecordingConfig(queue_frames=2, queue_mb=100.0))
+    for k in range(5):
+        recorder._on_unranged(frame_of(6_000, k), "lamp off")
+    kinds = [(item[0], item[1]["metadata"]["sequence"] if item[0] == "summary" else item[1].sequence)
+             for item in recorder._queue]
+    assert kinds == [("summary", 0), ("summary", 1), ("summary", 2), ("unranged", 3), ("unranged", 4)]
+    assert recorder.frames_dropped == 3 and recorder.frames_lost == 0
+
+
 def test_a_frame_larger_than_the_whole_queue_is_still_queued_alone():
     recorder = Recorder(SimpleNamespace(), RecordingConfig(queue_mb=0.5))
     recorder._on_unranged(frame_of(300_000, 1), "lamp off")
     recorder._on_unranged(frame_of(1_200_000, 2), "lamp off")
+    # Frame 1 shed to its summary, which the big frame then needs the room of too: lost, and counted.
     assert [item[1].sequence for item in recorder._queue] == [2] and recorder.frames_dropped == 1
+    assert recorder.frames_lost == 1
 
 
 @pytest.mark.parametrize(("key", "value"), [("queue_mb", 0), ("queue_mb", float("nan")), ("queue_mb", -3),

@@ -10,7 +10,7 @@ import os
 import re
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator, StrictInt
 from pydantic import Strict as NoCoercion
 
 from uwcam.fileio import UserInputError, explain_validation_error, load_yaml_mapping
@@ -220,6 +220,12 @@ class ApiConfig(Strict):
     """Web origins (``http://host:port``) besides the daemon's own whose pages may change state
     and call the API from the browser (CORS), e.g. Cockpit served from another port; and that
     may show uwcam's pages in a frame."""
+    cockpit_actions_token: bool = False
+    """Put the API token into the lamp actions of ``/cockpit_extras.json`` so that Cockpit's
+    actions are authorised. Anyone who can reach the daemon can read that document, so set this
+    only where they could read the token anyway: on BlueOS, whose terminal and file browser
+    (the token file included) are open to the vehicle's network. Off: the actions carry no token
+    and get 401 while a token is set (add the header in Cockpit's action editor)."""
 
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
@@ -242,11 +248,17 @@ class RecordingConfig(Strict):
     """Most megabytes of frames (raw frame, range, variance, reasons) waiting for the disk: at
     1920×1080 a frame and its results are 31 MB, so this, not queue_frames, bounds the memory
     a slow disk can take; beyond it the oldest is dropped and counted."""
-    results: bool = True
+    results: bool = False
     """Record each ranged frame's depth, variance and reasons too (19 MB of a 1920×1080 16-bit
-    frame's 31 MB). False: the raw frames with their metadata, the ranging records and the
-    ambient light only, from which ``uwcam reprocess`` makes depth, variance and reasons bit for
-    bit; what a disk that cannot take every frame's results at full rate needs."""
+    frame's 31 MB, 560 MB/s at 30 frames/s). False (the default): the raw frames with their
+    metadata, the ranging records and the ambient light only, from which ``uwcam reprocess``
+    makes depth, variance and reasons bit for bit."""
+    budget_mb_s: Annotated[FiniteFloat, Field(gt=0, le=100000)] | None = 40.0
+    """Most megabytes a second the recording writes on average (a 2-second burst allowed): raw
+    frames beyond it are decimated, evenly, and counted (``frames_decimated``); every frame's
+    metadata and ranging record and the previews are always kept. 40 MB/s is 144 GB an hour;
+    raw 16-bit frames at 30 frames/s are 166 MB/s at 1280×720 and 373 MB/s at 1920×1080, and
+    lossless compression gains only 2–25 % on sensor noise (docs/recording.md). None: no budget."""
     compression: Literal["lz4", "zstd", "none"] = "lz4"
     """Compression of each MCAP chunk. lz4 costs little more than a copy; zstd makes files about
     a third smaller but costs ~9× the CPU (~140 MB/s on one core here: it drops frames beyond
@@ -255,6 +267,30 @@ class RecordingConfig(Strict):
     """MCAP chunk size: a crash loses at most the chunk being filled; reprocessing splits at chunks."""
     status_interval_s: Annotated[FiniteFloat, Field(gt=0, le=3600)] = 1.0
     """How often the daemon's status is written into the recording."""
+    preview_rate_hz: Annotated[FiniteFloat, Field(ge=0, le=60)] = 2.0
+    """Colour previews per second on ``/uwcam/image/preview`` (foxglove.CompressedImage, JPEG,
+    display-stretched like the operator page, half resolution): what Foxglove draws, since it
+    cannot draw the 16-bit raw frames. 0: none."""
+    preview_quality: Annotated[int, Field(ge=1, le=100)] = 80
+    """JPEG quality of the previews."""
+
+
+class MountingConfig(Strict):
+    """Where the camera sits on the vehicle: the transform from the vehicle's frame to the
+    camera's (x right, y down, z forward, the frame ``uwcam_camera`` of every recorded image),
+    recorded as foxglove.FrameTransform so that Foxglove places images and points on the vehicle."""
+
+    parent_frame: Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_./-]+$")] = "base_link"
+    """The vehicle's frame, e.g. base_link (ROS REP 103: x forward, y left, z up)."""
+    translation_m: tuple[Annotated[FiniteFloat, Field(ge=-100, le=100)], Annotated[FiniteFloat, Field(ge=-100, le=100)],
+                         Annotated[FiniteFloat, Field(ge=-100, le=100)]] = (0.0, 0.0, 0.0)
+    """The camera's optical centre in the vehicle's frame, metres."""
+    rotation_deg: tuple[Annotated[FiniteFloat, Field(ge=-360, le=360)], Annotated[FiniteFloat, Field(ge=-360, le=360)],
+                        Annotated[FiniteFloat, Field(ge=-360, le=360)]] = (-90.0, 0.0, -90.0)
+    """Roll, pitch, yaw in degrees of the camera's frame in the vehicle's, as ROS gives them: the
+    camera's axes are the columns of Rz(yaw)·Ry(pitch)·Rx(roll). The default, (−90, 0, −90), is a
+    camera looking forward (its z along the vehicle's x); (180, 0, −90) looks down with the top of
+    the image toward the bow."""
 
 
 class FoxgloveConfig(Strict):
@@ -330,9 +366,10 @@ class MavlinkConfig(Strict):
     """Below this fraction of valid pixels in the region nothing is sent."""
     max_age_s: Annotated[float, Field(gt=0, le=10, allow_inf_nan=False)] = 0.5
     """Nothing is sent while the newest processed frame is older than this (seconds)."""
-    orientation: str = "PITCH_270"
-    """MAV_SENSOR_ORIENTATION name (with or without MAV_SENSOR_ROTATION_): PITCH_270 looks down,
-    NONE forward; it must equal the autopilot's RNGFNDx_ORIENT."""
+    orientation: str | StrictInt = "PITCH_270"
+    """MAV_SENSOR_ORIENTATION name (with or without MAV_SENSOR_ROTATION_) or number, as ArduPilot's
+    RNGFNDx_ORIENT takes it: PITCH_270 (25) looks down, NONE (0) forward; it must equal the
+    autopilot's RNGFNDx_ORIENT. Kept as the name."""
     sensor_id: Annotated[int, Field(ge=0, le=255)] = 0
     """DISTANCE_SENSOR ``id``, distinct from the vehicle's other rangefinders."""
     obstacle_distance: bool = False
@@ -342,10 +379,19 @@ class MavlinkConfig(Strict):
     @model_validator(mode="after")
     def _check(self) -> "MavlinkConfig":
         parse_mavlink_connection(self.connection)
+        if isinstance(self.orientation, int):
+            names = {v: k for k, v in SENSOR_ORIENTATIONS.items()}
+            if self.orientation not in names:
+                raise ValueError(f"unknown orientation number {self.orientation}; MAV_SENSOR_ORIENTATION numbers are "
+                                 f"{min(names)}–{max(names)}, e.g. 25 (PITCH_270, down) or 0 (NONE, forward)")
+            self.orientation = names[self.orientation]
         name = self.orientation.upper().removeprefix("MAV_SENSOR_ROTATION_")
+        if name.isdigit():  # a number written as a string: "25"
+            self.orientation = int(name)
+            return self._check()
         if name not in SENSOR_ORIENTATIONS:
-            raise ValueError(f"unknown orientation '{self.orientation}'; e.g. PITCH_270 (down), NONE (forward), "
-                             "YAW_90 (right), PITCH_90 (up)")
+            raise ValueError(f"unknown orientation '{self.orientation}'; e.g. PITCH_270 or 25 (down), NONE or 0 "
+                             "(forward), YAW_90 or 2 (right), PITCH_90 or 24 (up)")
         self.orientation = name
         if self.obstacle_distance and SENSOR_ORIENTATIONS[name] > 7:
             raise ValueError(f"obstacle_distance needs a camera looking horizontally (orientation NONE or YAW_*), "
@@ -362,6 +408,8 @@ class DaemonConfig(Strict):
     camera: CameraConfig = CameraConfig()
     lamp: DeviceConfig | None = None
     rangefinder: DeviceConfig | None = None
+    mounting: MountingConfig | None = None
+    """The camera's place on the vehicle, recorded as a transform; None: no transform recorded."""
     calibration: str | None = None
     """Path of the calibration profile; None only with the simulated camera (calibrated at start)."""
     profiles_dir: str | None = None

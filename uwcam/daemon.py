@@ -400,7 +400,8 @@ class Daemon:
         """The recorder (idle until asked, or recording from the start) and the Foxglove server."""
         from uwcam.outputs.recorder import Recorder
 
-        self.recorder = Recorder(self.pipeline, self.config.recording, status=self.status, rangefinder=self.rangefinder)
+        self.recorder = Recorder(self.pipeline, self.config.recording, status=self.status, rangefinder=self.rangefinder,
+                                 mounting=self.config.mounting)
         if self.config.recording.start_file:
             self.recorder.start(self.config.recording.start_file)
         if self.config.foxglove.enabled:

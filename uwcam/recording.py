@@ -5,6 +5,8 @@ Topics (log time: the frame's capture time, ns since the epoch, so a frame's mes
 
 ==========================  ========================  =============================================
 ``/uwcam/image``            foxglove.RawImage         raw frame at full bit depth (every frame)
+``/uwcam/image/preview``    foxglove.CompressedImage  JPEG colour preview for display (``preview_rate_hz``)
+``/uwcam/transform``        foxglove.FrameTransform   vehicle → camera (``mounting``), with each status
 ``/uwcam/image/metadata``   JSON                      sequence, timestamps, exposure, gain, lamp
 ``/uwcam/depth``            foxglove.RawImage 32FC1   metres along the optical axis, NaN invalid
 ``/uwcam/variance``         foxglove.RawImage 32FC1   variance of depth, m²
@@ -26,6 +28,7 @@ from __future__ import annotations
 
 import io
 import json
+import math
 import os
 import struct
 from collections.abc import Iterator
@@ -40,6 +43,8 @@ from uwcam.profile import CalibrationProfile, profile_from_mapping, profile_to_y
 
 IMAGE = "/uwcam/image"
 IMAGE_METADATA = "/uwcam/image/metadata"
+PREVIEW = "/uwcam/image/preview"
+TRANSFORM = "/uwcam/transform"
 DEPTH = "/uwcam/depth"
 VARIANCE = "/uwcam/variance"
 REASONS = "/uwcam/reasons"
@@ -186,6 +191,31 @@ def calibration_message(profile: CalibrationProfile, width: int, height: int, lo
                                R=[1.0, 0, 0, 0, 1, 0, 0, 0, 1], P=[fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1, 0])
 
 
+def compressed_image(data: bytes, log_time_ns: int, image_format: str = "jpeg") -> bytes:
+    """foxglove.CompressedImage (protobuf bytes) of an encoded image (``format`` jpeg, png or webp)."""
+    m = _messages()
+    return m.CompressedImage(timestamp=timestamp(log_time_ns), frame_id=FRAME_ID, data=data,
+                             format=image_format).encode()
+
+
+def quaternion_from_rpy_deg(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
+    """(x, y, z, w) of the rotation Rz(yaw)·Ry(pitch)·Rx(roll), angles in degrees (ROS's convention)."""
+    r, p, y = (math.radians(a) / 2.0 for a in (roll, pitch, yaw))
+    cr, sr, cp, sp, cy, sy = math.cos(r), math.sin(r), math.cos(p), math.sin(p), math.cos(y), math.sin(y)
+    return (sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy,
+            cr * cp * cy + sr * sp * sy)
+
+
+def frame_transform(parent_frame: str, translation_m, rotation_deg, log_time_ns: int) -> bytes:
+    """foxglove.FrameTransform (protobuf bytes) from ``parent_frame`` (the vehicle) to the camera's frame."""
+    m = _messages()
+    x, y, z, w = quaternion_from_rpy_deg(*rotation_deg)
+    return m.FrameTransform(timestamp=timestamp(log_time_ns), parent_frame_id=parent_frame, child_frame_id=FRAME_ID,
+                            translation=m.Vector3(x=float(translation_m[0]), y=float(translation_m[1]),
+                                                  z=float(translation_m[2])),
+                            rotation=m.Quaternion(x=x, y=y, z=z, w=w)).encode()
+
+
 def profile_attachment_name(profile: CalibrationProfile) -> str:
     return f"{PROFILE_PREFIX}{profile.name}.yaml"
 
@@ -215,6 +245,8 @@ class McapFile:
         self._channels: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
         self.messages = 0
+        self.payload_bytes = 0
+        """Bytes of message data handed to the writer (before chunk compression)."""
 
     def _schema(self, name: str) -> int:
         if name not in self._schemas:
@@ -233,6 +265,7 @@ class McapFile:
         self.writer.add_message(self._channels[topic], log_time=log_time_ns, data=data,
                                 publish_time=log_time_ns, sequence=self.messages)
         self.messages += 1
+        self.payload_bytes += len(data)
 
     def write_json(self, topic: str, value: dict, log_time_ns: int) -> None:
         self.write(topic, "json", json.dumps(value, default=_json_default).encode(), log_time_ns)
@@ -373,7 +406,7 @@ def iter_recorded_frames(reader, start_time: int | None = None, end_time: int | 
         t = message.log_time
         if channel.topic == IMAGE:
             pending_img[t] = decode_raw_image(decoded)
-        else:
+        elif decoded.get("raw_kept", True):  # a frame decimated to fit the disk budget has no image
             pending_meta[t] = decoded
         if t in pending_img and t in pending_meta:
             yield RecordedFrame(t, pending_img.pop(t), pending_meta.pop(t))

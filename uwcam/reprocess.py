@@ -87,12 +87,18 @@ def _summary(path: str):
 
 
 def ranged_frame_count(path: str) -> int:
-    """Frames with a range in a recording (from its statistics; 0 if it has none)."""
+    """Frames with a range whose raw image was kept, in a recording (from its statistics; 0 if it
+    has none): at most its ranging records and at most its raw images (frames decimated to fit the
+    disk budget have a ranging record and no image; frames not ranged have an image and no record)."""
     summary = _summary(path)
     if summary is None or summary.statistics is None:
         return 0
-    ids = [cid for cid, ch in summary.channels.items() if ch.topic == rec.RANGING]
-    return sum(summary.statistics.channel_message_counts.get(cid, 0) for cid in ids)
+    counts = summary.statistics.channel_message_counts
+
+    def count(topic: str) -> int:
+        return sum(counts.get(cid, 0) for cid, ch in summary.channels.items() if ch.topic == topic)
+
+    return min(count(rec.RANGING), count(rec.IMAGE))
 
 
 def plan(path: str, part_mb: float = 64.0) -> list[Part]:
@@ -165,7 +171,8 @@ def process_part(part: Part, profile_yaml: str | None = None, kernel_threads: in
                 continue
             record, raw = decoded, images.pop(t, None)
             if raw is None:
-                continue  # its image was lost (a write cut short); nothing to range
+                exposures.pop(t, None)
+                continue  # its image was decimated to fit the disk budget, or lost (a write cut short)
             was = recorded.get(record["profile"])
             profile = override or was
             if profile is None:

@@ -14,4 +14,4 @@ if [ -z "${UWCAM_TOKEN:-}" ]; then
   UWCAM_TOKEN=$(cat "$conf/token")
   export UWCAM_TOKEN
 fi
-exec uwcam run --config "$conf/uwcam.yaml" --host "${UWCAM_HOST:-0.0.0.0}" --port "${UWCAM_PORT:-8080}" "$@"
+exec uwcam run --config "$conf/uwcam.yaml" --host "${UWCAM_HOST:-0.0.0.0}" --port "${UWCAM_PORT:-6480}" "$@"

@@ -6,15 +6,24 @@ published frame by a subscriber: one bucket increment under prometheus_client's 
 as the stream's hand-off. The registry is the app's own (not the process-global one), with
 prometheus_client's process collector (CPU, memory, open files) beside uwcam's metrics.
 
+Names follow Prometheus's conventions (https://prometheus.io/docs/practices/naming/): base
+units, plural and spelled as Prometheus spells them (``_seconds``, ``_meters``, ``_bytes``),
+shares as ``_ratio`` between 0 and 1, counters ending in ``_total``, and times of events as
+``_timestamp_seconds`` (an age is ``time() - …`` in PromQL, so it never goes stale between
+scrapes). tests/test_metrics.py runs Prometheus's own ``promtool check metrics`` on the output.
+
 What an operator alerts on: ``uwcam_device_up`` (and ``uwcam_device_state``) per device,
-``uwcam_frames_dropped_total`` rising, ``uwcam_rangefinder_reading_age_seconds`` growing,
-``uwcam_patch_drift_per_metre`` beyond the water's usual change, ``uwcam_valid_pixel_fraction``
-falling, ``uwcam_lamp_temperature_celsius`` climbing, ``uwcam_mavlink_sending`` at 0.
+``uwcam_frames_dropped_total`` or ``uwcam_recorder_frames_dropped_total`` rising,
+``uwcam_recording_disk_free_bytes`` falling, ``uwcam_rangefinder_reading_age_seconds`` growing,
+``uwcam_patch_drift_per_meter`` beyond the water's usual change, ``uwcam_valid_pixels_ratio``
+falling, ``uwcam_lamp_temperature_celsius`` climbing, ``uwcam_mavlink_sending`` at 0,
+``time() - uwcam_calibration_created_timestamp_seconds`` beyond the calibration's useful life.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator
+from datetime import datetime
 
 import numpy as np
 from fastapi import APIRouter, Depends, Request
@@ -47,7 +56,7 @@ class DaemonCollector(Collector):
                           ("processed", "Frames ranged and published by the frame loop."),
                           ("dropped", "Frames dropped: camera queue full, or skipped for a newer one.")):
             yield CounterMetricFamily(f"uwcam_frames_{name}", doc, value=frames[name])
-        yield GaugeMetricFamily("uwcam_fps", "Processed frames per second, recent.", value=frames["fps"])
+        yield GaugeMetricFamily("uwcam_frames_per_second", "Processed frames per second, recent.", value=frames["fps"])
         yield GaugeMetricFamily("uwcam_uptime_seconds", "Seconds since the daemon started.", value=s["uptime_s"])
 
         health = {"camera": s["camera"]["health"]["state"] if s["camera"] else None,
@@ -70,7 +79,8 @@ class DaemonCollector(Collector):
             if lamp["on"] is not None:
                 yield GaugeMetricFamily("uwcam_lamp_on", "1 while the lamp is on, as last reported.", value=float(lamp["on"]))
             if lamp["percent"] is not None:
-                yield GaugeMetricFamily("uwcam_lamp_intensity_percent", "Lamp intensity, %.", value=lamp["percent"])
+                yield GaugeMetricFamily("uwcam_lamp_intensity_ratio", "Lamp intensity, 0 to 1 of full.",
+                                        value=lamp["percent"] / 100.0)
             last = getattr(self.daemon.lamp, "last_status", None)
             if last is not None and last.temperature_c is not None:
                 yield GaugeMetricFamily("uwcam_lamp_temperature_celsius", "Lamp temperature as last reported, °C.",
@@ -80,11 +90,11 @@ class DaemonCollector(Collector):
         if rf is not None and rf["age_s"] is not None:
             yield GaugeMetricFamily("uwcam_rangefinder_reading_age_seconds", "Age of the newest valid reading, s.",
                                     value=rf["age_s"])
-            yield GaugeMetricFamily("uwcam_rangefinder_range_metres", "Newest valid range, m.", value=rf["range_m"])
+            yield GaugeMetricFamily("uwcam_rangefinder_range_meters", "Newest valid range, m.", value=rf["range_m"])
 
         tracking = s["calibration"]["tracking"]
         if tracking is not None:
-            drift = GaugeMetricFamily("uwcam_patch_drift_per_metre",
+            drift = GaugeMetricFamily("uwcam_patch_drift_per_meter",
                                       "Tracked minus calibrated attenuation difference per channel, 1/m.", labels=["channel"])
             for channel, value in tracking["drift"].items():
                 drift.add_metric([channel], value)
@@ -98,16 +108,25 @@ class DaemonCollector(Collector):
         if published is not None:
             counts = np.bincount(published.result.reasons.ravel(), minlength=len(Reason))
             total = max(1, int(counts.sum()))
-            yield GaugeMetricFamily("uwcam_valid_pixel_fraction", "Fraction of the newest range map's pixels with a range.",
+            yield GaugeMetricFamily("uwcam_valid_pixels_ratio", "Share of the newest range map's pixels with a range.",
                                     value=counts[Reason.VALID] / total)
-            reasons = GaugeMetricFamily("uwcam_pixel_reason_fraction",
-                                        "Fraction of the newest range map's pixels per validity reason.", labels=["reason"])
+            reasons = GaugeMetricFamily("uwcam_pixel_reason_ratio",
+                                        "Share of the newest range map's pixels per validity reason.", labels=["reason"])
             for reason in Reason:
                 reasons.add_metric([reason.name.lower()], counts[reason] / total)
             yield reasons
+            yield from exposure_metrics(published)
 
+        yield from calibration_metrics(s["calibration"]["created"])
+        if s["recording"] is not None:
+            yield from recorder_metrics(s["recording"])
         yield GaugeMetricFamily("uwcam_websocket_clients", "WebSocket stream clients connected now.",
                                 value=getattr(self.app_state, "stream_clients", 0))
+        if s["foxglove"] is not None:
+            yield GaugeMetricFamily("uwcam_foxglove_clients", "Foxglove (or Lichtblick) clients connected now.",
+                                    value=s["foxglove"]["clients"])
+            yield CounterMetricFamily("uwcam_foxglove_frames_sent", "Frames sent to the Foxglove server.",
+                                      value=s["foxglove"]["frames_sent"])
 
         mav = s.get("mavlink")
         if mav is not None:
@@ -120,6 +139,58 @@ class DaemonCollector(Collector):
                                       value=mav["send_errors"])
             yield GaugeMetricFamily("uwcam_mavlink_sending", "1 while distances are being sent to the autopilot.",
                                     value=float(mav["sending"]))
+
+
+def exposure_metrics(published: Published) -> Iterator[Metric]:
+    """Exposure time and gain per channel of the newest processed frame, as the camera reported them."""
+    exposure_us, gain_db = published.frame.exposures()
+    names = published.frame.channel_names
+    if exposure_us is not None:
+        family = GaugeMetricFamily("uwcam_exposure_seconds", "Exposure time of the newest processed frame, per channel, s.",
+                                   labels=["channel"])
+        for name, t in zip(names, exposure_us):
+            family.add_metric([name], t * 1e-6)
+        yield family
+    if gain_db is not None:
+        family = GaugeMetricFamily("uwcam_gain_decibels", "Analogue gain of the newest processed frame, per channel, dB.",
+                                   labels=["channel"])
+        for name, g in zip(names, gain_db):
+            family.add_metric([name], g)
+        yield family
+
+
+def calibration_metrics(created: str | None) -> Iterator[Metric]:
+    """When the calibration in use was made (its provenance), as a Unix time."""
+    if not created:
+        return
+    try:
+        when = datetime.fromisoformat(created).timestamp()
+    except ValueError:
+        return  # a profile with an unreadable date: no metric rather than a wrong one
+    yield GaugeMetricFamily("uwcam_calibration_created_timestamp_seconds",
+                            "When the calibration in use was made, Unix time; its age is time() minus this.", value=when)
+
+
+def recorder_metrics(recording: dict) -> Iterator[Metric]:
+    """The recorder's counts (of the recording in progress or the last one) and the disk it writes to."""
+    yield GaugeMetricFamily("uwcam_recording_active", "1 while a recording is being written.",
+                            value=float(recording["state"] == "recording"))
+    yield CounterMetricFamily("uwcam_recorder_frames_written", "Frames written to the recording (since it started).",
+                              value=recording["frames_written"])
+    yield CounterMetricFamily("uwcam_recorder_frames_dropped", "Raw frames the recorder dropped because the disk "
+                              "fell behind, their metadata kept (since the recording started).",
+                              value=recording["frames_dropped"])
+    yield GaugeMetricFamily("uwcam_recording_size_bytes", "Bytes in the recording's files so far.", value=recording["bytes"])
+    yield CounterMetricFamily("uwcam_recorder_frames_decimated", "Raw frames left out to keep within "
+                              "recording.budget_mb_s (their metadata kept; since the recording started).",
+                              value=recording["frames_decimated"])
+    yield CounterMetricFamily("uwcam_recorder_frames_lost", "Frames of which not even the metadata could be kept "
+                              "(since the recording started).", value=recording["frames_lost"])
+    yield GaugeMetricFamily("uwcam_recorder_queue_bytes", "Bytes of frames waiting for the disk.",
+                            value=recording["queued_mb"] * 1e6)
+    free = recording["disk_free_bytes"]
+    if free is not None:
+        yield GaugeMetricFamily("uwcam_recording_disk_free_bytes", "Free bytes on the disk recordings go to.", value=free)
 
 
 class Metrics:

@@ -7,7 +7,11 @@ reverse proxy that serves uwcam under a path prefix, as BlueOS does (``/extensio
 
 from __future__ import annotations
 
+import json
+import re
+from collections.abc import Mapping
 from importlib import resources
+from urllib.parse import urlsplit
 
 from fastapi import APIRouter, Request
 from fastapi.openapi.docs import get_swagger_ui_html
@@ -54,37 +58,100 @@ def docs() -> HTMLResponse:
                                swagger_favicon_url="static/favicon.svg")
 
 
+SERVICE_NAME = "uwcam"
+DOCS_URL = "https://github.com/uwcam/uwcam/blob/main/docs/blueos.md"
+"""The daemon's own documentation (its BlueOS page), which BlueOS links as the service's webpage."""
+
+BLUEOS_EXTENSION_ROUTE = "/extensionv2/"
+"""Where BlueOS's nginx serves an extension that works in relative paths (BlueOS
+core/services/helper/main.py, ``setup_nginx_route``: ``location /extensionv2/{name}/``)."""
+
+_PREFIX = re.compile(r"^(/[A-Za-z0-9._~-]+)*/?$")
+
+
+def blueos_sanitized_name(name: str) -> str:
+    """BlueOS's ``sanitized_name`` of a service (core/services/helper/main.py): lower case, only a-z and 0-9."""
+    return re.sub(r"[^a-z0-9]", "", name.lower())
+
+
+def public_base_url(headers: Mapping[str, str], scheme: str, name: str = SERVICE_NAME) -> str:
+    """The absolute URL of uwcam's root as the browser that sent ``headers`` reaches it, without a
+    trailing slash.
+
+    Cockpit uses an extension's action URLs and (unless told otherwise) widget URLs as given, so
+    they must be absolute. Reached directly, that is the request's own scheme and Host. Behind a
+    proxy (``X-Forwarded-For`` or ``X-Forwarded-Proto`` present), the scheme is the proxy's, the
+    port is ``X-Forwarded-Port`` when Host names none (BlueOS's nginx passes ``Host $host``,
+    without a port), and the path prefix is ``X-Forwarded-Prefix`` or, when the proxy sends none,
+    BlueOS's ``/extensionv2/<sanitized name>``.
+    """
+    proxied = "x-forwarded-for" in headers or "x-forwarded-proto" in headers
+    proto = headers.get("x-forwarded-proto", "").split(",")[0].strip().lower() if proxied else ""
+    proto = proto if proto in ("http", "https") else scheme
+    host = headers.get("host", "") or "localhost"
+    parts = urlsplit(f"//{host}")
+    try:
+        port = parts.port
+    except ValueError:
+        port = None
+    forwarded_port = headers.get("x-forwarded-port", "").strip()
+    if proxied and port is None and forwarded_port.isdigit() and int(forwarded_port) != {"http": 80, "https": 443}[proto]:
+        host = f"{host}:{int(forwarded_port)}"
+    prefix = ""
+    if proxied:
+        given = headers.get("x-forwarded-prefix", "").strip()
+        prefix = given if given and _PREFIX.match(given) else BLUEOS_EXTENSION_ROUTE + blueos_sanitized_name(name)
+    return f"{proto}://{host}{prefix.rstrip('/')}"
+
+
 @router.get("/register_service")
 def register_service(request: Request) -> JSONResponse:
-    """Service metadata that BlueOS reads to list uwcam in its menu (paths relative to uwcam's root)."""
+    """Service metadata that BlueOS reads to list uwcam in its menu and that Cockpit reads to find
+    its extras. Cockpit joins the extras path to the extension's URL with no slash between them
+    (cockpit src/libs/blueos.ts: ``baseUrl + service.metadata.extras.cockpit``), so it starts with one."""
     return JSONResponse({
-        "name": "uwcam",
+        "name": SERVICE_NAME,
         "description": "Range from colour: a per-pixel range map, its uncertainty and live camera health",
         "icon": "mdi-camera-metering-spot",
         "company": "uwcam",
         "version": __version__,
-        "webpage": "https://pypi.org/project/uwcam/",
+        "webpage": DOCS_URL,
         "api": "docs",
         "route": "",
         "new_page": False,
         "works_in_relative_paths": True,
-        "extras": {"cockpit": "cockpit_extras.json"},
+        "extras": {"cockpit": "/cockpit_extras.json"},
     })
 
 
 @router.get("/cockpit_extras.json")
-def cockpit_extras() -> JSONResponse:
-    """Cockpit extras: the compact range widget (an iframe) and lamp actions."""
+def cockpit_extras(request: Request) -> JSONResponse:
+    """Cockpit extras: the compact range widget (an iframe) and lamp actions.
+
+    In Cockpit's own schema (src/libs/blueos/schemas.ts, ``ExtrasJsonSchema``): camelCase keys,
+    which Cockpit no longer converts from snake_case. Every URL is absolute, built from how the
+    request reached uwcam (:func:`public_base_url`): Cockpit uses action URLs as given (``new
+    URL(url)``) and widget URLs as given when ``useExtensionPathAsBaseUrl`` is false. The actions
+    carry the API token only when ``api.cockpit_actions_token`` is set, since anyone who can reach
+    the daemon can read this document."""
+    base = public_base_url(request.headers, request.url.scheme)
+    token = request.app.state.guard.token
+    headers = {"Content-Type": "application/json"}
+    if token is not None and request.app.state.config.api.cockpit_actions_token:
+        headers["Authorization"] = f"Bearer {token}"
+
     def lamp_action(name: str, on: bool) -> dict:
         return {"id": f"uwcam-lamp-{'on' if on else 'off'}", "name": name, "type": "http-request",
-                "config": {"name": name, "url": "api/v1/lamp", "method": "PUT",
-                           "headers": {"Content-Type": "application/json"}, "urlParams": {},
-                           "body": f'{{"on": {"true" if on else "false"}}}'}}
+                "version": __version__,
+                "config": {"name": name, "url": f"{base}/api/v1/lamp", "method": "PUT", "headers": headers,
+                           "urlParams": {}, "body": json.dumps({"on": on})}}
 
+    icon = f"{base}/static/favicon.svg"
     return JSONResponse({
-        "target_system": "Cockpit",
-        "target_cockpit_api_version": "1.0.0",
-        "widgets": [{"name": "uwcam range", "config_iframe_url": None, "iframe_url": "widget",
-                     "iframe_icon": "static/favicon.svg", "version": __version__}],
+        "targetSystem": "Cockpit",
+        "targetCockpitApiVersion": "1.0.0",
+        # iconUrl for Cockpit since March 2026, iframeIcon for the versions before it.
+        "widgets": [{"name": "uwcam range", "iframeUrl": f"{base}/widget", "iconUrl": icon, "iframeIcon": icon,
+                     "useExtensionPathAsBaseUrl": False, "version": __version__}],
         "actions": [lamp_action("uwcam lamp on", True), lamp_action("uwcam lamp off", False)],
-    })
+    }, headers={"Cache-Control": "no-store"})

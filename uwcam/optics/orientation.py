@@ -19,6 +19,8 @@ complement: surface normals from the gradient of the range map.
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -245,6 +247,43 @@ def surface_scale(irradiance: ArrayLike, camera_range: ArrayLike, attenuation: A
     if not ok.any():
         raise ValueError("no pixel with a finite signal, range and a surface facing the lamp")
     return e[ok].sum(axis=0) / model[ok].sum(axis=0)
+
+
+def channel_reach_m(attenuation: float, scale: float, floor: float, lamp_radius: float = 0.0) -> float:
+    """The camera range (m) beyond which a surface square to the lamp returns no more than ``floor``
+    in a channel: the root of s · exp(−2 α d) / (d + r)² = floor, which falls monotonically in d.
+    inf for a floor of 0 (never reached); 0 when even 1 mm away the signal is at the floor."""
+    if floor <= 0:
+        return math.inf
+    if not (scale > 0 and attenuation >= 0 and math.isfinite(scale)):
+        return 0.0
+
+    def excess(d: float) -> float:  # ln T(d) − ln floor
+        return math.log(scale) - 2.0 * attenuation * d - 2.0 * math.log(d + lamp_radius) - math.log(floor)
+
+    near, far = 1e-3, 1e4
+    if excess(near) <= 0:
+        return 0.0
+    if excess(far) > 0:
+        return math.inf
+    for _ in range(100):  # bisection to well below a millimetre
+        mid = 0.5 * (near + far)
+        near, far = (mid, far) if excess(mid) > 0 else (near, mid)
+    return near
+
+
+def measurable_range_m(attenuation: ArrayLike, scale: ArrayLike, floor: ArrayLike, lamp_radius: float = 0.0) -> float:
+    """The longest camera range (m) at which ranging can still work: at least two channels of
+    different attenuation return more than their noise floor from a surface like the one whose
+    scale s_k was measured, square to the lamp (Kirlin's model, lamp at the camera). The second
+    longest reach among channels of distinct attenuation; inf where no floor limits two of them."""
+    a = np.asarray(attenuation, dtype=np.float64)
+    reach: dict[float, float] = {}
+    for alpha, s, f in zip(a, np.asarray(scale, dtype=np.float64), np.asarray(floor, dtype=np.float64)):
+        r = channel_reach_m(float(alpha), float(s), float(f), lamp_radius)
+        reach[float(alpha)] = max(reach.get(float(alpha), 0.0), r)
+    ranked = sorted(reach.values(), reverse=True)
+    return ranked[1] if len(ranked) >= 2 else 0.0
 
 
 def incidence_from_blocks(irradiance: ArrayLike, range_m: ArrayLike, attenuation: ArrayLike, scale: ArrayLike,

@@ -20,6 +20,7 @@ import numpy as np
 from uwcam import recording as rec
 from uwcam.config import FoxgloveConfig
 from uwcam.fileio import UserInputError
+from uwcam.outputs.foxglove_gateway import FoxgloveGateway
 from uwcam.optics.geometry import pixel_rays
 from uwcam.outputs.recorder import to_depth
 from uwcam.pipeline import FramePipeline, Published
@@ -64,6 +65,7 @@ class FoxgloveOutput:
         self._stop = False
         self._thread: threading.Thread | None = None
         self.server = None
+        self.gateway: FoxgloveGateway | None = None
         self.sent = 0
         self.skipped = 0
         self.error: str | None = None
@@ -74,10 +76,19 @@ class FoxgloveOutput:
 
         # A context of our own: nothing else logged through the SDK's global context leaks in.
         self._ctx = foxglove.Context()
+        # The SDK's server on loopback only; the gateway on the configured address answers both
+        # subprotocol names (foxglove.sdk.v1, and foxglove.websocket.v1 for Lichtblick and older
+        # Foxglove) and passes the connection through.
         try:
-            self.server = foxglove.start_server(name="uwcam", host=self.config.host, port=self.config.port,
-                                                context=self._ctx)
-        except Exception as exc:  # the SDK reports a taken port or a bad address as a RuntimeError
+            self.server = foxglove.start_server(name="uwcam", host="127.0.0.1", port=0, context=self._ctx)
+        except Exception as exc:  # the SDK reports a failure to bind as a RuntimeError
+            raise UserInputError(f"cannot start the Foxglove server on loopback ({exc})") from None
+        self.gateway = FoxgloveGateway(self.config.host, self.config.port, self.server.port)
+        try:
+            self.gateway.start()
+        except OSError as exc:
+            self.server.stop()
+            self.server = None
             raise UserInputError(f"cannot start the Foxglove server on {self.config.host}:{self.config.port} ({exc}); "
                                  "choose another foxglove.port or host") from None
         ctx = self._ctx
@@ -99,7 +110,7 @@ class FoxgloveOutput:
 
     @property
     def port(self) -> int:
-        return self.server.port if self.server is not None else self.config.port
+        return self.gateway.port if self.gateway is not None and self.gateway.port else self.config.port
 
     def _on_published(self, published: Published) -> None:  # loop thread: hand off only
         with self._lock:
@@ -116,14 +127,19 @@ class FoxgloveOutput:
         if self._thread is not None:
             self._thread.join(timeout=10.0)
             self._thread = None
+        if self.gateway is not None:
+            self.gateway.stop()
+            self.gateway = None
         if self.server is not None:
             self.server.stop()
             self.server = None
 
     def status(self) -> dict:
         with self._lock:
-            return {"url": f"ws://{self.config.host}:{self.port}", "frames_sent": self.sent,
-                    "frames_skipped": self.skipped, "error": self.error}
+            state = {"url": f"ws://{self.config.host}:{self.port}", "frames_sent": self.sent,
+                     "frames_skipped": self.skipped, "error": self.error}
+        gateway = self.gateway
+        return {**state, **(gateway.status() if gateway is not None else {"clients": 0, "connections_by_protocol": {}})}
 
     def _run(self) -> None:
         period = 1.0 / self.config.rate_hz

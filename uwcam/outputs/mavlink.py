@@ -10,7 +10,11 @@ Field semantics follow MAVLink's common.xml:
 * DISTANCE_SENSOR ``current_distance``: a robust statistic (median, or the smallest median
   over small tiles as the "minimum") of the valid pixels' distance along the optical axis in the configured
   region, cm. ``min_distance``/``max_distance``: the processing path-length bounds turned
-  into camera range on the axis (ArduPilot keeps them in int16 cm, so at most 32767).
+  into camera range on the axis (ArduPilot keeps them in int16 cm, so at most 32767); the
+  maximum is lowered to the range the profile can measure where that can be known: the longest
+  range at which two channels of different attenuation still return more than the profile's
+  noise floor from the surface the rangefinder measured (absolute attenuations and the surface
+  scale of docs/physics.md §8–9), so that ArduSub's RNGFND1_MAX can be set from it.
   ``covariance``: the per-pixel variance of those pixels (median), cm²; UINT8_MAX when
   unknown or too large for a byte. ``signal_quality``: the valid fraction of the region in
   percent, never below 2 for a reading that is sent (0 means unknown, 1 invalid).
@@ -22,7 +26,8 @@ Field semantics follow MAVLink's common.xml:
   horizontal distance of its valid pixels in cm; UINT16_MAX where unknown, ``max_distance +
   1`` where the sector's pixels saw only lit water (no obstacle within range).
 * HEARTBEAT at 1 Hz as an onboard controller, so the autopilot and ground station see the
-  component; ``system_status`` ACTIVE while distances are sent, STANDBY otherwise.
+  component; ``system_status`` ACTIVE while distances are sent, STANDBY otherwise. 1 Hz also
+  while the link is being re-opened: a reconnect does not send one of its own.
 """
 
 from __future__ import annotations
@@ -38,6 +43,7 @@ from numpy.typing import NDArray
 
 from uwcam.config import MavlinkConfig
 from uwcam.optics.geometry import Intrinsics, camera_range_from_path_length, pixel_rays
+from uwcam.optics.orientation import measurable_range_m
 from uwcam.optics.validity import Reason
 from uwcam.outputs.mavlink_links import LinkDown, open_transport
 from uwcam.pipeline import Published
@@ -209,14 +215,33 @@ class _Rays:
         return self.rays
 
 
+def reach_of(profile, corrector) -> tuple[float | None, str]:
+    """The range (m) the profile can measure on the surface the rangefinder sees, and where the
+    maximum distance comes from; None when it cannot be known (then the path-length bound holds)."""
+    if corrector is None or getattr(corrector, "attenuation", None) is None:
+        return None, "processing.path_length_bounds (the profile has no absolute attenuations)"
+    if corrector.scale is None:
+        return None, "processing.path_length_bounds (no surface scale yet: it needs a rangefinder reading)"
+    floor = profile.array("noise_floor")
+    if not np.any(floor > 0):
+        return None, "processing.path_length_bounds (the profile has no noise floor)"
+    reach = measurable_range_m(corrector.attenuation, corrector.scale, floor, profile.lamp_radius_m or 0.0)
+    if not math.isfinite(reach):
+        return None, "processing.path_length_bounds (the noise floor limits fewer than two channels)"
+    return reach, "the profile's noise floor and attenuations, on the surface the rangefinder measured"
+
+
 def measure(published: Published, config: MavlinkConfig, profile, path_length_bounds: tuple[float, float],
-            rays_cache: _Rays | None = None) -> Measurement:
-    """Reduce one published frame to a :class:`Measurement` (runs in the output's thread)."""
+            rays_cache: _Rays | None = None, reach_m: float | None = None) -> Measurement:
+    """Reduce one published frame to a :class:`Measurement` (runs in the output's thread);
+    ``reach_m``: the range the profile can measure (:func:`reach_of`), a lower maximum distance."""
     result, frame = published.result, published.frame
     h, w = result.range.shape
     intrinsics = profile.camera_intrinsics()
     rays = (rays_cache or _Rays()).get(intrinsics, h, w)
     near, far = distance_bounds(path_length_bounds, profile.lamp_position_m)
+    if reach_m is not None and near < reach_m < far:
+        far = reach_m
     base = dict(frame_number=published.number, capture_monotonic_ns=frame.host_monotonic_ns,
                 wall_time=frame.wall_time, min_distance_m=near, max_distance_m=far)
     x, y, rw, rh = config.region if config.region is not None else (0, 0, w, h)
@@ -298,6 +323,7 @@ class MavlinkOutput:
         self._retry_delay = 0.2
         self._rays = _Rays()
         self.measurement: Measurement | None = None
+        self.max_distance_from = "processing.path_length_bounds"
         self.autopilot_heartbeat_monotonic: float | None = None
         self._state_lock = threading.Lock()
         self._state = ("stopped", "not started", time.time())
@@ -376,12 +402,15 @@ class MavlinkOutput:
                 # rate_hz whatever the camera's frame rate.
                 self._take_newest()
             if not self._connect(now):
-                next_send = next_heartbeat = max(now + period, self._retry_at)
+                next_send = max(now + period, self._retry_at)
+                next_heartbeat = max(next_heartbeat, self._retry_at)
                 continue
             try:
                 self._receive()
                 if now >= next_heartbeat:
-                    next_heartbeat = max(next_heartbeat + HEARTBEAT_PERIOD_S, now)
+                    # Due a period after the last attempt, sent or failed: a link that fails and
+                    # reopens every 0.2 s (a UDP peer that is not there yet) still gets 1 Hz.
+                    next_heartbeat = now + HEARTBEAT_PERIOD_S
                     self._send_heartbeat()
                 if now >= next_send:
                     next_send = max(next_send + period, now)
@@ -398,8 +427,9 @@ class MavlinkOutput:
         if published is None:
             return
         processing = self.pipeline.processing
-        self.measurement = measure(published, self.config, self.pipeline.profile, processing.path_length_bounds,
-                                   self._rays)
+        profile = self.pipeline.profile
+        reach, self.max_distance_from = reach_of(profile, getattr(self.pipeline, "corrector", None))
+        self.measurement = measure(published, self.config, profile, processing.path_length_bounds, self._rays, reach)
         self.stats.frames_measured += 1
 
     def _receive(self) -> None:
@@ -468,6 +498,9 @@ class MavlinkOutput:
             "frames_measured": self.stats.frames_measured,
             "frames_skipped_for_newer": self.stats.frames_skipped_for_newer,
             "distance_m": None if m is None or m.distance_m is None else round(m.distance_m, 4),
+            "min_distance_m": None if m is None else distance_limits_cm(m.min_distance_m, m.max_distance_m)[0] / 100,
+            "max_distance_m": None if m is None else distance_limits_cm(m.min_distance_m, m.max_distance_m)[1] / 100,
+            "max_distance_from": self.max_distance_from,
             "valid_fraction": None if m is None else round(m.valid_fraction, 4),
             "autopilot_heartbeat_age_s": None if beat is None else round(time.monotonic() - beat, 3),
             "obstacle_distance": None if not self.config.obstacle_distance else (

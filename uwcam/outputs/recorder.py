@@ -17,20 +17,29 @@ import datetime as dt
 import errno
 import logging
 import os
+import shutil
 import threading
 import time
 from collections.abc import Callable
 
+import cv2
 import numpy as np
 
 from uwcam import recording as rec
-from uwcam.config import RecordingConfig
+from uwcam.api.view import Stretch
+from uwcam.config import MountingConfig, RecordingConfig
 from uwcam.drivers.base import Frame
 from uwcam.fileio import UserInputError
 from uwcam.pipeline import FramePipeline, Published
 from uwcam.profile import CalibrationProfile
 
 log = logging.getLogger(__name__)
+
+SUMMARY_BYTES = 1000
+"""About what a frame's metadata and ranging records take (JSON)."""
+SUMMARIES_PER_FRAME = 64
+"""The queue holds at most this many items per raw frame it may hold (``queue_frames``)."""
+BUDGET = "decimated to fit recording.budget_mb_s"
 
 WRITER_NICENESS = 10
 """How much less CPU priority the writer thread has than the frame loop (Linux nice levels)."""
@@ -50,12 +59,54 @@ def lower_this_threads_priority(niceness: int) -> bool:
 
 
 def item_bytes(item: tuple) -> int:
-    """Bytes a queued item holds: the raw frame and, for a ranged frame, its result arrays."""
+    """Bytes a queued item holds: the raw frame and, for a ranged frame, its result arrays; for
+    a decimated frame's summary, its preview's pixels if it carries one."""
+    if item[0] == "summary":
+        return SUMMARY_BYTES + (0 if item[1]["preview"] is None else item[1]["preview"].nbytes)
     if item[0] == "unranged":
         return item[1].data.nbytes
     published = item[1]
     r = published.result
     return published.frame.data.nbytes + r.range.nbytes + r.variance.nbytes + r.reasons.nbytes
+
+
+class DiskBudget:
+    """A token bucket in bytes on the frames' capture clock: ``rate`` bytes a second accrue, at
+    most ``burst_s`` seconds' worth; each write spends what it costs on disk, estimated from the
+    payload by the compression measured so far. A raw frame that would overdraw it is decimated.
+    Tokens accrue with capture time, not the writer's clock, so a writer that falls behind does
+    not decimate more (the queue's own limits handle that, counted apart)."""
+
+    def __init__(self, rate_bytes_s: float, burst_s: float = 2.0) -> None:
+        self.rate = rate_bytes_s
+        self.capacity = rate_bytes_s * burst_s
+        self.tokens = self.capacity
+        self.last_ns: int | None = None
+
+    def accrue(self, t_ns: int) -> None:
+        if self.last_ns is not None and t_ns > self.last_ns:
+            self.tokens = min(self.capacity, self.tokens + self.rate * (t_ns - self.last_ns) / 1e9)
+        self.last_ns = t_ns if self.last_ns is None else max(self.last_ns, t_ns)
+
+    def affords(self, cost_bytes: float) -> bool:
+        return self.tokens >= cost_bytes
+
+    def spend(self, cost_bytes: float) -> None:
+        self.tokens -= cost_bytes
+
+
+def disk_free_bytes(path: str) -> int | None:
+    """Free bytes (to an unprivileged user) of the file system holding ``path`` or its nearest existing parent."""
+    path = os.path.abspath(path)
+    while not os.path.exists(path):
+        parent = os.path.dirname(path)
+        if parent == path:
+            return None
+        path = parent
+    try:
+        return shutil.disk_usage(path).free
+    except OSError:
+        return None
 
 
 def time_name(now: float | None = None) -> str:
@@ -77,9 +128,11 @@ class Recorder:
     """Records the pipeline's frames on request; idle (no thread, not subscribed) otherwise."""
 
     def __init__(self, pipeline: FramePipeline, config: RecordingConfig,
-                 status: Callable[[], dict] | None = None, rangefinder: object | None = None) -> None:
+                 status: Callable[[], dict] | None = None, rangefinder: object | None = None,
+                 mounting: MountingConfig | None = None) -> None:
         self.pipeline = pipeline
         self.config = config
+        self.mounting = mounting
         self._status_fn = status
         self.rangefinder = rangefinder
         self._lock = threading.Lock()  # guards the queue and the counters read by status()
@@ -87,6 +140,7 @@ class Recorder:
         self._ready = threading.Condition(self._lock)
         self._queue: collections.deque = collections.deque()
         self._queued_bytes = 0
+        self._queued_raw = 0
         self._thread: threading.Thread | None = None
         self._stop_reason: str | None = None
         self._state = "idle"
@@ -96,20 +150,47 @@ class Recorder:
         self._file_started = 0.0
         self.frames_written = 0
         self.frames_dropped = 0
+        self.frames_decimated = 0
+        self.frames_lost = 0
+        """Frames of which not even the summary could be kept (a queue of nothing but summaries)."""
         self.bytes_closed = 0
+        self.payload_closed = 0
+        self._budget: DiskBudget | None = None
+        self._disk_ratio = 1.0
+        """Bytes on disk per byte of message data, as measured by the writer (read by the loop's thread)."""
+        self._next_preview_ns = 0
+        self._next_drop_log = 0.0
         self.last_stop_reason: str | None = None
 
     # ---------------------------------------------------------------- loop-thread callbacks
     def _enqueue(self, item: tuple) -> None:
         size = item_bytes(item)
         limit = self.config.queue_mb * 1e6
+        raw = item[0] != "summary"
         with self._lock:
-            while self._queue and (len(self._queue) >= self.config.queue_frames or self._queued_bytes + size > limit):
-                self._dequeue()  # the disk cannot keep up: lose the oldest, count it
-                self.frames_dropped += 1
+            dropped = 0
+            while self._queue and ((raw and self._queued_raw >= self.config.queue_frames)
+                                   or self._queued_bytes + size > limit
+                                   or len(self._queue) >= SUMMARIES_PER_FRAME * self.config.queue_frames):
+                # The disk cannot keep up: the oldest raw frame goes, its summary stays (counted);
+                # only a queue of nothing but summaries loses whole frames.
+                if self._shed_oldest_raw():
+                    self.frames_dropped += 1
+                else:
+                    self._dequeue()
+                    self.frames_lost += 1
+                dropped += 1
+            if raw:
+                self._queued_raw += 1
             self._queue.append(item)
             self._queued_bytes += size
             self._ready.notify()
+            total = self.frames_dropped
+        now = time.monotonic()
+        if dropped and now >= self._next_drop_log:  # said, not only counted; at most every 10 s
+            self._next_drop_log = now + 10.0
+            log.warning("recorder behind: %d frames dropped so far (the disk or the recorder's CPU share cannot "
+                        "keep up; lower recording.budget_mb_s or the frame rate)", total)
 
     def _dequeue(self) -> tuple | None:
         """The oldest queued item, or None; the caller holds the lock."""
@@ -117,19 +198,64 @@ class Recorder:
             return None
         item = self._queue.popleft()
         self._queued_bytes -= item_bytes(item)
+        if item[0] != "summary":
+            self._queued_raw -= 1
         return item
+
+    def _shed_oldest_raw(self) -> bool:
+        """Replace the oldest queued raw frame by its summary; False if none is queued. The caller holds the lock."""
+        for k, item in enumerate(self._queue):
+            if item[0] != "summary":
+                summary = ("summary", summary_of(item, "the recorder fell behind"))
+                self._queue[k] = summary
+                self._queued_bytes += item_bytes(summary) - item_bytes(item)
+                self._queued_raw -= 1
+                return True
+        return False
 
     def _clear_queue(self) -> None:
         """Forget every queued item; the caller holds the lock."""
         self._queue.clear()
         self._queued_bytes = 0
+        self._queued_raw = 0
 
     def _on_published(self, published: Published) -> None:
         # Profile and settings are read here, in the loop's thread, so they match the frame.
-        self._enqueue(("ranged", published, self.pipeline.profile, self.pipeline.processing))
+        profile, processing = self.pipeline.profile, self.pipeline.processing
+        frame, t = published.frame, int(published.frame.wall_time * 1e9)
+        preview = self._preview_due(t)
+        item = ("ranged", published, profile, processing, preview)
+        # Decimated: its summary only, so that its pixels never wait in the queue.
+        self._enqueue(item if self._admit(frame, t) else ("summary", summary_of(item, BUDGET)))
 
     def _on_unranged(self, frame: Frame, why: str) -> None:
-        self._enqueue(("unranged", frame, why))
+        t = int(frame.wall_time * 1e9)
+        preview = self._preview_due(t)
+        item = ("unranged", frame, why, preview)
+        self._enqueue(item if self._admit(frame, t) else ("summary", summary_of(item, BUDGET)))
+
+    def _preview_due(self, t: int) -> bool:
+        rate = self.config.preview_rate_hz
+        if rate <= 0 or t < self._next_preview_ns:
+            return False
+        self._next_preview_ns = t + int(1e9 / rate)
+        return True
+
+    def _admit(self, frame: Frame, t: int) -> bool:
+        """Whether the disk budget has room for this raw frame (and its results); spends it if so.
+        Runs in the loop's thread: arithmetic only."""
+        budget = self._budget
+        if budget is None:
+            return True
+        h, w = frame.data.shape[:2]
+        results = h * w * (4 + 4 + 1) if self.config.results else 0  # depth, variance float32; reasons uint8
+        cost = (frame.data.nbytes + results) * self._disk_ratio
+        with self._lock:
+            budget.accrue(t)
+            if not budget.affords(cost):
+                return False
+            budget.spend(cost)
+            return True
 
     # -------------------------------------------------------------------------- control
     def start(self, path: str | None = None) -> dict:
@@ -163,13 +289,19 @@ class Recorder:
         with self._lock:
             self._files = [path]
             self._clear_queue()
-            self.frames_written = self.frames_dropped = self.bytes_closed = 0
+            self.frames_written = self.frames_dropped = self.frames_decimated = self.frames_lost = self.bytes_closed = 0
+            self.payload_closed = 0
+            budget = self.config.budget_mb_s
+            self._budget = DiskBudget(budget * 1e6) if budget else None
+            self._disk_ratio = 1.0
+            self._next_preview_ns = 0
             self._stop_reason = None
             self._state = "recording"
             self._started_wall = time.time()
             self._thread = threading.Thread(target=self._run, name="mcap-recorder", daemon=True)
         self._last_reading_ns: int | None = None
         self._next_status = 0.0
+        self._stretch = Stretch()  # the operator page's display stretch, smoothed over the previews
         self.pipeline.subscribe(self._on_published)
         self.pipeline.subscribe_unranged(self._on_unranged)
         self._thread.start()
@@ -219,11 +351,29 @@ class Recorder:
             "duration_s": round(time.time() - self._started_wall, 1) if recording and self._started_wall else None,
             "frames_written": self.frames_written,
             "frames_dropped": self.frames_dropped,
-            "queued": len(self._queue),
+            "frames_decimated": self.frames_decimated,
+            "frames_lost": self.frames_lost,
+            "raw_kept_ratio": None if not self.frames_written else
+            round(max(0.0, 1.0 - (self.frames_decimated + self.frames_dropped) / self.frames_written), 4),
+            "budget_mb_s": self.config.budget_mb_s,
+            **self._disk_outlook(size, recording),
+            "queued": self._queued_raw,
+            "queued_summaries": len(self._queue) - self._queued_raw,
             "queued_mb": round(self._queued_bytes / 1e6, 1),
             "bytes": size,
             "last_stop_reason": self.last_stop_reason,
         }
+
+    def _disk_outlook(self, size: int, recording: bool) -> dict:
+        """Free disk where recordings go, and the hours of recording it holds at the budget (or,
+        without one, at the rate measured while recording)."""
+        free = disk_free_bytes(self._files[-1] if self._files else self.config.folder)
+        rate = self.config.budget_mb_s * 1e6 if self.config.budget_mb_s else None
+        if rate is None and recording and self._started_wall:
+            elapsed = time.time() - self._started_wall
+            rate = size / elapsed if elapsed > 5 and size > 0 else None
+        hours = None if free is None or not rate else round(free / rate / 3600, 2)
+        return {"disk_free_bytes": free, "hours_left": hours}
 
     # ---------------------------------------------------------------------- writer thread
     def _open(self, path: str) -> None:
@@ -233,10 +383,18 @@ class Recorder:
         self._last_profile = None
         self._last_ambient = None
         self._rotate_due = False
-        # Every file carries the calibration in use from its start (self-contained parts).
+        # Every file carries the calibration in use and the camera's mounting from its start
+        # (self-contained parts).
         profile = self.pipeline.profile
         self._file.attach_profile(profile, time.time_ns())
         self._attached.add(profile.name)
+        self._write_transform(time.time_ns())
+
+    def _write_transform(self, t: int) -> None:
+        m = self.mounting
+        if m is not None:
+            self._file.write(rec.TRANSFORM, "foxglove.FrameTransform",
+                             rec.frame_transform(m.parent_frame, m.translation_m, m.rotation_deg, t), t)
 
     def _run(self) -> None:
         reason = "stopped"
@@ -276,6 +434,7 @@ class Recorder:
         if self._file is not None:
             self._file.finish()  # on an error, _failed() cuts the file at its last complete record
             self.bytes_closed += os.path.getsize(self._file.path) if os.path.exists(self._file.path) else 0
+            self.payload_closed += self._file.payload_bytes
             self._file = None
 
     def _failed(self, exc: Exception) -> str:
@@ -310,7 +469,9 @@ class Recorder:
                                                     "wall_time": reading.wall_time}, int(reading.wall_time * 1e9))
         if self._status_fn is not None and now >= self._next_status:
             self._next_status = now + self.config.status_interval_s
-            self._file.write_json(rec.STATUS, self._status_fn(), time.time_ns())
+            t = time.time_ns()
+            self._file.write_json(rec.STATUS, self._status_fn(), t)
+            self._write_transform(t)  # again now and then: a reader that seeks still finds one near
         c = self.config
         if (c.max_size_mb and self._file.size() >= c.max_size_mb * 1e6) or \
                 (c.max_duration_s and now - self._file_started >= c.max_duration_s):
@@ -329,30 +490,62 @@ class Recorder:
             self._files.append(path)
         log.info("recording continues in %s", path)
 
-    def _frame_messages(self, frame: Frame, t: int, ranged: str, number: int | None) -> None:
+    def _measure_disk_ratio(self) -> None:
+        """Bytes on disk per byte of message data so far (1 until a few chunks are out), for the budget."""
         f = self._file
-        f.write(rec.IMAGE, "foxglove.RawImage", rec.raw_image(frame.data, t), t)
-        exposure, gain = frame.exposures()  # per channel: one value each, alike where the camera has one
-        f.write_json(rec.IMAGE_METADATA, {
-            "sequence": frame.sequence, "device_timestamp_ns": frame.device_timestamp_ns,
-            "host_monotonic_ns": frame.host_monotonic_ns, "wall_time": frame.wall_time,
-            "exposure_us": None if exposure is None else list(exposure), "gain_db": None if gain is None else list(gain),
-            "lamp_on": frame.lamp_on, "channel_names": list(frame.channel_names), "bit_depth": frame.bit_depth,
-            "dtype": frame.data.dtype.name, "ranged": ranged, "number": number}, t)
+        payload = self.payload_closed + f.payload_bytes
+        disk = self.bytes_closed + f.size()
+        if payload > 8 * self.config.chunk_kb * 1024 and disk > 0:
+            self._disk_ratio = max(0.05, disk / payload)
+
+    def _spend(self, payload_bytes: int) -> None:
+        if self._budget is not None:
+            with self._lock:
+                self._budget.spend(payload_bytes * self._disk_ratio)
+
+    def _frame_messages(self, frame: Frame, t: int, ranged: str, number: int | None, preview: bool) -> None:
+        """The raw frame, its metadata and, when due, a preview."""
+        self._file.write(rec.IMAGE, "foxglove.RawImage", rec.raw_image(frame.data, t), t)
+        self._file.write_json(rec.IMAGE_METADATA, frame_metadata(frame, ranged, number), t)
+        if preview:
+            self._write_preview(frame.data, t)
+
+    def _write_preview(self, data: np.ndarray, t: int) -> None:
+        bgr = self._stretch(data)
+        jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, self.config.preview_quality])[1].tobytes()
+        self._file.write(rec.PREVIEW, "foxglove.CompressedImage", rec.compressed_image(jpeg, t, "jpeg"), t)
+        self._spend(len(jpeg))
+
+    def _write_summary(self, summary: dict) -> None:
+        """A frame without its raw image (decimated, or shed by a recorder behind): its metadata,
+        ranging record and, when due, its preview."""
+        t = summary["t"]
+        self._file.write_json(rec.IMAGE_METADATA, summary["metadata"], t)
+        if summary["ranging"] is not None:
+            self._file.write_json(rec.RANGING, summary["ranging"], t)
+        self._spend(SUMMARY_BYTES)
+        if summary["preview"] is not None:
+            self._write_preview(summary["preview"], t)
+        if summary["metadata"]["raw_left_out"] == BUDGET:
+            with self._lock:
+                self.frames_decimated += 1
 
     def _write_item(self, item: tuple) -> None:
         if self._rotate_due:
             self._rotate()
-        if item[0] == "unranged":
-            _, frame, why = item
-            self._frame_messages(frame, int(frame.wall_time * 1e9), why, None)
+        if item[0] == "summary":
+            self._write_summary(item[1])
+        elif item[0] == "unranged":
+            _, frame, why, preview = item
+            self._frame_messages(frame, int(frame.wall_time * 1e9), why, None, preview)
         else:
-            _, published, profile, processing = item
-            self._write_published(published, profile, processing)
+            _, published, profile, processing, preview = item
+            self._write_published(published, profile, processing, preview)
+        self._measure_disk_ratio()
         with self._lock:
             self.frames_written += 1
 
-    def _write_published(self, p: Published, profile: CalibrationProfile, processing) -> None:
+    def _write_published(self, p: Published, profile: CalibrationProfile, processing, preview: bool) -> None:
         f = self._file
         frame, t = p.frame, int(p.frame.wall_time * 1e9)
         h, w = frame.data.shape[:2]
@@ -363,12 +556,13 @@ class Recorder:
             if profile.name not in self._attached:
                 f.attach_profile(profile, t)
                 self._attached.add(profile.name)
-        self._frame_messages(frame, t, "ranged", p.number)
+        self._frame_messages(frame, t, "ranged", p.number, preview)
         if p.ambient is not None and p.ambient is not self._last_ambient:
             self._last_ambient = p.ambient
             c = p.ambient.shape[-1]
             f.write(rec.AMBIENT, "foxglove.RawImage", rec.raw_image(p.ambient.astype(np.float32), t, f"32FC{c}"), t)
         f.write_json(rec.RANGING, ranging_record(p, profile, processing), t)
+        self._spend(SUMMARY_BYTES)
         if not self.config.results:
             return
         depth, variance = to_depth(p.result.range, p.result.variance, self._uz)
@@ -390,6 +584,33 @@ def repair_folder(folder: str) -> list[str]:
             except (OSError, rec.RecordingError) as exc:
                 log.warning("could not repair %s: %s", path, exc)
     return repaired
+
+
+def summary_of(item: tuple, why: str) -> dict:
+    """A queued raw item reduced to what is kept of a frame without its raw image: its metadata
+    (``raw_left_out``: ``why``), its ranging record, and its preview if one was due (only when
+    decimated: a recorder behind sheds the pixels of previews too)."""
+    if item[0] == "ranged":
+        _, published, profile, processing, preview = item
+        frame, ranging = published.frame, ranging_record(published, profile, processing)
+        metadata = frame_metadata(frame, "ranged", published.number, why)
+    else:
+        _, frame, ranged, preview = item
+        ranging, metadata = None, frame_metadata(frame, ranged, None, why)
+    return {"t": int(frame.wall_time * 1e9), "metadata": metadata, "ranging": ranging,
+            "preview": frame.data if preview and why == BUDGET else None}
+
+
+def frame_metadata(frame: Frame, ranged: str, number: int | None, raw_left_out: str | None = None) -> dict:
+    """A frame's /uwcam/image/metadata record; ``raw_left_out``: why its raw image is not in the
+    file (None: it is), ``raw_kept`` the same as a flag."""
+    exposure, gain = frame.exposures()  # per channel: one value each, alike where the camera has one
+    return {"sequence": frame.sequence, "device_timestamp_ns": frame.device_timestamp_ns,
+            "host_monotonic_ns": frame.host_monotonic_ns, "wall_time": frame.wall_time,
+            "exposure_us": None if exposure is None else list(exposure), "gain_db": None if gain is None else list(gain),
+            "lamp_on": frame.lamp_on, "channel_names": list(frame.channel_names), "bit_depth": frame.bit_depth,
+            "dtype": frame.data.dtype.name, "ranged": ranged, "number": number, "raw_kept": raw_left_out is None,
+            "raw_left_out": raw_left_out}
 
 
 def ranging_record(p: Published, profile: CalibrationProfile, processing) -> dict:
