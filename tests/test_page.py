@@ -546,6 +546,12 @@ def test_recording_started_and_stopped_from_the_page(browser, tmp_path):
             assert wait_for(lambda: s.daemon.recorder.status()["frames_written"] > 5, 30.0)
             page.click("#record-stop")
             assert wait_for(lambda: page.inner_text("#record-state").startswith("idle"), 15.0)
+            # The hours the disk holds at the budget, as the status computes them from the disk's free space.
+            hours = s.daemon.recorder.status()["hours_left"]
+            shown = re.search(r"disk holds (\d+(?:\.\d)?) (h|min) at (\d+(?:\.\d+)?) MB/s", page.inner_text("#record-state"))
+            assert shown, page.inner_text("#record-state")
+            value = float(shown.group(1)) / (60 if shown.group(2) == "min" else 1)
+            assert value == pytest.approx(hours, rel=0.05, abs=0.06)
             files = list((tmp_path / "dives").glob("*.mcap"))
             assert len(files) == 1
             with open(files[0], "rb") as fh:  # the stock MCAP reader reads it to the end

@@ -609,18 +609,29 @@ function renderBackscatter(b) {
   el.textContent = parts.join(" · ");
 }
 
+// How long the disk lasts at the recording budget (or the measured rate).
+function diskOutlook(r) {
+  if (r.hours_left === null || r.hours_left === undefined) return "";
+  return ` · disk holds ${r.hours_left < 1 ? `${Math.round(r.hours_left * 60)} min` : `${r.hours_left.toFixed(1)} h`}` +
+    (r.budget_mb_s ? ` at ${r.budget_mb_s} MB/s` : "");
+}
+
 function renderRecording(r) {
   const el = $("record-state");
   if (!r) { el.textContent = "no recorder"; return; }
   if (r.state === "recording") {
     const mb = (r.bytes / 1e6).toFixed(1);
-    el.textContent = `recording ${r.file ?? ""} · ${ago(r.duration_s)} · ${mb} MB · ${r.frames_written} frames` +
-      (r.frames_dropped ? ` · ${r.frames_dropped} dropped` : "");
-    el.className = "state-recovering";
+    const kept = r.raw_kept_ratio === null || r.raw_kept_ratio === undefined ? "" : ` · raw frames kept ${Math.round(r.raw_kept_ratio * 100)} %`;
+    el.textContent = `recording ${r.file ?? ""} · ${ago(r.duration_s)} · ${mb} MB · ${r.frames_written} frames${kept}` +
+      (r.frames_dropped ? ` · ${r.frames_dropped} dropped` : "") + (r.frames_lost ? ` · ${r.frames_lost} lost` : "") +
+      diskOutlook(r);
+    el.className = r.frames_lost ? "state-lost" : "state-recovering";
   } else {
-    el.textContent = r.last_stop_reason ? `idle — last recording: ${r.last_stop_reason}` : "idle";
+    el.textContent = (r.last_stop_reason ? `idle — last recording: ${r.last_stop_reason}` : "idle") + diskOutlook(r);
     el.className = "muted";
   }
+  el.title = r.budget_mb_s ? `recording.budget_mb_s = ${r.budget_mb_s} MB/s: raw frames beyond it are left out ` +
+    "(every frame's summary and the preview are always kept)" : "";
 }
 
 async function pollStatusNow() {
