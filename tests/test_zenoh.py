@@ -19,7 +19,7 @@ from tests.waiting import wait_for
 from uwcam.config import ZenohConfig, load_config
 from uwcam.daemon import Daemon
 from uwcam.fileio import UserInputError
-from uwcam.outputs.zenoh_publisher import QUEUE_FRAMES, ByteRates, next_preview_width
+from uwcam.outputs.zenoh_publisher import QUEUE_FRAMES, ByteRates, area_mean, next_preview_width
 
 PREFIX = "uwcam/test-rov"
 SEABED_M = 2.0  # the simulated seabed-patch scene of small_config is a plane at this distance
@@ -260,3 +260,13 @@ def test_byte_rates_count_per_key_over_the_window():
 ])
 def test_next_preview_width(width, sent, target, largest, expected):
     assert next_preview_width(width, sent, target, largest) == expected
+
+
+def test_area_mean_averages_the_valid_pixels_and_drops_mostly_invalid_ones():
+    values = np.full((8, 8), 3.0, np.float32)
+    values[:, :2] = 1.0   # the left output pixel of each row: half 1 m, half 3 m → 2 m
+    values[4:, 4:] = np.nan  # bottom right: all invalid
+    values[0, 4] = np.nan    # top right: one of 16 invalid, the others 3 m
+    got = area_mean(values, 2, 2)
+    assert got[0, 0] == pytest.approx(2.0) and got[1, 0] == pytest.approx(2.0)
+    assert got[0, 1] == pytest.approx(3.0) and np.isnan(got[1, 1])

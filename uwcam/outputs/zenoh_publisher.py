@@ -92,6 +92,17 @@ def range_summary(published: Published) -> dict:
     }
 
 
+def area_mean(values: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(h, w) float values with NaN where invalid → (height, width) means of the valid values each
+    output pixel covers; NaN where fewer than half of them are valid. The mean of n pixels has 1/√n
+    of their noise, and noise is what makes a range map compress badly."""
+    ok = np.isfinite(values)
+    total = cv2.resize(np.where(ok, values, 0).astype(np.float32), (width, height), interpolation=cv2.INTER_AREA)
+    share = cv2.resize(ok.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(share >= 0.5, total / share, np.nan)
+
+
 def preview_images(published: Published, width: int, quality: int) -> tuple[bytes, bytes]:
     """(range, colour) previews ``width`` pixels across at most: the range as a 16-bit PNG in
     millimetres rounded to whole centimetres (0 where invalid) and the colour image as a
@@ -102,8 +113,7 @@ def preview_images(published: Published, width: int, quality: int) -> tuple[byte
     h, w = r.shape
     width = min(width, w)
     height = max(1, round(h * width / w))
-    # Nearest neighbour for the range: an average across an edge is a range that is nowhere.
-    small = cv2.resize(r, (width, height), interpolation=cv2.INTER_NEAREST)
+    small = area_mean(r, width, height)
     # Whole centimetres: the millimetres of a single pixel are noise, and noise does not compress.
     rng = cv2.imencode(".png", range_millimetres(np.round(small, 2)))[1].tobytes()
     rgb = cv2.resize(preview_rgb8(published.frame.data), (width, height), interpolation=cv2.INTER_AREA)
