@@ -224,6 +224,7 @@ def test_without_the_zenoh_library_the_daemon_says_what_to_install(monkeypatch):
     with pytest.raises(UserInputError, match=r"pip install 'uwcam\[zenoh\]'") as err:
         d.start()
     assert "\n" not in str(err.value)
+    assert d.camera is None and d.lamp is None  # refused before any device was opened
 
 
 def test_a_taken_port_is_a_one_line_error():

@@ -247,6 +247,10 @@ class Daemon:
                 remove_stale_temporaries(folder)
         saved = load_state(self.state_dir) if self.state_dir else None
         options = check_devices(cfg)
+        if cfg.zenoh is not None:  # before any device opens: a missing library is a set-up error
+            from uwcam.outputs.zenoh_publisher import require_zenoh
+
+            require_zenoh()
         try:
             driver = registry.create("camera", cfg.camera.driver, **self._options(cfg.camera.driver, options["camera"]))
             if cfg.lamp is not None:

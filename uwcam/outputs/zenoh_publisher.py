@@ -57,6 +57,16 @@ RATE_WINDOW_S = 5.0
 """Bytes per second per key are measured over this last stretch of time."""
 
 
+def require_zenoh():
+    """The zenoh module; UserInputError saying what to install when it is missing."""
+    try:
+        import zenoh
+    except ImportError:
+        raise UserInputError("zenoh: is configured but the Zenoh library is missing; "
+                             "pip install 'uwcam[zenoh]' (or remove the zenoh: section)") from None
+    return zenoh
+
+
 def default_key_prefix() -> str:
     """uwcam/<host name>, the host name reduced to the characters a key allows."""
     host = "".join(c if c.isalnum() or c in "_-" else "_" for c in socket.gethostname()) or "vehicle"
@@ -182,12 +192,7 @@ class ZenohOutput:
         self.error: str | None = None
 
     def start(self) -> None:
-        try:
-            import zenoh
-        except ImportError:
-            raise UserInputError("zenoh: is configured but the Zenoh library is missing; "
-                                 "pip install 'uwcam[zenoh]' (or remove the zenoh: section)") from None
-        self._zenoh = zenoh
+        zenoh = self._zenoh = require_zenoh()
         conf = zenoh.Config()
         conf.insert_json5("mode", json.dumps(self.config.mode))
         if self.config.listen:
