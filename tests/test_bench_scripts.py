@@ -62,3 +62,11 @@ def test_orientation_benchmark_runs():
     assert "× ranging" in out and "within 2°" in out
     row = out.strip().splitlines()[-1].split()
     assert row[0] == "16" and row[3] == "100.0%"  # every block of the tilted plane gets an angle
+
+
+@pytest.mark.slow
+def test_zenoh_benchmark_runs():
+    out = subprocess.run([sys.executable, str(ROOT / "bench" / "bench_zenoh.py"), "--budgets", "128", "--seconds", "2",
+                          "--size", "160x120", "--fps", "10"],
+                         check=True, capture_output=True, text=True, timeout=600).stdout
+    assert "range/summary" in out and "status" in out and "kbit/s of 128" in out

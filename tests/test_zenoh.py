@@ -19,7 +19,7 @@ from tests.waiting import wait_for
 from uwcam.config import ZenohConfig, load_config
 from uwcam.daemon import Daemon
 from uwcam.fileio import UserInputError
-from uwcam.outputs.zenoh_publisher import QUEUE_FRAMES, ByteRates, area_mean, next_preview_width
+from uwcam.outputs.zenoh_publisher import QUEUE_FRAMES, ByteBucket, ByteRates, area_mean, next_preview_width
 
 PREFIX = "uwcam/test-rov"
 SEABED_M = 2.0  # the simulated seabed-patch scene of small_config is a plane at this distance
@@ -271,3 +271,16 @@ def test_area_mean_averages_the_valid_pixels_and_drops_mostly_invalid_ones():
     got = area_mean(values, 2, 2)
     assert got[0, 0] == pytest.approx(2.0) and got[1, 0] == pytest.approx(2.0)
     assert got[0, 1] == pytest.approx(3.0) and np.isnan(got[1, 1])
+
+
+def test_byte_bucket_bounds_what_is_spent_and_keeps_bounded_debt():
+    bucket = ByteBucket(rate=1000.0, capacity=2000.0)
+    bucket.refill(0.0)
+    bucket.refill(10.0)
+    assert bucket.level == pytest.approx(2000.0)  # full, never more
+    bucket.spend(2500, 10.0)
+    assert bucket.level == pytest.approx(-500.0)
+    bucket.spend(10_000, 11.0)  # mandatory keys beyond the budget: debt bounded by the capacity
+    assert bucket.level == pytest.approx(-2000.0)
+    bucket.refill(13.5)
+    assert bucket.level == pytest.approx(500.0)

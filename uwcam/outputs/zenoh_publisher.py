@@ -53,6 +53,8 @@ of the other keys' rates."""
 SLOWEST_SHARE = 0.25
 """Previews first slow down, to this share of ``preview_rate_hz``, and only then shrink: a
 preview every few seconds says more than a thumbnail too small to read."""
+BUCKET_S = 2.0
+"""The budget's bucket holds at most this many seconds of the budget (the largest burst)."""
 RATE_WINDOW_S = 5.0
 """Bytes per second per key are measured over this last stretch of time."""
 
@@ -153,6 +155,28 @@ class ByteRates:
         return {k: v / span for k, v in out.items()}
 
 
+class ByteBucket:
+    """A token bucket of bytes: fills at ``rate`` bytes/s up to ``capacity``; everything published
+    is spent from it, the mandatory keys even into debt (down to −capacity), and a preview is sent
+    only when the bucket holds what it costs. Over any stretch of time the bytes
+    published therefore stay within rate × time + capacity, however the other keys vary, as long
+    as the mandatory ones alone fit."""
+
+    def __init__(self, rate: float, capacity: float) -> None:
+        self.rate, self.capacity = rate, capacity
+        self.level = 0.0  # empty at start: no burst on joining
+        self._t: float | None = None
+
+    def refill(self, now: float) -> None:
+        if self._t is not None:
+            self.level = min(self.capacity, self.level + (now - self._t) * self.rate)
+        self._t = now
+
+    def spend(self, nbytes: int, now: float) -> None:
+        self.refill(now)
+        self.level = max(-self.capacity, self.level - nbytes)
+
+
 def next_preview_width(width: int, sent_bytes: int, target_bytes: float, largest: int) -> int:
     """The preview width that should make a preview of about ``target_bytes``: compressed images
     grow roughly with their area, so the width scales with the square root of the ratio, by at most
@@ -182,6 +206,8 @@ class ZenohOutput:
         self._session = None
         self._queryable = None
         self._rates = ByteRates()
+        budget = config.budget_kbit_s * 1000.0 / 8.0
+        self._bucket = ByteBucket(BUDGET_SHARE * budget, BUCKET_S * budget)
         self._rates_now: dict[str, float] = {}
         self.preview_width = config.preview_width
         self.preview_interval_s = 1.0 / config.preview_rate_hz
@@ -263,6 +289,7 @@ class ZenohOutput:
         full = f"{self.prefix}/{key}"
         self._session.put(full, payload, encoding=encoding)
         self._rates.add(key.split("/")[0] if key.startswith(HEALTH) else key, len(payload), now)
+        self._bucket.spend(len(payload), now)
         with self._lock:
             self._latest[full] = (payload, encoding)
 
@@ -312,8 +339,9 @@ class ZenohOutput:
                 self._put(f"{HEALTH}/{device}", json.dumps(entry["health"], default=str).encode(), JSON, now)
 
     def _publish_preview(self, p: Published, now: float) -> float:
-        """Send one preview; the seconds to wait before the next, so that previews use at most what
-        the budget leaves them. The width for the next is chosen here too."""
+        """Send a preview of ``p`` if the budget's bucket holds what it costs; the seconds to wait
+        before the next try. A preview too large to be worth waiting for is not sent: the width
+        shrinks and the next frame is tried."""
         budget = self.config.budget_kbit_s * 1000.0 / 8.0  # bytes/s
         rates = self._rates.rates(now)
         others = sum(v for k, v in rates.items() if not k.startswith("range/preview"))
@@ -323,13 +351,23 @@ class ZenohOutput:
                 self.preview_width = MIN_PREVIEW_WIDTH
                 self.preview_interval_s = STATUS_PERIOD_S
             return STATUS_PERIOD_S
+        period = 1.0 / self.config.preview_rate_hz
+        # The largest preview worth sending: what the allowance gives at the slowest preview rate.
+        target = min(allowance * period / SLOWEST_SHARE, self._bucket.capacity)
         rng, colour = preview_images(p, self.preview_width, self.config.preview_quality)
+        size = len(rng) + len(colour)
+        self._bucket.refill(now)
+        if size > self._bucket.level:
+            smaller = next_preview_width(self.preview_width, size, target, self.config.preview_width)
+            if size > target and smaller < self.preview_width:  # shrink, and try with the next frame
+                with self._lock:
+                    self.preview_width = smaller
+                return 0.0
+            return min((size - self._bucket.level) / max(allowance, 1.0), STATUS_PERIOD_S)
         self._put(PREVIEW_RANGE, rng, PNG, now)
         self._put(PREVIEW_COLOUR, colour, JPEG, now)
-        sent = len(rng) + len(colour)
-        period = 1.0 / self.config.preview_rate_hz
-        wait = max(period, sent / allowance)
-        width = next_preview_width(self.preview_width, sent, allowance * period / SLOWEST_SHARE, self.config.preview_width)
+        wait = max(period, size / allowance)
+        width = next_preview_width(self.preview_width, size, target, self.config.preview_width)
         with self._lock:
             self.previews += 1
             self.preview_width = width
