@@ -169,8 +169,8 @@ class ByteBucket:
 
     def refill(self, now: float) -> None:
         if self._t is not None:
-            self.level = min(self.capacity, self.level + (now - self._t) * self.rate)
-        self._t = now
+            self.level = min(self.capacity, self.level + max(now - self._t, 0.0) * self.rate)
+        self._t = now if self._t is None else max(self._t, now)
 
     def spend(self, nbytes: int, now: float) -> None:
         self.refill(now)
