@@ -18,8 +18,11 @@ from tests.test_api import small_config
 from tests.waiting import wait_for
 from uwcam.config import ZenohConfig, load_config
 from uwcam.daemon import Daemon
+from uwcam.drivers.base import Frame
 from uwcam.fileio import UserInputError
-from uwcam.outputs.zenoh_publisher import QUEUE_FRAMES, ByteBucket, ByteRates, area_mean, next_preview_width
+from uwcam.outputs.zenoh_publisher import QUEUE_FRAMES, ByteBucket, ByteRates, area_mean, next_preview_width, range_summary
+from uwcam.pipeline import Published
+from uwcam.ranging import RangeResult
 
 PREFIX = "uwcam/test-rov"
 SEABED_M = 2.0  # the simulated seabed-patch scene of small_config is a plane at this distance
@@ -284,3 +287,45 @@ def test_byte_bucket_bounds_what_is_spent_and_keeps_bounded_debt():
     assert bucket.level == pytest.approx(-2000.0)
     bucket.refill(13.5)
     assert bucket.level == pytest.approx(500.0)
+
+
+def synthetic_published(range_m: np.ndarray, variance_m2: np.ndarray) -> Published:
+    h, w = range_m.shape
+    frame = Frame(np.full((h, w, 3), 1000, np.uint16), 7, 0, 1_700_000_000.25)
+    result = RangeResult(range_m.astype(np.float32), variance_m2.astype(np.float32), np.zeros((h, w), np.uint8))
+    return Published(7, frame, result, 0, (0.0, 0.0))
+
+
+def test_range_summary_of_a_known_map():
+    # A wall at 3 m (σ 0.1 m) with a 16×16 post at 1.2 m (σ 0.05 m) off-centre and the top
+    # quarter of the image invalid.
+    r = np.full((120, 160), 3.0)
+    v = np.full((120, 160), 0.01)
+    r[80:96, 16:32], v[80:96, 16:32] = 1.2, 0.0025
+    r[:30], v[:30] = np.nan, np.nan
+    s = range_summary(synthetic_published(r, v))
+    assert s["frame"] == 7 and s["time"] == 1_700_000_000.25
+    assert s["centre_m"] == pytest.approx(3.0) and s["centre_sigma_m"] == pytest.approx(0.1, rel=1e-3)
+    assert s["minimum_m"] == pytest.approx(1.2) and s["minimum_sigma_m"] == pytest.approx(0.05, rel=1e-3)
+    assert s["valid_fraction"] == pytest.approx(0.75)
+    # nothing valid: figures are null, never NaN (which is not JSON)
+    empty = range_summary(synthetic_published(np.full((20, 20), np.nan), np.full((20, 20), np.nan)))
+    assert empty["centre_m"] is None and empty["minimum_m"] is None and empty["valid_fraction"] == 0
+    json.dumps(empty, allow_nan=False)
+
+
+def test_foreign_puts_change_nothing_and_are_never_served():
+    """Read-only: a put on the vehicle's keys (a would-be command, or a forged status) neither
+    changes the daemon nor replaces what its queryable answers."""
+    with vehicle() as (d, endpoint), topside(endpoint) as session:
+        received = Received(session)
+        assert wait_for(lambda: "status" in received.keys(), 30.0)
+        session.put(f"{PREFIX}/lamp", json.dumps({"on": False, "percent": 0}), encoding="application/json")
+        session.put(f"{PREFIX}/status", b"forged", encoding="text/plain")
+        session.put(f"{PREFIX}/config", json.dumps({"smoothing": "mean"}), encoding="application/json")
+        time.sleep(1.5)
+        replies = get_all(session, f"{PREFIX}/status")
+        received.subscriber.undeclare()
+        lamp, smoothing = d.status()["lamp"], d.pipeline.processing.smoothing
+    assert lamp["on"] is True and lamp["percent"] > 0 and smoothing == "none"
+    assert replies["status"][0] == "application/json" and json.loads(replies["status"][1])["zenoh"]["key_prefix"] == PREFIX
