@@ -70,3 +70,11 @@ def test_recording_budget_benchmark_runs():
                          check=True, capture_output=True, text=True, timeout=600).stdout
     assert "1280×720: raw frame 5.53 MB" in out and "1920×1080: raw frame 12.44 MB" in out  # 2 bytes × 3 channels a pixel
     assert out.count("% of raw frames") == 10
+
+
+@pytest.mark.slow
+def test_zenoh_benchmark_runs():
+    out = subprocess.run([sys.executable, str(ROOT / "bench" / "bench_zenoh.py"), "--budgets", "128", "--seconds", "2",
+                          "--size", "160x120", "--fps", "10"],
+                         check=True, capture_output=True, text=True, timeout=600).stdout
+    assert "range/summary" in out and "status" in out and "kbit/s of 128" in out

@@ -306,6 +306,43 @@ class FoxgloveConfig(Strict):
     """Every this many pixels in x and y becomes a point of the point cloud."""
 
 
+_ZENOH_ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")
+_KEY_SEGMENT = re.compile(r"^[A-Za-z0-9_.~+-]+$")
+
+
+class ZenohConfig(Strict):
+    """Publish status, range summaries, previews and device health on Zenoh for remote monitoring
+    (opt-in; see docs/api.md, "Zenoh"). Read-only: nothing is changed over Zenoh."""
+
+    mode: Literal["peer", "client"] = "peer"
+    """peer: talk to other peers directly (and listen); client: go through a Zenoh router."""
+    listen: list[Annotated[str, Field(pattern=_ZENOH_ENDPOINT.pattern)]] = []
+    """Endpoints to listen on, e.g. tcp/0.0.0.0:7447; empty: Zenoh's default for the mode."""
+    connect: list[Annotated[str, Field(pattern=_ZENOH_ENDPOINT.pattern)]] = []
+    """Endpoints to connect to, e.g. tcp/192.168.2.1:7447 (a router, or the topside peer)."""
+    scouting: Flag = True
+    """Multicast scouting: find peers and routers on the LAN without endpoints."""
+    key_prefix: Annotated[str, Field(min_length=1, max_length=200)] | None = None
+    """Keys are published under this, e.g. uwcam/rov1; None: uwcam/<host name>."""
+    budget_kbit_s: Annotated[Real, Field(ge=1, le=1e6)] = 256.0
+    """Most kilobits per second of payload this vehicle publishes: previews shrink and slow to fit;
+    status, health and range summaries never stop."""
+    preview_rate_hz: Annotated[Real, Field(gt=0, le=30)] = 1.0
+    """Most previews per second (fewer when the budget does not allow)."""
+    preview_width: Annotated[Whole, Field(ge=16, le=1920)] = 160
+    """Width of the previews in pixels at most (smaller when the budget does not allow)."""
+    preview_quality: Annotated[Whole, Field(ge=10, le=100)] = 70
+    """JPEG quality of the colour preview."""
+
+    @field_validator("key_prefix")
+    @classmethod
+    def _prefix(cls, v: str | None) -> str | None:
+        if v is not None and not all(_KEY_SEGMENT.match(part) for part in v.split("/")):
+            raise ValueError(f"key_prefix '{v}' must be words of letters, digits and _.~+- separated by single "
+                             "slashes, without wildcards (* $ ? #) or a leading/trailing slash, e.g. uwcam/rov1")
+        return v
+
+
 # MAV_SENSOR_ORIENTATION names (MAVLink common.xml) the MAVLink output accepts, by value. CUSTOM
 # (100) is left out: it needs a quaternion, which uwcam does not know.
 SENSOR_ORIENTATIONS = {
@@ -426,6 +463,8 @@ class DaemonConfig(Strict):
     """Send range to an autopilot over MAVLink; None: no MAVLink output."""
     recording: RecordingConfig = RecordingConfig()
     foxglove: FoxgloveConfig = FoxgloveConfig()
+    zenoh: ZenohConfig | None = None
+    """Publish for remote monitoring on Zenoh (needs ``pip install 'uwcam[zenoh]'``); None: off."""
 
     @field_validator("simulation")
     @classmethod

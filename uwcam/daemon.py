@@ -211,6 +211,7 @@ class Daemon:
         self.pipeline: FramePipeline | None = None
         self.recorder = None
         self.foxglove = None
+        self.zenoh = None
         self.mavlink: MavlinkOutput | None = None
         self.profile_name = ""
         self.profiles: dict[str, CalibrationProfile] = {}
@@ -246,6 +247,10 @@ class Daemon:
                 remove_stale_temporaries(folder)
         saved = load_state(self.state_dir) if self.state_dir else None
         options = check_devices(cfg)
+        if cfg.zenoh is not None:  # before any device opens: a missing library is a set-up error
+            from uwcam.outputs.zenoh_publisher import require_zenoh
+
+            require_zenoh()
         try:
             driver = registry.create("camera", cfg.camera.driver, **self._options(cfg.camera.driver, options["camera"]))
             if cfg.lamp is not None:
@@ -397,7 +402,8 @@ class Daemon:
             log.error("could not save state in %s: %s", self.state_dir, exc)
 
     def _start_outputs(self) -> None:
-        """The recorder (idle until asked, or recording from the start) and the Foxglove server."""
+        """The recorder (idle until asked, or recording from the start), the Foxglove server and
+        the Zenoh publisher."""
         from uwcam.outputs.recorder import Recorder
 
         self.recorder = Recorder(self.pipeline, self.config.recording, status=self.status, rangefinder=self.rangefinder,
@@ -410,6 +416,11 @@ class Daemon:
             self.foxglove = FoxgloveOutput(self.pipeline, self.config.foxglove, status=self.status,
                                            rangefinder=self.rangefinder)
             self.foxglove.start()
+        if self.config.zenoh is not None:
+            from uwcam.outputs.zenoh_publisher import ZenohOutput
+
+            self.zenoh = ZenohOutput(self.pipeline, self.config.zenoh, status=self.status)
+            self.zenoh.start()
 
     def stop(self) -> None:
         """Stop the outputs and the loop, switch the lamp off, release every device. Safe to call twice."""
@@ -418,7 +429,7 @@ class Daemon:
             self.mavlink = None
         if self.pipeline is not None:
             self.pipeline.stop()
-        for output in (self.recorder, self.foxglove):
+        for output in (self.recorder, self.foxglove, self.zenoh):
             if output is not None:
                 output.close()  # after the loop: everything it published is written
         if self.camera is not None:
@@ -521,5 +532,6 @@ class Daemon:
             "lamp": lamp,
             "recording": self.recorder.status() if self.recorder else None,
             "foxglove": self.foxglove.status() if self.foxglove else None,
+            "zenoh": self.zenoh.status() if self.zenoh is not None else None,
             "mavlink": self.mavlink.status() if self.mavlink is not None else None,
         }
