@@ -35,7 +35,6 @@ from numpy.typing import NDArray
 from uwcam.fileio import UserInputError
 from uwcam.optics.geometry import pixel_rays
 from uwcam.profile import CalibrationProfile
-from uwcam.ranging import RangeEstimator, RangeResult
 from uwcam.jit import HAVE_NUMBA, njit
 
 
@@ -103,7 +102,9 @@ def _column_geometry(rays: NDArray, lamp: NDArray, radius: float, z: NDArray) ->
     t = z[None, :] / rays[:, 2:3]  # (P, Z) distance along each ray
     offset = t[..., None] * rays[:, None, :] - lamp
     ds = np.linalg.norm(offset, axis=-1)
-    spread = (radius / (ds + radius)) ** 2 * np.gradient(t, axis=1)
+    # Irradiance falls as (r/(d_s + r))²: up to the constant r², which no use of the column's shape
+    # keeps, 1/(d_s + r)², so a point lamp (r = 0) spreads as 1/d_s² instead of vanishing.
+    spread = np.gradient(t, axis=1) / np.maximum(ds + radius, 1e-3) ** 2
     return ds + t, offset[..., 2] / np.maximum(ds, 1e-12), spread
 
 
@@ -296,35 +297,12 @@ class BackscatterModel:
         weight = np.concatenate([spatial * (1 - f), spatial * f])
         return np.einsum("q...,q...n->...n", weight, flat[both])
 
+    def open_water_level(self, shape: tuple[int, int]) -> NDArray[np.float64]:
+        """(H, W, N) backscatter (DN, dark-corrected) of open water, nothing in range, at every pixel of
+        frames of ``shape`` (H, W): the light a pixel must be clearly above to carry a surface's."""
+        return self.level(np.full(shape, np.nan))
+
     def level(self, depth: NDArray) -> NDArray[np.float64]:
         """Backscatter (DN, dark-corrected) for surfaces at ``depth`` (H, W) metres → (H, W, N)."""
         level = self.pattern * self.fraction(depth)
         return level if self.response is None else level * self.response
-
-
-def compensated_range(
-    profile: CalibrationProfile,
-    frame: NDArray,
-    model: BackscatterModel,
-    iterations: int = 3,
-    **estimator_options,
-) -> RangeResult:
-    """Range of ``frame`` with backscatter subtracted, iterating range ↔ backscatter.
-
-    Once backscatter is subtracted, the floor that stays is the black patch's own noise
-    (3σ), not backscatter + 3σ.
-    """
-    if frame.ndim != 3 or frame.shape[-1] != len(profile.channels):
-        raise UserInputError(f"the image must have {len(profile.channels)} channels like the profile")
-    first = RangeEstimator(profile, **estimator_options)(frame)
-    sigma = profile.backscatter.noise_sigma if profile.backscatter else {}
-    channels = [c.model_copy(update={"noise_floor": 3.0 * sigma.get(c.name, 0.0)}) for c in profile.channels]
-    compensated = RangeEstimator(profile.model_copy(update={"channels": channels}), **estimator_options)
-    h, w = frame.shape[:2]
-    intr = profile.camera_intrinsics()
-    axis_cos = pixel_rays(intr, h, w)[..., 2] if intr is not None else np.ones((h, w))
-    result = first
-    for _ in range(iterations):
-        depth = result.range.astype(np.float64) * axis_cos
-        result = compensated(frame, background=model.level(depth))
-    return result
