@@ -25,11 +25,41 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from uwcam.jit import HAVE_NUMBA, njit, prange
 from uwcam.optics.validity import Reason
 
 SIGMAS = 3.0
 """How many standard deviations above the water's light a channel must be (as the compensation's
 test of what is left once backscatter is subtracted: :data:`uwcam.ranging.BACKGROUND_SIGMAS`)."""
+
+
+def _judge_py(frame, limit, active, saturation, range_m, variance, reasons, reason):
+    """Over rows (H, W·N) of frame and limit and (H, W) outputs: a pixel with a range whose values
+    exceed their limits (and stay below saturation) in fewer than two active channels loses it.
+    Each row: the counts in one branch-free pass (it vectorises), then the few pixels that lose."""
+    h, w = range_m.shape
+    n = active.shape[0]
+    on = np.zeros(n, np.int32)
+    for k in range(n):
+        on[k] = 1 if active[k] else 0
+    sat = np.float32(saturation)
+    for i in prange(h):
+        count = np.zeros(w, np.int32)
+        row, lim = frame[i], limit[i]
+        for k in range(n):
+            if on[k] == 0:
+                continue
+            for j in range(w):
+                v = np.float32(row[j * n + k])
+                count[j] += np.int32((v > lim[j * n + k]) & (v < sat))
+        for j in range(w):
+            if count[j] < 2 and reasons[i, j] == 0:
+                range_m[i, j] = np.nan
+                variance[i, j] = np.nan
+                reasons[i, j] = reason
+
+
+_judge = njit(parallel=True, cache=True, nogil=True)(_judge_py) if HAVE_NUMBA else None
 
 
 @dataclass
@@ -96,7 +126,15 @@ class WaterLight:
                              f"not {frame.shape[1]}×{frame.shape[0]}")
         limit = self.threshold(estimator, scale, ambient, samples)
         active = estimator.active
-        above = (np.asarray(frame) > limit) & (np.asarray(frame) < estimator.profile.saturation_level)
+        saturation = estimator.profile.saturation_level
+        arrays = (result.range, result.variance, result.reasons)
+        if _judge is not None and all(a.flags.c_contiguous for a in arrays):
+            h, w = result.range.shape
+            rows = np.ascontiguousarray(frame).reshape(h, -1)
+            _judge(rows, np.ascontiguousarray(limit, np.float32).reshape(h, -1), active, float(saturation),
+                   *arrays, np.uint8(Reason.BACKSCATTER_ONLY))
+            return
+        above = (np.asarray(frame) > limit) & (np.asarray(frame) < saturation)
         count = above[..., active].sum(axis=-1)
         lost = (count < 2) & (result.reasons == Reason.VALID)
         if lost.any():
