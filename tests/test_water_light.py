@@ -63,6 +63,38 @@ def test_an_open_water_frame_has_no_range_when_the_open_water_light_is_known(mur
 
 
 @pytest.mark.slow
+def test_without_an_open_water_frame_the_model_follows_the_lamps_pattern():
+    """No open-water frame: the water's light comes from the calibration's black-patch measurements
+    and the physics of the lit column (the lamp 0.3 m to the side lights the water unevenly, about
+    four times brighter on its side than at the far corner); frames of open water taken at the
+    calibration's exposure keep at most 1 % of their pixels (a single level per channel kept 27 %)."""
+    profile = calibrate_in_simulation(WATER, LAMP, SIZE, CameraModel(), frames_per_distance=2, record_exposure=True)
+    water = world("open-water", 3.0, fixed_exposure=profile.channels[0].exposure_us, seed=6)
+    for k in (0, 1):
+        result = range_images(profile, [water.frame(k)])
+        assert np.isfinite(result.range).mean() <= 0.01
+
+
+def test_the_compiled_judge_and_its_numpy_twin_agree(monkeypatch):
+    from uwcam import water_light
+
+    profile = make_profile([0.46, 0.11, 0.06], [0, 0, 0])
+    est = RangeEstimator(profile)
+    rng = np.random.default_rng(3)
+    frame = rng.integers(0, 4000, (40, 50, 3)).astype(np.uint16)
+    light = WaterLight(rng.uniform(0, 3000, (40, 50, 3)).astype(np.float32), 0.05, "test")
+    results = []
+    for judge in (water_light._judge, None):
+        monkeypatch.setattr(water_light, "_judge", judge)
+        r = est(frame)
+        light.judge(r, frame, est)
+        results.append(r)
+    assert (results[1].reasons == Reason.BACKSCATTER_ONLY).any() and (results[1].reasons == Reason.VALID).any()
+    for a, b in zip((results[0].range, results[0].reasons), (results[1].range, results[1].reasons)):
+        assert np.array_equal(a, b, equal_nan=True)
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("distance", [3.0, 5.0, 7.0])
 def test_compensated_ranges_in_murky_water_are_never_confidently_wrong(murky, distance):
     """jerlov-II, lamp 0.3 m aside, grey seabed: of the pixels the command line reports valid,

@@ -161,6 +161,18 @@ def _column_shares(rays: NDArray, lamp: NDArray, radius: float, attenuation: NDA
     return np.stack(shares, axis=-1)
 
 
+def _column_totals(rays: NDArray, lamp: NDArray, radius: float, attenuation: NDArray) -> NDArray:
+    """(P, N) each ray's whole lit-column backscatter ∫ exp(−c(d_s + t))/(d_s + r)² dt, up to a
+    constant, with an even beam: how open water's light changes across the view with the lamp's
+    place (brighter toward the lamp's side)."""
+    z = np.geomspace(_PORT, 200.0, _DEPTH_SAMPLES * 4)
+    path, _, spread = _column_geometry(rays, lamp, radius, z)
+    return np.stack([np.sum(spread * np.exp(-c * path), axis=1) for c in attenuation], axis=-1)
+
+
+_PATTERN_STEP = 8  # pixels between the rays the physical open-water pattern is evaluated on
+
+
 @dataclass(frozen=True)
 class BackscatterModel:
     """bs_k(p, z) = pattern[p, k] · F_k(p, z); F tabulated over depths on a coarse grid."""
@@ -245,11 +257,23 @@ class BackscatterModel:
         if pattern is not None:
             response = pixel_response(frames, pattern) if frames.shape[0] >= 2 else None
             return cls(depths, shares, pattern, step, response)
-        # No open-water frame: scale F so the model meets the last patch measurement, uniform in space.
+        # No open-water frame: scale F so the model meets the last patch measurement; uniform in
+        # space, or, with the physics of the column, following the lamp's place across the view.
         x, y = patches[-1]
         at_patch = model.fraction(np.array([[measured_depths[-1]]]), np.array([[y]]), np.array([[x]]))[0, 0]
+        shape_across = np.ones((1, 1, n))
+        if physical:
+            h, w = shape if shape is not None else (int(2 * intr.cy + 1), int(2 * intr.cx + 1))
+            gh, gw = max(h // _PATTERN_STEP, 2), max(w // _PATTERN_STEP, 2)
+            rows = np.linspace(0, h - 1, gh).round().astype(int)
+            cols = np.linspace(0, w - 1, gw).round().astype(int)
+            rays = pixel_rays(intr, h, w)[np.ix_(rows, cols)].reshape(-1, 3)
+            totals = _column_totals(rays, np.array(profile.lamp_position_m), profile.lamp_radius_m, c).reshape(gh, gw, n)
+            totals = totals / totals.max(axis=(0, 1))
+            shape_across = cv2.resize(totals.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR).reshape(h, w, n)
+            at_patch = at_patch * shape_across[int(round(min(max(y, 0), h - 1))), int(round(min(max(x, 0), w - 1)))]
         scale = np.where(at_patch > 0, levels[-1] / np.where(at_patch > 0, at_patch, 1.0), 0.0)
-        return cls(depths, shares, scale[None, None, :], step)
+        return cls(depths, shares, (shape_across * scale).astype(np.float64), step)
 
     def corners(self, rows: NDArray, cols: NDArray) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
         """For pixels at (rows, cols) (any shape S, full-resolution coordinates): the rows of the
