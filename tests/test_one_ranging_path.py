@@ -113,3 +113,29 @@ def test_cli_loop_and_reprocess_give_bit_identical_results(setting, tmp_path, co
             assert np.array_equal(image(a), image(b), equal_nan=True)
     reasons = image(decoded(out, rec.REASONS)[-1][1])
     assert np.array_equal(reasons, cli[2])
+
+
+def test_range_fuses_several_images_and_refuses_mismatched_ones(setting, tmp_path, capsys):
+    """`uwcam range PROFILE A B C`: one map from the frames' mean; the same frame given three times
+    is that frame with a third of its temporal noise variance (the fixed pattern's stays), so its
+    variance falls by less than 3; images of another size are refused with one line."""
+    profile, frame, _, _ = setting
+    save_profile(profile, tmp_path / "p.yaml")
+    np.save(tmp_path / "a.npy", frame)
+    np.save(tmp_path / "small.npy", frame[:-2])
+    out = [str(tmp_path / n) for n in ("r.npy", "v.npy")]
+    assert main(["range", str(tmp_path / "p.yaml"), str(tmp_path / "a.npy"), "-o", out[0], "--variance", out[1]]) == 0
+    one = [np.load(p) for p in out]
+    assert main(["range", str(tmp_path / "p.yaml"), *[str(tmp_path / "a.npy")] * 3, "-o", out[0], "--variance", out[1]]) == 0
+    three = [np.load(p) for p in out]
+    both = np.isfinite(one[0]) & np.isfinite(three[0])
+    assert both.mean() > 0.5
+    # The channels' weights shift (the fixed pattern's share differs by channel), so the fused range
+    # moves a little where the channels disagree (this water's light); the variance falls, by at most 3.
+    np.testing.assert_allclose(three[0][both], one[0][both], rtol=0.05)
+    ratio = one[1][both] / three[1][both]
+    assert np.all(ratio > 1.0) and np.all(ratio <= 3.0 * (1 + 1e-5)), (ratio.min(), ratio.max())
+    capsys.readouterr()
+    assert main(["range", str(tmp_path / "p.yaml"), str(tmp_path / "a.npy"), str(tmp_path / "small.npy"), "-o", out[0]]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "image 2 is 80×58" in err and "image 1 is 80×60" in err and len(err.splitlines()) == 1
