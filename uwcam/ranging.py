@@ -478,6 +478,8 @@ def range_frame(estimator: RangeEstimator, frame: NDArray, smoothing: str = "non
     else:
         result = estimator(frame, background=background, samples=samples)
     if water is not None:
+        if transform is None:
+            result = water.bound_uncompensated(result, frame, estimator, water_scale, background, samples)
         water.judge(result, frame, estimator, water_scale, background, samples)
     if vehicle_mask:
         mask_vehicle(result, vehicle_mask)

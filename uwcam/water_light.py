@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 
 from uwcam.jit import HAVE_NUMBA, njit, prange
 from uwcam.optics.validity import Reason
+from uwcam.ranging import RangeResult
 
 SIGMAS = 3.0
 """How many standard deviations above the water's light a channel must be (as the compensation's
@@ -115,6 +116,31 @@ class WaterLight:
         if plain:
             self._cache[key] = out
         return out
+
+    def bound_uncompensated(self, result, frame: NDArray, estimator, scale: NDArray | None = None,
+                            ambient: NDArray | None = None, samples: NDArray | None = None):
+        """``result`` (ranged without subtracting backscatter) with the backscatter it left in counted
+        in its variance: the light in front of a surface is between none and the open water's, so
+        the true range lies between this one and the one ranged with all of the open water's light
+        subtracted (r_W); (r − r_W)² is added to the variance, as a part shared by neighbouring
+        pixels (the water in front of them is alike: smoothing does not divide it, see
+        :func:`uwcam.ranging.smooth_range_map`). A pixel that has no range with the water's light
+        subtracted has no bound: reason 3. Without this, a range read short by the water's light
+        would be reported with the noise's σ alone, confidently wrong."""
+        level = self.level if scale is None else self.level * np.asarray(scale, np.float32)
+        background = level if ambient is None else level + np.asarray(ambient, np.float32)
+        full = estimator(frame, background=background, samples=samples)
+        out = RangeResult(result.range.copy(), result.variance.copy(), result.reasons.copy(),
+                          None if result.calibration_variance is None else result.calibration_variance.copy())
+        shift = (out.range.astype(np.float64) - full.range) ** 2
+        unbounded = (out.reasons == Reason.VALID) & ~np.isfinite(shift)
+        out.range[unbounded] = np.nan
+        out.variance[unbounded] = np.nan
+        out.reasons[unbounded] = Reason.BACKSCATTER_ONLY
+        shift = np.where(np.isfinite(shift), shift, 0.0).astype(np.float32)
+        np.add(out.variance, shift, out=out.variance)
+        common = shift if out.calibration_variance is None else out.calibration_variance + shift
+        return RangeResult(out.range, out.variance, out.reasons, common)
 
     def judge(self, result, frame: NDArray, estimator, scale: NDArray | None = None,
               ambient: NDArray | None = None, samples: NDArray | None = None) -> None:
