@@ -15,7 +15,9 @@ the surface's light only where
 with E the dark-corrected value (ambient light subtracted), σ²(E) the noise model's variance of
 the total light and u the model's relative uncertainty; a pixel needs two such channels (of
 those ranged with) to keep its range. A per-pixel level follows the lamp's backscatter pattern,
-which one level per channel cannot (it is brighter where beam and view overlap).
+which one level per channel cannot (it is brighter where beam and view overlap). A range made
+without subtracting backscatter also gets the backscatter it leaves in counted in its variance
+(:meth:`WaterLight.bound_uncompensated`).
 """
 
 from __future__ import annotations
