@@ -18,5 +18,14 @@ fi
 [ -x .venv/bin/python ] || python3 -m venv .venv
 export PIP_DISABLE_PIP_VERSION_CHECK=1
 .venv/bin/python -m pip install --quiet --upgrade pip
-.venv/bin/python -m pip install --quiet -e ".${extras:+[$extras]}"
+if [ -z "$extras" ]; then
+  # A user's install: a plain (non-editable) one, as the container image has it.
+  .venv/bin/python -m pip install --quiet .
+else
+  # A developer's: editable, so that the tests run the checkout's code as it is edited.
+  .venv/bin/python -m pip install --quiet -e ".[$extras]"
+fi
+# numba compiles the kernels once into its cache beside the sources: do it now, so the first
+# `uwcam run` ranges within seconds instead of compiling for half a minute first.
+.venv/bin/uwcam warmup
 echo "uwcam installed in $(pwd)/.venv: run it as .venv/bin/uwcam" >&2

@@ -169,6 +169,8 @@ class ConfigureReport:
     applied: dict[str, object] = field(default_factory=dict)
     unsupported: list[str] = field(default_factory=list)
     radiometry_not_disabled: list[str] = field(default_factory=list)
+    details: dict[str, str] = field(default_factory=dict)
+    """Per setting named above, what the device did instead and what it offers (one line each)."""
 
 
 class CameraDriver(ABC):

@@ -9,6 +9,7 @@ path). Devices read the shared :class:`uwcam.drivers.sim.SimulatedRig`.
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import select
@@ -23,6 +24,8 @@ from typing import Annotated, Literal
 from pydantic import Field
 
 from uwcam.drivers.sim import SimulatedRig
+
+log = logging.getLogger(__name__)
 
 
 class PtyDevice:
@@ -175,11 +178,13 @@ class SimulatedLampDevice(PtyDevice):
 
     def answer(self, command: str) -> str:
         rig = self.rig
-        if command == "ON":
-            rig.set_lamp(on=True, intensity=self.percent / 100)
-            return "OK"
-        if command == "OFF":
-            rig.set_lamp(on=False)
+        if command in ("ON", "OFF"):
+            if command == "ON":
+                rig.set_lamp(on=True, intensity=self.percent / 100)
+            else:
+                rig.set_lamp(on=False)
+            # The device's own word, as a real lamp's indicator would show it.
+            log.info("simulated lamp: %s", command)
             return "OK"
         if command.startswith("PWM "):
             try:

@@ -138,6 +138,7 @@ class SupervisedCamera:
             "stats": vars(self.stats).copy(),
             "radiometry_not_disabled": [] if self.report is None else list(self.report.radiometry_not_disabled),
             "unsupported_settings": [] if self.report is None else list(self.report.unsupported),
+            "settings_details": {} if self.report is None else dict(self.report.details),
         }
 
     # -- lifecycle -------------------------------------------------------------------------
@@ -173,6 +174,8 @@ class SupervisedCamera:
         if self.report.radiometry_not_disabled:
             log.warning("%s: could not turn off %s; intensity ratios will suffer", self.device.id,
                         ", ".join(self.report.radiometry_not_disabled))
+        for name, detail in self.report.details.items():
+            log.warning("%s: %s: %s", self.device.id, name, detail)
         self.driver.start()
         self._connected = True
 

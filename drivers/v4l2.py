@@ -1,27 +1,33 @@
-"""V4L2 cameras (USB/UVC, CSI) through OpenCV's CAP_V4L2 backend.
+"""V4L2 cameras (USB/UVC, CSI): natively through linuxpy's ioctls, OpenCV's CAP_V4L2 as the fallback.
 
-Controls go through OpenCV properties: manual exposure (CAP_PROP_AUTO_EXPOSURE = 1 is
-V4L2's "manual mode"), gain, white balance off, gamma and frame size/format. What the device
-refuses is reported; the automatic modes are read back to check they are really off. The
-device is found again by its USB serial number (sysfs) when it re-enumerates under another
-/dev/videoN. ``api: any`` opens files and streams with OpenCV's default backend (tests, replay
-of recordings); note that OpenCV delivers 8-bit BGR from most V4L2 formats.
+The native path (:mod:`uwcam.drivers.v4l2_native`) enumerates the device's formats and controls,
+sets exposure in the control's real unit (``V4L2_CID_EXPOSURE_ABSOLUTE`` counts 100 µs), gain,
+a fixed white-balance temperature, UVC gamma 100 and manual exposure, reads every value back and
+labels frames with what the device reports; whatever the device refuses or clamps is reported
+with what it offers. Frames keep the format's depth (16-bit Bayer where offered).
+
+OpenCV's backend is used where the native path cannot run (``backend: opencv``, linuxpy missing,
+or a device that answers no V4L2 ioctl) and for files and streams (``api: any``: tests, replay of
+recordings); it delivers 8-bit BGR, and its exposure property is converted from and to 100 µs
+units too. The device is found again by its USB serial number (sysfs) when it re-enumerates
+under another /dev/videoN.
 """
 
 from __future__ import annotations
 
 import glob
+import logging
 import os
 import time
 from pathlib import Path
 
 import cv2
 
-from typing import Annotated
+from typing import Annotated, Literal
 
 from pydantic import Field
 
-from uwcam.drivers.options import ChannelNames, DriverOptions
+from uwcam.drivers.options import ChannelNames, DriverOptions, Real
 from uwcam.drivers.base import (
     CameraDriver,
     CameraSettings,
@@ -33,8 +39,10 @@ from uwcam.drivers.base import (
     FrameTimeout,
 )
 
+log = logging.getLogger(__name__)
 APIS = {"v4l2": cv2.CAP_V4L2, "any": cv2.CAP_ANY}
 MANUAL_EXPOSURE = 1  # V4L2_EXPOSURE_MANUAL as OpenCV's V4L2 backend passes it through
+EXPOSURE_UNIT_US = 100.0  # OpenCV's CAP_PROP_EXPOSURE on V4L2 is V4L2_CID_EXPOSURE_ABSOLUTE: 100 µs units
 
 
 def usb_serial(device: str) -> str:
@@ -52,23 +60,40 @@ class V4L2Camera(CameraDriver):
         device: str = "/dev/video0"
         serial_number: str | None = None
         api: str = "v4l2"
-        """OpenCV capture back-end."""
+        """OpenCV capture back-end of the fallback path: v4l2, or any (files and streams)."""
+        backend: Literal["auto", "native", "opencv"] = "auto"
+        """auto: native V4L2 ioctls (linuxpy) where the device answers them, else OpenCV."""
         fourcc: Annotated[str, Field(min_length=4, max_length=4)] | None = None
-        """Pixel format to ask for, e.g. YUYV."""
+        """Pixel format to ask for, e.g. YUYV, MJPG, BYR2 (16-bit Bayer); default: the deepest offered."""
+        white_balance_k: Annotated[Real, Field(ge=1000, le=15000)] | None = None
+        """White-balance temperature to fix (kelvin); default: the device's default value."""
+        gain_db_per_step: Annotated[Real, Field(gt=0, le=10)] | None = None
+        """dB per step of the device's gain control (UVC gain has no unit); needed for gain_db ≠ 0."""
         channel_names: ChannelNames = ["R", "G", "B"]
 
     name = "v4l2"
 
     def __init__(self, device: str = "/dev/video0", serial_number: str | None = None, api: str = "v4l2",
-                 fourcc: str | None = None, channel_names: tuple[str, ...] = ("R", "G", "B")) -> None:
+                 fourcc: str | None = None, channel_names: tuple[str, ...] = ("R", "G", "B"),
+                 backend: str = "auto", white_balance_k: float | None = None,
+                 gain_db_per_step: float | None = None) -> None:
         if api not in APIS:
             raise ConfigurationError(f"unknown OpenCV api '{api}'; known: {', '.join(APIS)}")
+        if backend not in ("auto", "native", "opencv"):
+            raise ConfigurationError(f"unknown V4L2 backend '{backend}'; known: auto, native, opencv")
+        if backend == "native" and api != "v4l2":
+            raise ConfigurationError("backend 'native' drives V4L2 devices only; use api: v4l2 (or backend: opencv)")
         self.device = device
         self.serial_number = serial_number
         self.api = api
+        self.backend = backend
         self.fourcc = fourcc
+        self.white_balance_k = white_balance_k
+        self.gain_db_per_step = gain_db_per_step
         self.channel_names = tuple(channel_names)
         self._cap: cv2.VideoCapture | None = None
+        self._native = None  # uwcam.drivers.v4l2_native.NativeDevice when the native path runs
+        self._format: tuple[str, int, int, int, int] | None = None
         self._sequence = 0
         self._exposure: float | None = None
         self._gain: float | None = None
@@ -85,11 +110,20 @@ class V4L2Camera(CameraDriver):
             raise DeviceLost(f"no V4L2 device with serial number {self.serial_number}")
         return self.device
 
+    @property
+    def native(self) -> bool:
+        """True while the device is driven through native ioctls (not OpenCV)."""
+        return self._native is not None
+
     def open(self) -> DeviceInfo:
         self.close()
         path = self._path()
         if self.api == "v4l2" and not os.path.exists(path):
             raise DeviceLost(f"{path} does not exist (camera unplugged?)")
+        if self.api == "v4l2" and self.backend != "opencv":
+            info = self._open_native(path)
+            if info is not None:
+                return info
         cap = cv2.VideoCapture(path, APIS[self.api])
         if not cap.isOpened():
             cap.release()
@@ -98,10 +132,39 @@ class V4L2Camera(CameraDriver):
         serial = (usb_serial(path) if self.api == "v4l2" else "") or self.serial_number or path
         return DeviceInfo(path, serial, cap.getBackendName())
 
+    def _open_native(self, path: str) -> DeviceInfo | None:
+        """Open through linuxpy; None (fall back to OpenCV) where that cannot work and backend is auto."""
+        try:
+            from uwcam.drivers.v4l2_native import NativeDevice
+        except ImportError as exc:
+            if self.backend == "native":
+                raise ConfigurationError(f"backend 'native' needs linuxpy ({exc}); install it or use backend: opencv") from None
+            log.warning("linuxpy is not installed: V4L2 through OpenCV's property guesses (install linuxpy)")
+            return None
+        try:
+            self._native = NativeDevice(path)
+        except ConfigurationError as exc:
+            if self.backend == "native" or "permission" in str(exc) or "cannot capture" in str(exc):
+                raise
+            log.warning("%s; falling back to OpenCV", exc)
+            return None
+        serial = usb_serial(path) or self.serial_number or path
+        return DeviceInfo(path, serial, f"{self._native.card} ({self._native.driver}, native V4L2)")
+
     def _set(self, prop: int, value: float) -> bool:
         return bool(self._cap.set(prop, value))
 
     def configure(self, settings: CameraSettings) -> ConfigureReport:
+        if self._native is not None:
+            from uwcam.drivers.v4l2_setup import configure_native
+
+            outcome = configure_native(self._native, settings, fourcc=self.fourcc,
+                                       white_balance_k=self.white_balance_k, gain_db_per_step=self.gain_db_per_step)
+            self._format, self._exposure, self._gain = outcome.format, outcome.exposure_us, outcome.gain_db
+            return outcome.report
+        return self._configure_opencv(settings)
+
+    def _configure_opencv(self, settings: CameraSettings) -> ConfigureReport:
         report = ConfigureReport()
         if self.fourcc or settings.pixel_format:
             code = (self.fourcc or settings.pixel_format or "")[:4]
@@ -122,27 +185,42 @@ class V4L2Camera(CameraDriver):
             report.radiometry_not_disabled.append("auto white balance")
         if not self._set(cv2.CAP_PROP_GAMMA, 100):  # UVC gamma 100 = 1.0
             report.radiometry_not_disabled.append("gamma")
-        for prop, value, name in ((cv2.CAP_PROP_EXPOSURE, settings.exposure_us, "exposure_us"),
-                                  (cv2.CAP_PROP_GAIN, settings.gain_db, "gain_db"),
-                                  (cv2.CAP_PROP_FPS, settings.frame_rate, "frame_rate")):
-            if value is None:
-                continue
-            if self._set(prop, value):
-                report.applied[name] = self._cap.get(prop)
+        if settings.exposure_us is not None:
+            # OpenCV hands CAP_PROP_EXPOSURE to V4L2_CID_EXPOSURE_ABSOLUTE unchanged: 100 µs units.
+            if self._set(cv2.CAP_PROP_EXPOSURE, max(1.0, round(settings.exposure_us / EXPOSURE_UNIT_US))):
+                report.applied["exposure_us"] = self._cap.get(cv2.CAP_PROP_EXPOSURE) * EXPOSURE_UNIT_US
             else:
-                report.unsupported.append(name)
+                report.unsupported.append("exposure_us")
+        if settings.gain_db is not None:
+            # Gain in the device's own steps: only 0 (the minimum) has a known meaning in dB.
+            if settings.gain_db == 0 and self._set(cv2.CAP_PROP_GAIN, 0):
+                report.applied["gain_db"] = 0.0
+            else:
+                report.unsupported.append("gain_db")
+                if settings.gain_db:
+                    report.details["gain_db"] = ("OpenCV's V4L2 gain has no unit; use backend: native with "
+                                                 "gain_db_per_step, or gain_db: 0")
+        if settings.frame_rate is not None:
+            if self._set(cv2.CAP_PROP_FPS, settings.frame_rate):
+                report.applied["frame_rate"] = self._cap.get(cv2.CAP_PROP_FPS)
+            else:
+                report.unsupported.append("frame_rate")
         if settings.black_level is not None:
             report.unsupported.append("black_level")
-        # Device units (V4L2 exposure is in 100 µs steps on most UVC cameras); None if not set.
         self._exposure = report.applied.get("exposure_us")  # type: ignore[assignment]
         self._gain = report.applied.get("gain_db")  # type: ignore[assignment]
         return report
 
     def start(self) -> None:
+        if self._native is not None:
+            self._native.start()
+            return
         if self._cap is None:
             raise DeviceLost("camera is not open")
 
     def read(self, timeout_s: float) -> Frame:
+        if self._native is not None:
+            return self._read_native(timeout_s)
         cap = self._cap
         if cap is None:
             raise DeviceLost("camera is not open")
@@ -166,10 +244,46 @@ class V4L2Camera(CameraDriver):
                      exposure_us=self._exposure, gain_db=self._gain,
                      channel_names=self.channel_names[:3], bit_depth=8 * data.dtype.itemsize)
 
+    def _read_native(self, timeout_s: float) -> Frame:
+        from uwcam.drivers.v4l2_native import bit_depth, decode
+
+        data, sequence, stamp_ns = self._native.read(timeout_s)
+        received = time.monotonic_ns()
+        fourcc, width, height, stride, _ = self._format or self._native.get_format()
+        image = decode(fourcc, data, width, height, stride)
+        return Frame(data=image, sequence=sequence, host_monotonic_ns=received, wall_time=time.time(),
+                     device_timestamp_ns=stamp_ns or None, exposure_us=self._exposure, gain_db=self._gain,
+                     channel_names=self.channel_names[:3], bit_depth=bit_depth(fourcc))
+
     def stop(self) -> None:
-        pass
+        if self._native is not None:
+            self._native.stop()
 
     def close(self) -> None:
+        if self._native is not None:
+            self._native.close()
+            self._native = None
         if self._cap is not None:
             self._cap.release()
             self._cap = None
+
+    @property
+    def exposure_control(self) -> str:  # type: ignore[override]
+        """"common" while the native path drives a camera with an exposure-time control."""
+        from uwcam.drivers.v4l2_native import CID_EXPOSURE_ABSOLUTE
+
+        return "common" if self._native is not None and CID_EXPOSURE_ABSOLUTE in self._native.controls() else ""
+
+    def set_exposure(self, exposure_us: tuple[float, ...], gain_db: tuple[float, ...] | None = None) -> None:
+        """Change the exposure (µs, one value for all channels) while streaming; frames are labelled
+        with the value the device reports back."""
+        if not self.exposure_control:
+            return super().set_exposure(exposure_us, gain_db)
+        from uwcam.drivers.v4l2_native import CID_EXPOSURE_ABSOLUTE, exposure_from_device, exposure_to_device
+
+        if len(set(exposure_us)) != 1 or (gain_db is not None and len(set(gain_db)) != 1):
+            raise ConfigurationError("a V4L2 camera has one exposure and gain for all channels")
+        if gain_db is not None and gain_db[0] != (self._gain or 0.0):
+            raise ConfigurationError("changing a UVC camera's gain while streaming is not supported; change exposure")
+        got = self._native.set(CID_EXPOSURE_ABSOLUTE, exposure_to_device(exposure_us[0]))
+        self._exposure = exposure_from_device(got)

@@ -111,7 +111,8 @@ def test_requirements_per_architecture(arch):
     names = {re.split(r"[<>=!~]", d)[0].lower() for d in out}
     declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
     assert len(out) == len(declared) - (3 if arch == "arm" else 0)
-    assert {"numpy", "opencv-python-headless", "fastapi"} <= names
+    # The image serves the page's live view: uvicorn needs a WebSocket library beside it.
+    assert {"numpy", "opencv-python-headless", "fastapi", "uvicorn", "websockets"} <= names
     if arch == "arm":
         assert not names & {"numba", "harvesters", "pymavlink"}
     else:

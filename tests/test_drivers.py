@@ -40,7 +40,7 @@ def serial(request):
 
 def test_registry_names_drivers_and_explains_unknown_ones():
     assert {"sim", "replay", "genicam", "v4l2", "aravis"} <= set(registry.known("camera"))
-    with pytest.raises(ConfigurationError, match="unknown camera driver 'gige'; known camera drivers: aravis, genicam, multi, replay, sim, v4l2"):
+    with pytest.raises(ConfigurationError, match="unknown camera driver 'gige'; known camera drivers: aravis, genicam, multi, replay, sim, stream, v4l2"):
         registry.create("camera", "gige")
     with pytest.raises(ConfigurationError, match="camera driver 'sim': .*unexpected keyword argument 'colour'"):
         registry.create("camera", "sim", colour="red")

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import io
 import json
+import re
 import os
 import shutil
 import socket
@@ -165,6 +166,30 @@ def test_a_page_that_does_not_acknowledge_gets_no_backlog_only_the_newest_frame(
         assert planes["range"].shape == (60, 80)  # step 2 of 160×120
 
 
+def test_view_resolution_follows_the_width_the_page_draws(server):
+    """With ``width`` the daemon sends the coarsest map that still fills the drawing (160 px image:
+    80 px wide at step 2, 40 at step 4), and follows the page's ``{"width": N}`` as its layout changes."""
+    def next_shape(ws) -> tuple[int, int]:
+        header, planes = decode_view(ws.recv(timeout=10))
+        ws.send(json.dumps({"ack": header["frame"]}))
+        return planes["range"].shape
+
+    with websockets.sync.client.connect(server.url.replace("http", "ws") + "/api/v1/view?width=80") as ws:
+        assert json.loads(ws.recv(timeout=10))["step"] is None  # chosen per frame
+        assert next_shape(ws) == (60, 80)
+        ws.send(json.dumps({"width": 81}))  # wider than step 2 gives: full resolution
+        assert wait_for(lambda: next_shape(ws) == (120, 160), 10.0)
+        ws.send(json.dumps({"width": 40}))
+        assert wait_for(lambda: next_shape(ws) == (30, 40), 10.0)
+        for noise in ('{"width": 0}', '{"width": 1e9}', '{"width": "wide"}', '{"width": true}'):
+            ws.send(noise)  # out of bounds or not a whole number: ignored, the stream goes on
+        assert next_shape(ws) == (30, 40)
+    with websockets.sync.client.connect(server.url.replace("http", "ws") + "/api/v1/view?width=0") as ws:
+        with pytest.raises(websockets.exceptions.ConnectionClosed) as closed:
+            ws.recv(timeout=10)
+        assert closed.value.rcvd.code == 1008 and "width must be" in closed.value.rcvd.reason
+
+
 def test_register_service_and_cockpit_extras_follow_blueos_conventions(server):
     meta = server.http.get("/register_service").json()
     for key in ("name", "description", "icon", "company", "version", "webpage", "api"):
@@ -262,9 +287,16 @@ def test_unplugged_camera_shows_as_stale_and_recovering(server, browser):
             assert wait_for(lambda: "STALE" in page.inner_text("#stale"), 15.0)
             assert wait_for(lambda: page.locator("#devices .state-recovering, #devices .state-lost").count() > 0, 15.0)
             assert "camera" in page.inner_text("#stale")
+            # The header's digits grey out and their frame's age keeps counting, never frozen.
+            for box in ("#centre-box", "#minimum-box", "#frame-info"):
+                assert page.eval_on_selector(box, "e => e.classList.contains('stale')"), box
+            first = page.inner_text("#frame-info")
+            assert wait_for(lambda: page.inner_text("#frame-info") != first, 5.0), first
+            assert re.search(r"\d+(\.\d)? s old", page.inner_text("#frame-info")), page.inner_text("#frame-info")
         finally:
             SimulatedCamera.plug(SERIAL)
         assert wait_for(lambda: page.locator("#stale").is_hidden(), 30.0), page.inner_text("#stale")
+        assert wait_for(lambda: not page.eval_on_selector("#centre-box", "e => e.classList.contains('stale')"), 10.0)
     finally:
         page.close()
 

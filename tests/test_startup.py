@@ -39,3 +39,27 @@ def test_first_frames_compile_nothing(tmp_path, dtype):
         assert {k: list(k.signatures) for k in compiled} == compiled  # nothing new compiled in the loop
     finally:
         daemon.stop()
+
+
+def test_run_refuses_to_start_without_a_websocket_library(tmp_path):
+    """Without a WebSocket library uvicorn would serve the page with no live view (every WebSocket
+    route 404): uwcam run says in one line which package is missing, and starts nothing."""
+    import subprocess
+    import sys
+
+    # The packages are hidden from the import system, as on a machine where they were never installed.
+    script = (
+        "import importlib.abc, sys\n"
+        "class Hide(importlib.abc.MetaPathFinder):\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name.split('.')[0] in ('websockets', 'wsproto'):\n"
+        "            raise ModuleNotFoundError(name)\n"
+        "sys.meta_path.insert(0, Hide())\n"
+        "from uwcam.cli import main\n"
+        "sys.exit(main(['run', '--port', '0']))\n")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
+                         env={**__import__("os").environ, "UWCAM_CACHE_DIR": str(tmp_path)})
+    assert out.returncode == 2, out.stderr
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and "'websockets' is missing" in lines[0], out.stderr
+    assert "operator page" not in out.stdout  # nothing was served

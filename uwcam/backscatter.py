@@ -201,6 +201,9 @@ class BackscatterModel:
                 "(e.g. --rig grey-plate) to compensate backscatter"
             )
         bs = profile.backscatter
+        if open_water is not None and profile.response is not None and np.issubdtype(np.asarray(open_water).dtype,
+                                                                                      np.integer):
+            open_water = profile.response_curve().linearise(np.asarray(open_water))  # a gamma camera's codes
         names = profile.channel_names
         n = len(names)
         measured_depths = np.array(bs.distances_m)

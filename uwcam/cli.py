@@ -92,6 +92,15 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         if f.shape[-1] != n:
             raise UserInputError(f"image {p} has {f.shape[-1]} channels but {args.images[0]} has {n}; use images from one camera")
     names, wavelengths = parse_channels(args.channels, n)
+    curve = None
+    if args.response:
+        from uwcam.response import load_response
+
+        if not np.issubdtype(frames[0].dtype, np.integer):
+            raise UserInputError("--response applies to a camera's integer codes; these images are float (already linear?)")
+        curve = load_response(args.response, n, bits=8 * frames[0].dtype.itemsize)
+        raw_dtype = frames[0].dtype
+        frames = [curve.linearise(f) for f in frames]  # every later step works on linear light
     intrinsics = Intrinsics(*parse_floats(args.intrinsics, "--intrinsics", 4)) if args.intrinsics else None
     if intrinsics is not None and not (intrinsics.fx > 0 and intrinsics.fy > 0):
         raise UserInputError("--intrinsics focal lengths FX and FY must be positive")
@@ -136,6 +145,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         dark = np.array(parse_floats(args.dark_level, "--dark-level", n))
     elif args.dark:
         dark_frame = read_frame(args.dark)
+        if curve is not None and np.issubdtype(dark_frame.dtype, np.integer):
+            dark_frame = curve.linearise(dark_frame)
         if dark_frame.shape[-1] != n:
             raise UserInputError(f"dark frame {args.dark} has {dark_frame.shape[-1]} channels but the images have {n}")
         dark = dark_frame.reshape(-1, n).mean(axis=0)
@@ -146,6 +157,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         reference = names.index(args.reference)
     saturation = args.saturation if args.saturation is not None else default_saturation(frames[0].dtype)
     step = 1.0 if np.issubdtype(frames[0].dtype, np.integer) else 0.0
+    if curve is not None:  # linear DN: the top code's value; each code's width is the response's business
+        saturation = float(curve.table[:, -1].min()) if args.saturation is None else \
+            float(curve.table[:, min(int(args.saturation), curve.table.shape[1] - 1)].min())
+        step = 0.0
+        if raw_dtype != np.uint8 and args.response not in ("srgb", "rec709"):
+            raise UserInputError("a recovered response curve applies to 8-bit frames")
     if args.lamp_radius is not None and args.lamp_radius < 0:
         raise UserInputError("--lamp-radius must be zero (a point source) or a positive number of metres")
 
@@ -176,6 +193,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             raise UserInputError(f"output folder {report.parent} of --report does not exist")
     details = calibrate_with_details(frames, distances, inputs)
     profile = details.profile
+    if curve is not None:
+        from uwcam.profile import ResponseRecord
+
+        profile = profile.model_copy(update={"response": ResponseRecord(**curve.to_record())})
     save_profile(profile, out)
     if report is not None:
         from uwcam.calibration_report import html_report
@@ -187,6 +208,27 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     v = ", ".join(f"{c.name}−{profile.reference_channel} {c.attenuation_difference:+.4f}±{c.attenuation_difference_std:.4f}"
                   for c in profile.channels if c.name != profile.reference_channel)
     print(f"wrote {out}: attenuation differences (1/m) {v}; rms residual {profile.provenance.rms_residual:.2e}")
+    return 0
+
+
+def cmd_response(args: argparse.Namespace) -> int:
+    from uwcam.imageio import read_frame
+    from uwcam.response import recover, save_response
+
+    out = Path(args.output)
+    if out.suffix.lower() not in (".yaml", ".yml"):
+        raise UserInputError(f"the response file {out} must be a .yaml file")
+    if not out.parent.exists():
+        raise UserInputError(f"output folder {out.parent} does not exist")
+    exposures = parse_floats(args.exposure_ms, "--exposure-ms", len(args.images))
+    if not all(np.isfinite(t) and t > 0 for t in exposures):
+        raise UserInputError(f"--exposure-ms values must be positive milliseconds, got '{args.exposure_ms}'")
+    frames = [read_frame(p) for p in args.images]
+    curve = recover(frames, [t / 1000.0 for t in exposures], method=args.method)
+    save_response(curve, out)
+    mid = curve.table[:, 128] / curve.table[:, -1]
+    print(f"wrote {out}: {curve.method}; code 128 is {', '.join(f'{v:.3f}' for v in mid)} of the top code's light "
+          "(sRGB: 0.216, linear: 0.502)")
     return 0
 
 
@@ -327,7 +369,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         raise UserInputError(f"--slabs must be at least 1, got {args.slabs}")
     world = SimulatedWorld(
         scene=args.scene, distance=args.range, size=(width, height), fov_deg=args.fov, channels=channels, water=water,
-        lamp=lamp, camera=CameraModel(bits=args.bits, peak_code=args.peak), ambient=ambient, slabs=args.slabs,
+        lamp=lamp, camera=CameraModel(bits=args.bits, peak_code=args.peak, response=args.response,
+                                                  jpeg_quality=args.jpeg_quality), ambient=ambient, slabs=args.slabs,
         gate_width=args.gate_width if args.gated else None, rig=rig, seed=args.seed, material=args.material,
         fixed_exposure=args.exposure,
     )
@@ -350,10 +393,54 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def require_websocket_support() -> None:
+    """uvicorn serves WebSockets only with a WebSocket library beside it; without one it logs a
+    warning and answers every WebSocket route with 404, so the page would have no live view."""
+    import importlib
+
+    for name in ("websockets", "wsproto"):  # what uvicorn tries, in its order
+        try:
+            importlib.import_module(name)
+            return
+        except ImportError:
+            continue
+    raise UserInputError("the Python package 'websockets' is missing (the page's live view and /api/v1/stream "
+                         "need it): install it with '.venv/bin/pip install websockets', or run deploy/install.sh again")
+
+
+def _orderly_server_class() -> type:
+    import contextlib
+    import signal
+    import threading
+
+    import uvicorn
+
+    class OrderlyServer(uvicorn.Server):
+        """uvicorn's server, stopped by Ctrl-C or SIGTERM in order (the lifespan stops the loop,
+        switches the lamp off, releases the devices) and then done: uvicorn would raise the signal
+        again afterwards, which only adds a traceback and a failed exit status to a clean stop."""
+
+        @contextlib.contextmanager
+        def capture_signals(self):  # type: ignore[override]
+            if threading.current_thread() is not threading.main_thread():
+                yield
+                return
+            original = {sig: signal.signal(sig, self.handle_exit) for sig in (signal.SIGINT, signal.SIGTERM)}
+            try:
+                yield
+            finally:
+                for sig, handler in original.items():
+                    signal.signal(sig, handler)
+
+    return OrderlyServer
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     import gc
     import logging
     import os
+
+    require_websocket_support()
 
     from uwcam.memory import limit_malloc_arenas
 
@@ -404,7 +491,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         # and releases the devices.
         # No per-message deflate: zlib on every multi-megabyte range map cost a third of the CPU
         # (measured with py-spy) and float maps barely compress.
-        server = uvicorn.Server(uvicorn.Config(app, log_level="warning", ws_per_message_deflate=False))
+        server = _orderly_server_class()(uvicorn.Config(app, log_level="warning", ws_per_message_deflate=False))
         # Everything made so far (modules, the calibration, FastAPI's routes and models: ~125,000
         # objects) lives as long as the process: out of the cyclic collector's sight, its full
         # collections no longer stop every thread for ~50 ms (a 60 fps loop then skips frames).
@@ -413,6 +500,37 @@ def cmd_run(args: argparse.Namespace) -> int:
     finally:
         daemon.stop()
         sock.close()
+    return 0
+
+
+def cmd_warmup(args: argparse.Namespace) -> int:
+    """Run the embedded default until its first range, then stop: numba compiles every kernel the
+    daemon's start needs into its on-disk cache, so the first ``uwcam run`` compiles nothing."""
+    import logging
+    import time
+
+    from uwcam.config import default_config
+    from uwcam.daemon import Daemon
+    from uwcam.optics import kernels
+
+    if not 1.0 <= args.timeout <= 86400.0:  # also refuses nan
+        raise UserInputError(f"--timeout must be 1 to 86400 seconds, got {args.timeout}")
+    if kernels.BACKEND != "numba":
+        print("nothing to compile: numba is not installed here (the numpy path is used)")
+        return 0
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    started = time.monotonic()
+    daemon = Daemon(default_config())
+    try:
+        daemon.start()
+        deadline = time.monotonic() + args.timeout
+        while daemon.pipeline.processed < 1:
+            if time.monotonic() > deadline:
+                raise UserInputError(f"no range within {args.timeout:g} s; try again with a longer --timeout")
+            time.sleep(0.05)
+    finally:
+        daemon.stop()
+    print(f"compiled uwcam's kernels in {time.monotonic() - started:.0f} s (kept in numba's cache)")
     return 0
 
 
@@ -470,7 +588,20 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("-o", "--output", required=True, metavar="PROFILE.yaml", help="profile to write")
     cal.add_argument("--report", metavar="REPORT.html",
                      help="also write a self-contained HTML report: fits, residuals, noise model, plate overlay, range σ")
+    cal.add_argument("--response", metavar="srgb|rec709|FILE",
+                     help="the camera's response curve (a gamma-encoded 8-bit camera): frames are linearised "
+                          "through it and the profile keeps it; FILE from 'uwcam response'")
     cal.set_defaults(func=cmd_calibrate)
+
+    resp = sub.add_parser("response", help="recover an 8-bit camera's response curve from an exposure bracket")
+    resp.add_argument("images", nargs="+", metavar="BRACKET",
+                      help="8-bit frames of one still, lit scene at different exposures (fixed gain and white balance)")
+    resp.add_argument("--exposure-ms", required=True, metavar="T1,T2,...", help="exposure of each frame in ms, in order")
+    resp.add_argument("--method", choices=("debevec", "robertson"), default="debevec",
+                      help="OpenCV's calibration method (default debevec)")
+    resp.add_argument("-o", "--output", required=True, metavar="RESPONSE.yaml",
+                      help="response file, for 'uwcam calibrate --response'")
+    resp.set_defaults(func=cmd_response)
 
     rig = sub.add_parser("rig", help="calibration rig tools")
     rig_sub = rig.add_subparsers(dest="rig_command", required=True, metavar="ACTION")
@@ -509,6 +640,10 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--gate-width", type=float, default=0.05, metavar="M", help="depth of the range gate (default 0.05 m)")
     sim.add_argument("--slabs", type=int, default=32, help="water-column slabs for backscatter (default 32)")
     sim.add_argument("--bits", type=int, default=16, choices=(8, 12, 16), help="sensor bit depth (default 16)")
+    sim.add_argument("--response", default="linear", choices=("linear", "srgb", "rec709"),
+                     help="tone curve of the camera's 8-bit output (default linear); needs --bits 8")
+    sim.add_argument("--jpeg-quality", type=int, metavar="Q",
+                     help="JPEG-compress the frame at quality Q (1–100), as an MJPEG camera does; needs --bits 8")
     sim.add_argument("--size", default="640x480", metavar="WxH", help="image size (default 640x480)")
     sim.add_argument("--fov", type=float, default=60.0, metavar="DEG", help="horizontal field of view (default 60)")
     sim.add_argument("--channels", metavar="NAME:NM,...", help="channel names and centre wavelengths (default R:675,G:575,B:475)")
@@ -532,6 +667,11 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--port", type=int, help="API port (default 8080)")
     run.add_argument("--record", metavar="FILE.mcap", help="record the dive into this MCAP file from start to stop")
     run.set_defaults(func=cmd_run)
+
+    warm = sub.add_parser("warmup", help="compile the ranging and simulation kernels now (deploy/install.sh runs it), "
+                                         "so the first start compiles nothing")
+    warm.add_argument("--timeout", type=float, default=600.0, metavar="S", help="give up after S seconds (default 600)")
+    warm.set_defaults(func=cmd_warmup)
 
     rep = sub.add_parser("reprocess", help="range recorded dives (MCAP) again, here or on a Dask cluster")
     rep.add_argument("inputs", nargs="+", metavar="IN.mcap", help="recordings made by uwcam run")

@@ -54,17 +54,30 @@ def cache_dir() -> str:
     return os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "uwcam")
 
 
+SHIPPED_CALIBRATIONS = "calibrations"
+"""Folder of :mod:`uwcam.simulation` holding the simulated calibrations that ship with uwcam
+(the embedded default rig's), named by :func:`simulated_calibration_conditions`."""
+
+
+def simulated_calibration_conditions(rig: SimulatedRig) -> str:
+    """What a simulated calibration's physics depends on: the rig's water, lamp, image size and
+    bit depth, and the calibration's own image width (a short hash)."""
+    import hashlib
+
+    return hashlib.sha256(json.dumps({"water": rig.water, "lamp": [float(v) for v in rig.lamp_offset],
+                                      "size": [int(v) for v in rig.size], "bits": int(rig.bits),
+                                      "width": CALIBRATION_WIDTH}).encode()).hexdigest()[:16]
+
+
 def simulated_calibration_key(rig: SimulatedRig) -> str:
-    """What a simulated calibration depends on: the rig's water, lamp, image size and bit depth,
-    and uwcam's own code and built-in rig files (a changed simulator never reuses an old result)."""
+    """The cache key of a simulated calibration: its conditions, and uwcam's own code and
+    built-in rig files (a changed simulator never reuses an old result)."""
     import hashlib
 
     import uwcam
     from uwcam.rig import builtin_rig_path
 
-    digest = hashlib.sha256(json.dumps({"water": rig.water, "lamp": [float(v) for v in rig.lamp_offset],
-                                        "size": [int(v) for v in rig.size], "bits": int(rig.bits),
-                                        "width": CALIBRATION_WIDTH}).encode())
+    digest = hashlib.sha256(simulated_calibration_conditions(rig).encode())
     package = os.path.dirname(os.path.abspath(uwcam.__file__))
     sources = sorted(glob.glob(os.path.join(package, "**", "*.py"), recursive=True))
     sources += sorted(glob.glob(os.path.join(os.path.dirname(builtin_rig_path("grey-plate")), "*.yaml")))
@@ -74,37 +87,70 @@ def simulated_calibration_key(rig: SimulatedRig) -> str:
     return digest.hexdigest()[:24]
 
 
-def simulated_calibration(rig: SimulatedRig) -> CalibrationProfile:
+def shipped_calibration_path(rig: SimulatedRig) -> str:
+    """Where uwcam ships the calibration of this rig's simulated water (it may not exist)."""
+    from importlib import resources
+
+    folder = resources.files("uwcam.simulation") / SHIPPED_CALIBRATIONS
+    return str(folder / f"simulated-{simulated_calibration_conditions(rig)}.yaml")
+
+
+def calibrate_simulated_water(rig: SimulatedRig) -> CalibrationProfile:
     """Calibrate in the rig's simulated water: grey plate with black patch at 1 m and 2 m, with
     the rig's lamp, four frames at each distance as a crew would take (their differences give the
-    temporal noise, so the reported σ is honest); the profile's intrinsics are the rig camera's.
-
-    The calibration takes seconds and gives the same profile every time for the same rig and
-    code, so it is kept in :func:`cache_dir` (keyed by :func:`simulated_calibration_key`) and the
-    next start loads it: the embedded default ranges within a second or two of starting."""
+    temporal noise, so the reported σ is honest). Deterministic: the same rig and code give the
+    same profile."""
     from uwcam.simulation import Lamp, water_preset
     from uwcam.simulation.camera import CameraModel
     from uwcam.simulation.tank import calibrate_in_simulation
 
-    path = os.path.join(cache_dir(), f"simulated-calibration-{simulated_calibration_key(rig)}.yaml")
-    try:
-        profile = load_profile(path)
-    except UserInputError:  # not there yet, or unreadable: calibrate (again) and keep it
-        water = water_preset(rig.water, [675.0, 575.0, 475.0])
-        w, h = rig.size
-        factor = max(1, -(-w // CALIBRATION_WIDTH))
-        profile = calibrate_in_simulation(water, Lamp(position=tuple(rig.lamp_offset)), (max(w // factor, 2), max(h // factor, 2)),
-                                          CameraModel(bits=rig.bits), seed_base=11, frames_per_distance=4)
+    water = water_preset(rig.water, [675.0, 575.0, 475.0])
+    w, h = rig.size
+    factor = max(1, -(-w // CALIBRATION_WIDTH))
+    return calibrate_in_simulation(water, Lamp(position=tuple(rig.lamp_offset)), (max(w // factor, 2), max(h // factor, 2)),
+                                   CameraModel(bits=rig.bits), seed_base=11, frames_per_distance=4)
+
+
+def ship_simulated_calibration(config: DaemonConfig) -> str:
+    """Write the calibration of ``config``'s simulated water into the package (for uwcam's own
+    developers, after a change to the simulator or the calibration); its path."""
+    from uwcam.drivers.sim import SimulatedRig
+
+    rig = SimulatedRig(**config.simulation)
+    path = shipped_calibration_path(rig)
+    save_profile(calibrate_simulated_water(rig), path)
+    return path
+
+
+def simulated_calibration(rig: SimulatedRig) -> CalibrationProfile:
+    """The rig's simulated-water calibration (:func:`calibrate_simulated_water`); the profile's
+    intrinsics are the rig camera's.
+
+    The embedded default rig's ships with uwcam (tests/test_shipped_calibration.py checks it
+    against a fresh one), so its first start ranges at once. Any other rig is calibrated at its
+    first start (seconds) and kept in :func:`cache_dir`, keyed by :func:`simulated_calibration_key`."""
+    shipped = shipped_calibration_path(rig)
+    if os.path.exists(shipped):
+        profile = load_profile(shipped)
+        log.info("using the calibration of the simulated water that ships with uwcam")
+    else:
+        path = os.path.join(cache_dir(), f"simulated-calibration-{simulated_calibration_key(rig)}.yaml")
         try:
-            os.makedirs(os.path.dirname(path), exist_ok=True)
-            save_profile(profile, path)
-            # Each new version of uwcam (or rig) keys its own file: keep only the newest few.
-            kept = sorted(glob.glob(os.path.join(os.path.dirname(path), "simulated-calibration-*.yaml")),
-                          key=os.path.getmtime, reverse=True)
-            for old in kept[SIMULATED_CALIBRATIONS_KEPT:]:
-                os.remove(old)
-        except OSError as exc:  # a read-only home: calibrate at every start, as before
-            log.info("cannot keep the simulated calibration in %s (%s)", path, exc.strerror)
+            profile = load_profile(path)
+            log.info("using the calibration of the simulated water made at an earlier start (%s)", path)
+        except UserInputError:  # not there yet, or unreadable: calibrate (again) and keep it
+            log.info("calibrating in the simulated water (first start with this rig or uwcam version: seconds)")
+            profile = calibrate_simulated_water(rig)
+            try:
+                os.makedirs(os.path.dirname(path), exist_ok=True)
+                save_profile(profile, path)
+                # Each new version of uwcam (or rig) keys its own file: keep only the newest few.
+                kept = sorted(glob.glob(os.path.join(os.path.dirname(path), "simulated-calibration-*.yaml")),
+                              key=os.path.getmtime, reverse=True)
+                for old in kept[SIMULATED_CALIBRATIONS_KEPT:]:
+                    os.remove(old)
+            except OSError as exc:  # a read-only home: calibrate at every start, as before
+                log.info("cannot keep the simulated calibration in %s (%s)", path, exc.strerror)
     intr = rig.world.intrinsics
     return profile.model_copy(update={"intrinsics": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy}})
 
@@ -216,7 +262,6 @@ class Daemon:
             if cfg.calibration is not None:
                 profile = load_profile(cfg.calibration)
             elif self.rig is not None:
-                log.info("calibrating in the simulated water")
                 profile = simulated_calibration(self.rig)
             else:
                 raise UserInputError("no calibration profile configured")

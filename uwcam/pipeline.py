@@ -11,6 +11,7 @@ they read the latest published result or are called back with it.
 from __future__ import annotations
 
 import collections
+import dataclasses
 import logging
 import threading
 import time
@@ -805,6 +806,12 @@ class FramePipeline:
             estimator, tracker, processing, corrector = self.estimator, self.tracker, self.processing, self.corrector
             profile, orientation, exposure, hdr = self.profile, self.orientation, self.exposure, self._hdr
         taken = frame.exposures()[0]
+        coded = None
+        if estimator.response is not None and np.issubdtype(frame.data.dtype, np.integer):
+            # A gamma camera: every step below (patch tracking, open water, backscatter, exposure
+            # control, ranging) works on linear light (the profile's noise model is in linear DN);
+            # the camera's own codes are what is shown and recorded.
+            coded, frame = frame, dataclasses.replace(frame, data=estimator.response.linearise(frame.data))
         if hdr is not None:  # one exposure for all channels, bracketed: merged per channel with the frame before
             frame = hdr(frame)
         # The frame's own exposure per channel: the estimator ranges it exactly whatever it was.
@@ -841,7 +848,7 @@ class FramePipeline:
             if orientation is not None:
                 incidence = orientation.estimate(frame.data, result, corrector, ambient, estimator.exposure_shift)
         now = time.monotonic_ns()
-        published = Published(self.processed + 1, frame, result, now, tuple(float(v) for v in attenuation),
+        published = Published(self.processed + 1, frame if coded is None else coded, result, now, tuple(float(v) for v in attenuation),
                                tuple(float(v) for v in estimator.log_constant), ambient, incidence,
                                orientation.config.block if orientation is not None else 0,
                                None if water is None else water.source,

@@ -7,7 +7,8 @@ all attenuation differences and log constants, the lamp position, optional intri
 and where the calibration came from.
 
 Version history: 1 → 2 added the joint ``covariance`` and each channel's ``fixed_pattern``
-noise term. A version-1 file still loads: its per-channel uncertainties become a diagonal
+noise term; the optional ``response`` (a gamma camera's response curve) came later within
+version 2, so every earlier version-2 file still loads unchanged. A version-1 file still loads: its per-channel uncertainties become a diagonal
 covariance (version 1 recorded no correlations) and its fixed pattern is 0 (not measured).
 """
 
@@ -137,6 +138,27 @@ class CalibrationCovariance(Strict):
         return self
 
 
+class ResponseRecord(Strict):
+    """The camera's response curve: how its codes map back to linear light (see uwcam.response)."""
+
+    kind: Literal["srgb", "rec709", "table"]
+    """A standard curve, or a table recovered from an exposure bracket (``uwcam response``)."""
+    bits: Literal[8, 10, 12, 16] = 8
+    """Bit depth of the codes the curve applies to."""
+    method: str = ""
+    """How the curve was found."""
+    table: list[list[Annotated[float, Field(ge=0, allow_inf_nan=False)]]] | None = None
+    """For ``table``: per channel, the linear value (DN) of every code, non-decreasing."""
+
+    @model_validator(mode="after")
+    def _table(self) -> "ResponseRecord":
+        if (self.kind == "table") != (self.table is not None):
+            raise ValueError("a response of kind 'table' needs a table, and only it")
+        if self.table is not None and any(len(row) != 2**self.bits for row in self.table):
+            raise ValueError(f"every row of the response table needs {2**self.bits} values ({self.bits}-bit codes)")
+        return self
+
+
 class CalibrationProfile(Strict):
     """Everything the intensity–range transform needs for one camera, lamp and water."""
 
@@ -162,6 +184,10 @@ class CalibrationProfile(Strict):
     """Backscatter measured during calibration (when the target had a black patch)."""
     covariance: CalibrationCovariance | None = None
     """Joint covariance of attenuation differences and log constants; None: uncorrelated, from the stds."""
+    response: ResponseRecord | None = None
+    """The camera's response curve; None: a linear camera. With one, every integer frame is
+    linearised through it before anything else, and the noise model, dark level and saturation
+    are in linear DN."""
     provenance: Provenance
 
     @model_validator(mode="after")
@@ -188,6 +214,8 @@ class CalibrationProfile(Strict):
             want = [f"V:{n}" for n in others] + [f"b:{n}" for n in others]
             if self.covariance.parameters != want:
                 raise ValueError(f"covariance parameters must be {want} (attenuation differences, then log constants)")
+        if self.response is not None and self.response.table is not None and len(self.response.table) != len(names):
+            raise ValueError(f"the response table needs one row per channel {names}")
         if self.intrinsics is not None:
             if set(self.intrinsics) != {"fx", "fy", "cx", "cy"}:
                 raise ValueError(f"intrinsics need exactly fx, fy, cx, cy, got {sorted(self.intrinsics)}")
@@ -217,6 +245,14 @@ class CalibrationProfile(Strict):
 
     def camera_intrinsics(self) -> Intrinsics | None:
         return None if self.intrinsics is None else Intrinsics(**self.intrinsics)
+
+    def response_curve(self):
+        """The camera's :class:`uwcam.response.ResponseCurve`, or None for a linear camera."""
+        if self.response is None:
+            return None
+        from uwcam.response import ResponseCurve
+
+        return ResponseCurve.from_record(self.response, len(self.channels))
 
     def covariance_blocks(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(Cvv, Cvb, Cbb), each (N, N) in channel order with zero reference row and column:

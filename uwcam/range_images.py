@@ -41,6 +41,9 @@ def fuse_frames(estimator: RangeEstimator, frames: Sequence[NDArray]) -> tuple[N
     if len(frames) == 1:
         return first, None
     k = len(frames)
+    response = getattr(estimator, "response", None)
+    if response is not None and np.issubdtype(first.dtype, np.integer):
+        frames = [response.linearise(f) for f in frames]  # a gamma camera: average light, not codes
     mean = np.mean(np.stack(frames).astype(np.float64), axis=0)
     e = mean - estimator.dark
     q = estimator.profile.quantisation_step

@@ -152,6 +152,9 @@ class WaterLight:
         if frame.shape[:2] != self.level.shape[:2]:
             raise ValueError(f"the water's light is known for {self.level.shape[1]}×{self.level.shape[0]} frames, "
                              f"not {frame.shape[1]}×{frame.shape[0]}")
+        response = getattr(estimator, "response", None)
+        if response is not None and np.issubdtype(np.asarray(frame).dtype, np.integer):
+            frame = response.linearise(frame)  # a gamma camera's codes: judged as linear light
         limit = self.threshold(estimator, scale, ambient, samples)
         active = estimator.active
         saturation = estimator.profile.saturation_level

@@ -201,6 +201,7 @@ def fit(request: Request) -> dict:
 
 @router.get("/plots/{name}.png", responses={200: {"content": {"image/png": {}}}})
 def plot(name: str, request: Request) -> Response:
+    """One of the fit's plots (PNG): fits, residuals, noise model, plate overlay."""
     session = _session(request)
     with session.lock:
         try:

@@ -24,6 +24,7 @@ class LampCommand(BaseModel):
 
 @router.get("")
 def get_lamp(d: Daemon = Depends(get_daemon)) -> dict:
+    """The lamp: on or off, intensity (percent), temperature and faults where it reports them, health."""
     if d.lamp is None:
         raise HTTPException(status_code=404, detail="no lamp configured")
     try:
@@ -36,6 +37,7 @@ def get_lamp(d: Daemon = Depends(get_daemon)) -> dict:
 
 @router.put("")
 def put_lamp(command: LampCommand, d: Daemon = Depends(get_daemon)) -> dict:
+    """Switch the lamp on or off and set its intensity (`{"on": true, "intensity": 80}`, percent)."""
     if d.lamp is None:
         raise HTTPException(status_code=404, detail="no lamp configured")
     try:

@@ -28,6 +28,7 @@ def list_profiles(d: Daemon = Depends(get_daemon)) -> list[dict]:
 
 @router.get("/{name}")
 def get_profile(name: str, d: Daemon = Depends(get_daemon)) -> dict:
+    """One calibration profile, as stored."""
     if name not in d.profiles:
         raise HTTPException(status_code=404, detail=f"no profile '{name}'; known: {', '.join(d.profiles)}")
     return d.profiles[name].model_dump(mode="json")
@@ -83,6 +84,7 @@ async def upload_profile(name: str, request: Request, d: Daemon = Depends(get_da
 
 @router.post("/{name}/activate")
 def activate_profile(name: str, d: Daemon = Depends(get_daemon)) -> dict:
+    """Range with this profile from the next frame on (kept across restarts)."""
     if name not in d.profiles:
         raise HTTPException(status_code=404, detail=f"no profile '{name}'; known: {', '.join(d.profiles)}")
     try:

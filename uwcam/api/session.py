@@ -54,6 +54,7 @@ def sign_in(body: SignIn, request: Request, response: Response) -> dict:
 
 @router.delete("")
 def sign_out(request: Request, response: Response) -> dict:
+    """End this browser's session (its cookie no longer signs in)."""
     guard: Guard = request.app.state.guard
     session = request.cookies.get(guard.cookie)
     if session:

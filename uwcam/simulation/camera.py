@@ -49,10 +49,21 @@ class CameraModel:
     """Seed of the gain map: a property of the sensor, not of the frame."""
     peak_code: float | None = None
     """Auto-exposure target for the brightest pixel's expected value, DN (None: TARGET_CODE)."""
+    response: str = "linear"
+    """Tone curve applied to the sensor's linear signal before it is quantised: linear, srgb or
+    rec709 (an ordinary USB camera's 8-bit output; see uwcam.response)."""
+    jpeg_quality: int | None = None
+    """JPEG-compress each frame at this quality (1–100), as an MJPEG camera or stream does; None: not."""
 
     def __post_init__(self) -> None:
         if self.bits not in TARGET_CODE:
             raise UserInputError(f"bit depth must be one of {sorted(TARGET_CODE)}, got {self.bits}")
+        if self.response not in ("linear", "srgb", "rec709"):
+            raise UserInputError(f"unknown camera response '{self.response}'; known: linear, srgb, rec709")
+        if (self.response != "linear" or self.jpeg_quality is not None) and self.bits != 8:
+            raise UserInputError("a tone curve or JPEG applies to 8-bit cameras here: use --bits 8")
+        if self.jpeg_quality is not None and not 1 <= self.jpeg_quality <= 100:
+            raise UserInputError(f"JPEG quality must be 1 to 100, got {self.jpeg_quality}")
         if self.peak_code is not None and not 0 < self.peak_code <= self.max_code:
             raise UserInputError(f"the exposure peak must lie between 0 and {self.max_code} DN, got {self.peak_code}")
 
@@ -99,9 +110,38 @@ class CameraModel:
         if out is None:
             out = np.empty(mean.shape, dtype=self.dtype)
         kernel = _digitise if HAVE_NUMBA else digitise_numpy
-        kernel(mean.reshape(-1), std.reshape(-1), _frame_key(seed, frame_index), float(self.max_code),
-               _inverse_normal_table(), out.reshape(-1))
+        if self.response == "linear" and self.jpeg_quality is None:
+            kernel(mean.reshape(-1), std.reshape(-1), _frame_key(seed, frame_index), float(self.max_code),
+                   _inverse_normal_table(), out.reshape(-1))
+            return out
+        # An ordinary camera: the noisy linear signal (drawn at 1/256 DN, the same deviates) goes
+        # through the tone curve, is quantised to 8 bits, and optionally JPEG-compressed.
+        fine = np.empty(mean.shape, np.uint16)
+        kernel((mean * 256.0).reshape(-1), (std * 256.0).reshape(-1), _frame_key(seed, frame_index),
+               float(self.max_code * 256), _inverse_normal_table(), fine.reshape(-1))
+        linear = fine.astype(np.float64) / 256.0
+        if self.response == "linear":
+            coded = np.rint(linear).astype(np.uint8)
+        else:
+            from uwcam.response import encode
+
+            coded = encode(linear, self.response, 8)
+        if self.jpeg_quality is not None:
+            coded = jpeg_roundtrip(coded, self.jpeg_quality)
+        out[...] = coded
         return out
+
+
+def jpeg_roundtrip(rgb: NDArray[np.uint8], quality: int) -> NDArray[np.uint8]:
+    """An 8-bit RGB frame compressed to JPEG at ``quality`` and decoded again (4:2:0, as cameras do)."""
+    import cv2
+
+    if rgb.ndim != 3 or rgb.shape[-1] != 3:
+        raise UserInputError("JPEG compression needs three-channel frames")
+    ok, data = cv2.imencode(".jpg", np.ascontiguousarray(rgb[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise UserInputError("OpenCV could not JPEG-encode the frame")
+    return cv2.imdecode(data, cv2.IMREAD_COLOR)[..., ::-1]
 
 
 @njit(cache=True, inline="always")

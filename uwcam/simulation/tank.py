@@ -30,6 +30,7 @@ def calibrate_in_simulation(
     name: str = "simulated tank calibration",
     frames_per_distance: int = 1,
     record_exposure: bool = False,
+    linearise: bool = True,
 ) -> CalibrationProfile:
     """A calibration profile from the grey plate at ``distances`` (m) in ``water``.
 
@@ -38,6 +39,8 @@ def calibrate_in_simulation(
     attenuation needs that). noise_free: use expected values instead of noisy frames.
     Frame k at distance d uses seed ``seed_base + int(d)``. frames_per_distance: noisy frames
     taken at each distance (averaged by the calibration, their differences give the temporal noise).
+    linearise: for a camera with a tone curve, calibrate on frames linearised through it and keep
+    the curve in the profile (False: take its codes as linear, the mistake the curve corrects).
     record_exposure: record the held exposure in the profile as each channel's ``exposure_us``,
     in the simulator's unit (electrons per unit radiance, the unit of :attr:`SimulatedWorld.exposure`):
     frames of worlds exposed differently are then ranged with their exposure in the same unit.
@@ -59,6 +62,12 @@ def calibrate_in_simulation(
             at.append(d)
     intr, patch = world.intrinsics, plate.plate.black_patch
     n = len(channels.names)
+    curve = None
+    if camera.response != "linear" and linearise:  # a gamma camera is calibrated on linearised frames (uwcam.response)
+        from uwcam.response import ResponseCurve
+
+        curve = ResponseCurve.standard(camera.response, camera.bits, n)
+        frames = [f if noise_free else curve.linearise(f) for f in frames]
     profile = calibrate(frames, at, CalibrationInputs(
         channel_names=list(channels.names), wavelengths_nm=list(channels.wavelengths_nm),
         target_reflectance=np.full(n, 0.18), black_reflectance=np.full(n, 0.03),
@@ -67,7 +76,12 @@ def calibrate_in_simulation(
         black_boxes=[project_plate_box(patch.centre_m, patch.size_m, d, intr) for d in at],
         dark_level=np.full(n, world.camera.dark_level_dn), saturation_level=2**camera.bits - 1,
         lamp_radius_m=lamp.effective_radius, name=name, target_description="grey plate in the simulated water",
+        quantisation_step=0.0 if curve is not None else 1.0,
     ))
+    if curve is not None:
+        from uwcam.profile import ResponseRecord
+
+        profile = profile.model_copy(update={"response": ResponseRecord(**curve.to_record())})
     if not record_exposure:
         return profile
     return profile.model_copy(update={"channels": [c.model_copy(update={"exposure_us": float(exposure)})

@@ -266,10 +266,13 @@ function drawRange(frame) {
 
 function drawColourbar(limits) {
   const bar = $("colourbar");
-  const ctx = bar.getContext("2d");
-  for (let x = 0; x < bar.width; x++) {
-    ctx.fillStyle = cssColour(state.table[Math.round((x / (bar.width - 1)) * 255)]);
-    ctx.fillRect(x, 0, 1, bar.height);
+  if (bar.drawnTable !== state.table) {  // the gradient changes only with the colour map
+    const ctx = bar.getContext("2d");
+    for (let x = 0; x < bar.width; x++) {
+      ctx.fillStyle = cssColour(state.table[Math.round((x / (bar.width - 1)) * 255)]);
+      ctx.fillRect(x, 0, 1, bar.height);
+    }
+    bar.drawnTable = state.table;
   }
   const digits = limits.max - limits.min < 0.5 ? 3 : 2;
   $("bar-min").textContent = limits.min.toFixed(digits);
@@ -319,7 +322,8 @@ function drawMarks() {
 
 function formatReading(reading) {
   if (reading.range === null) {
-    return `no range: ${state.hello?.reasons?.[reading.reason] ?? `reason ${reading.reason}`}`;
+    const name = state.hello?.reasons?.[reading.reason];
+    return `no range: ${PLAIN_REASONS[name] || name || `reason ${reading.reason}`}`;
   }
   return `${reading.range.toFixed(3)} m ± ${reading.sigma.toFixed(3)} m`;
 }
@@ -328,8 +332,8 @@ function updateReadout() {
   const frame = state.shown;
   const el = $("readout");
   if (!frame || !state.pointer) return;
-  const { x, y } = state.pointer;
-  const reading = sample(frame, x, y);
+  const reading = sample(frame, state.pointer.x, state.pointer.y);
+  const { x, y } = reading;  // the pixel actually read (the map holds every step-th pixel)
   el.textContent = `${formatReading(reading)} · px (${x}, ${y}) · frame ${frame.number}`;
   el.dataset.frame = frame.number;
   el.dataset.x = x; el.dataset.y = y;
@@ -393,6 +397,24 @@ function drawProfile() {
   ctx.stroke();
 }
 
+// Why a pixel has no range, as a pilot would say it.
+const PLAIN_REASONS = {
+  "below noise floor": "too dark",
+  "saturated": "too bright",
+  "backscatter only": "only murky water",
+  "too few channels": "too dark in some colours",
+  "path out of bounds": "out of range",
+  "vehicle": "our vehicle",
+};
+const REASON_HELP = {
+  "below noise floor": "too little light came back for a range: closer, or more lamp",
+  "saturated": "the camera clipped: less lamp or a shorter exposure",
+  "backscatter only": "the light there is the water's own glow (backscatter), not a surface",
+  "too few channels": "red is absorbed first: too few colours were bright enough to compare",
+  "path out of bounds": "the colour ratio gives a range outside the configured limits",
+  "vehicle": "part of the vehicle (bracket, skids) is masked here",
+};
+
 function drawLegend() {
   const reasons = state.hello?.reasons || {};
   $("legend").replaceChildren(...Object.entries(reasons).filter(([code]) => code !== "0").map(([code, name]) => {
@@ -400,7 +422,8 @@ function drawLegend() {
     const swatch = document.createElement("i");
     const c = REASON_COLOURS[code] || [128, 128, 128];
     swatch.style.background = `rgb(${c.join(",")})`;
-    li.append(swatch, name);
+    li.append(swatch, PLAIN_REASONS[name] || name);
+    li.title = `${name} (reason ${code}): ${REASON_HELP[name] || ""}`;
     return li;
   }));
 }
@@ -452,18 +475,37 @@ function paint() {
   // Capture → painted by the wall clock: exact where page and daemon share a machine (benchmarks).
   stats.ages.push(Date.now() - frame.captureMs);
   if (stats.ages.length > 100000) stats.ages.splice(0, 50000);
-  $("frame-info").textContent = `frame ${frame.number} · ${Math.round(frameAge(frame))} ms old`;
   if (stats.displayed % 3 === 1) {  // ten times a second is plenty for digits
     const m = centreAndMinimum(frame.range);
     $("centre-range").textContent = m.centre === null ? "—" : `${m.centre.toFixed(2)} m`;
     $("minimum-range").textContent = m.minimum === null ? "—" : `${m.minimum.toFixed(2)} m`;
+    state.digitsFrame = frame;
   }
+  showAges();
   stream.ack(frame.number);
 }
 
 // ---------------------------------------------------------------- staleness
 
+// Every value from a frame says how old it is, and greys out once it is stale: the header's
+// digits and frame line keep counting when frames stop coming.
+function showAges() {
+  const shown = state.shown, digits = state.digitsFrame;
+  $("frame-info").textContent = shown ? `frame ${shown.number} · ${ageText(frameAge(shown))} old` : "";
+  $("frame-info").classList.toggle("stale", !!shown && frameAge(shown) > STALE_AFTER_MS);
+  const digitsStale = !digits || frameAge(digits) > STALE_AFTER_MS;
+  for (const id of ["centre-box", "minimum-box"]) $(id).classList.toggle("stale", digitsStale);
+  // Readings of the shown frame (pointer, pins) grey out with it, unless the pilot paused on it.
+  const readingsStale = !!shown && !state.paused && frameAge(shown) > STALE_AFTER_MS;
+  for (const id of ["readout", "pins"]) $(id).classList.toggle("stale", readingsStale);
+}
+
+function ageText(ms) {
+  return ms < 1000 ? `${Math.round(ms)} ms` : ago(ms / 1000);
+}
+
 function checkStale() {
+  showAges();
   const age = state.shown ? frameAge(state.shown) : Infinity;
   const camera = state.status?.camera?.health;
   const stale = $("stale");
@@ -508,8 +550,9 @@ function renderHealth(s) {
   $("devices").replaceChildren(...rows);
 
   const figures = [];
-  const add = (term, value, cls) => {
+  const add = (term, value, cls, help) => {
     const dt = document.createElement("dt"); dt.textContent = term;
+    if (help) { dt.title = help; dt.classList.add("has-help"); }
     const dd = document.createElement("dd"); dd.textContent = value;
     if (cls) dd.className = cls;
     figures.push(dt, dd);
@@ -525,10 +568,15 @@ function renderHealth(s) {
     if (cal.tracking) {
       const diffs = Object.entries(cal.tracking.attenuation_differences)
         .map(([k, v]) => `${k} ${v.toFixed(4)} (${cal.tracking.drift[k] >= 0 ? "+" : ""}${cal.tracking.drift[k].toFixed(4)})`).join(", ");
-      add("patch tracking", `${diffs} 1/m · ${cal.tracking.state}`);
+      add("water check", `${cal.tracking.state} · ${diffs} 1/m`, "",
+          "The reference patch on the bracket, at a known distance, is watched in every frame: how much faster " +
+          "the water absorbs each colour than red (attenuation difference, 1/m) and its drift since calibration. " +
+          "Ranging follows the water as it changes.");
       if (cal.tracking.region && !state.patchDraft) state.patchRegion = cal.tracking.region;
     }
-    if (cal.reflectance) add("reflectance", cal.reflectance.state);
+    if (cal.reflectance) add("surface colour", cal.reflectance.state, "",
+      "The seabed's own colour is measured where the sonar points (its range is known there), so a surface " +
+      "redder or bluer than the calibration plate does not bias the range.");
   }
   const rf = s.rangefinder;
   if (rf) {
@@ -799,6 +847,7 @@ function wireView() {
     if (state.mode === "cloud" && !cloud) cloud = new PointCloudView($("cloud"));
     $("range").style.opacity = state.mode === "overlay" ? $("opacity").value : "";
     $("colour-pane").querySelector(".pane-label").hidden = state.mode === "overlay";
+    stream.setWidth();
     repaint();
   };
   $("opacity-box").hidden = true;
@@ -890,8 +939,16 @@ function repaint() {
 
 // ---------------------------------------------------------------- start
 
+// The pixels the range map is drawn across (the 3-D view: its pane): the daemon sends each frame
+// at the coarsest resolution that still fills them (?step=1 in the address forces full resolution).
+function drawnWidth() {
+  const element = state.mode === "cloud" ? $("cloud") : $("range");
+  return element.getBoundingClientRect().width * (window.devicePixelRatio || 1);
+}
+
 const stream = new ViewStream({
-  step: Number(new URLSearchParams(location.search).get("step") || 1),
+  step: Number(new URLSearchParams(location.search).get("step")) || null,
+  width: drawnWidth,
   onHello: (hello) => {
     state.hello = hello;
     drawLegend();
@@ -915,3 +972,5 @@ loadSession();
 loadProfiles();
 pollStatus();
 setInterval(checkStale, 250);
+
+window.addEventListener("resize", () => stream.setWidth());

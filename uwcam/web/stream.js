@@ -33,16 +33,19 @@ export function decodeFrame(buffer) {
 }
 
 // Range in metres at image pixel (x, y) of a frame, or null with the reason code when invalid.
+// x, y: the image pixel whose value it is (the map holds every step-th pixel).
 export function sample(frame, x, y) {
   const r = frame.range;
-  const i = Math.min(r.height - 1, Math.max(0, Math.floor(y / r.step))) * r.width
-    + Math.min(r.width - 1, Math.max(0, Math.floor(x / r.step)));
+  const col = Math.min(r.width - 1, Math.max(0, Math.floor(x / r.step)));
+  const row = Math.min(r.height - 1, Math.max(0, Math.floor(y / r.step)));
+  const i = row * r.width + col;
+  x = col * r.step; y = row * r.step;
   const v = r.data[i];
   const s = frame.sigma;
   const j = Math.min(s.height - 1, Math.max(0, Math.floor(y / s.step))) * s.width
     + Math.min(s.width - 1, Math.max(0, Math.floor(x / s.step)));
-  if (v >= r.invalid_base) return { range: null, reason: v - r.invalid_base };
-  return { range: v / 1000, sigma: F16[s.data[j]] / 1000, reason: 0 };
+  if (v >= r.invalid_base) return { range: null, reason: v - r.invalid_base, x, y };
+  return { range: v / 1000, sigma: F16[s.data[j]] / 1000, reason: 0, x, y };
 }
 
 export function centreAndMinimum(range) {
@@ -94,14 +97,21 @@ export function wsUrl(path) {
 // Keeps a view stream open (reconnecting with backoff) and hands each decoded frame to onFrame.
 // The caller calls ack(number) once it has painted a frame.
 export class ViewStream {
-  constructor({ step = 1, colour = true, onHello, onFrame, onState }) {
-    Object.assign(this, { step, colour, onHello, onFrame, onState });
+  // step: a fixed resolution step (1, 2, 4); or width(): the pixels the range map is drawn across
+  // now, from which the daemon picks the coarsest step that still fills them (see setWidth).
+  constructor({ step = null, width = null, colour = true, onHello, onFrame, onState }) {
+    Object.assign(this, { step, width, colour, onHello, onFrame, onState });
     this.retry = 500;
     this.connect();
   }
 
+  drawnWidth() {
+    return Math.max(1, Math.min(16384, Math.ceil(this.width ? this.width() : 640)));
+  }
+
   connect() {
-    const ws = new WebSocket(wsUrl(`api/v1/view?step=${this.step}&colour=${this.colour}`));
+    const resolution = this.step ? `step=${this.step}` : `width=${(this.sentWidth = this.drawnWidth())}`;
+    const ws = new WebSocket(wsUrl(`api/v1/view?${resolution}&colour=${this.colour}`));
     ws.binaryType = "arraybuffer";
     this.ws = ws;
     ws.onopen = () => { this.retry = 500; this.onState?.("connected"); };
@@ -118,6 +128,13 @@ export class ViewStream {
       setTimeout(() => this.connect(), this.retry);
       this.retry = Math.min(this.retry * 2, 5000);
     };
+  }
+
+  // The page's layout changed: tell the daemon how wide the range map is drawn now.
+  setWidth() {
+    if (this.step || this.ws.readyState !== WebSocket.OPEN) return;
+    const width = this.drawnWidth();
+    if (width !== this.sentWidth) { this.sentWidth = width; this.ws.send(JSON.stringify({ width })); }
   }
 
   ack(number) {

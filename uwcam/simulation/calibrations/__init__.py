@@ -1,0 +1,1 @@
+"""Simulated-water calibrations that ship with uwcam (see uwcam.daemon.simulated_calibration)."""
