@@ -125,14 +125,14 @@ class SimulatedRig:
         if self.scene == "survey":
             raise ValueError("the survey moves by itself; only a static scene can be placed")
         with self._place_lock:
-            with self._lock:
-                old = self._world
-            if old is None:  # nothing rendered yet: the first world exposes itself at ``distance``
-                with self._lock:
-                    self.distance, self._cache = float(distance), {}
-                return
             self.placing_to = float(distance)
             try:
+                with self._lock:
+                    old = self._world
+                if old is None:  # nothing rendered yet: the first world exposes itself at ``distance``
+                    with self._lock:
+                        self.distance, self._cache = float(distance), {}
+                    return
                 new = self._build(float(distance), old.exposure)
                 new.components(True)  # the slow part: rendering the view
                 new.components(False)

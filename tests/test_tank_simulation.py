@@ -35,9 +35,10 @@ def started(config: DaemonConfig) -> Iterator[Server]:
 
 
 def move(s: Server, distance: float) -> None:
-    r = s.http.put(RAIL, json={"distance_m": distance}, timeout=120.0)
-    assert r.status_code == 200, r.text
-    assert r.json()["distance_m"] == distance and r.json()["moving_to_m"] is None
+    r = s.http.put(RAIL, json={"distance_m": distance})
+    assert r.status_code == 202, r.text
+    assert r.json()["moving_to_m"] == distance
+    assert wait_for(lambda: s.http.get(RAIL).json() == {**r.json(), "distance_m": distance, "moving_to_m": None}, 120.0, 0.1)
 
 
 def live(s: Server, distance: float | None = None, held_back: bool = False) -> dict:
@@ -61,6 +62,11 @@ def test_the_rail_moves_the_plate_and_refuses_numbers_outside_it(tmp_path):
                                            "rail_m": [0.5, 4.0]}
         move(s, 1.5)
         assert s.http.get(RAIL).json()["distance_m"] == 1.5
+        first = s.http.put(RAIL, json={"distance_m": 2.0})
+        again = s.http.put(RAIL, json={"distance_m": 2.5})  # one move at a time
+        assert first.status_code == 202 and again.status_code == 409 and "still moving to 2 m" in again.json()["detail"]
+        assert wait_for(lambda: s.http.get(RAIL).json()["moving_to_m"] is None, 120.0, 0.1)
+        move(s, 1.5)
         assert s.daemon.rig.true_range() == pytest.approx(1.5, rel=1e-6)
         # The markers see the plate where the rail put it (the session's live feedback).
         assert s.http.post(URL, json={}).status_code == 201
@@ -128,7 +134,7 @@ def test_whole_calibration_on_the_simulated_tank_then_a_fourth_distance_ranges_w
 
         # A fourth distance, never captured: the daemon ranges the plate with the new profile.
         move(s, 1.25)
-        frame_at_move = s.daemon.pipeline.latest.number
+        frame_at_move = s.daemon.pipeline.latest.number  # (ranged after the move, or soon)
         assert wait_for(lambda: s.daemon.pipeline.latest.number > frame_at_move + 3, 30.0)
         published = s.daemon.pipeline.latest
         intr = s.daemon.profiles["tank-sim"].camera_intrinsics()

@@ -1,14 +1,14 @@
 """/api/v1/simulation/plate: the simulated tank's rail (``uwcam run --simulate tank``). GET says
 where the calibration plate is; PUT moves it along the optical axis, as a crew slides the plate
 along a tank's rail. Only a simulated camera looking at the plate scene has a rail: any other
-camera answers 404 with the reason. Handlers are sync (threadpool): rendering the moved plate
-takes seconds and never runs on the event loop.
+camera answers 404 with the reason. Rendering the moved plate takes seconds: it runs in a thread
+of its own, never on the event loop nor in a request.
 """
 
 from __future__ import annotations
 
+import logging
 import threading
-import time
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, HTTPException
@@ -19,8 +19,9 @@ from uwcam.config import TANK_RAIL_M
 from uwcam.daemon import Daemon
 
 router = APIRouter(prefix="/api/v1/simulation", tags=["simulation"])
-# How long a move waits for the first frame of the moved plate to be published (s).
-FIRST_FRAME_TIMEOUT_S = 10.0
+log = logging.getLogger(__name__)
+# One move starts at a time (checked and started together).
+_MOVING = threading.Lock()
 
 
 class PlateMove(BaseModel):
@@ -51,27 +52,28 @@ def plate(d: Daemon = Depends(get_daemon)) -> dict:
     return _where(_tank(d))
 
 
-@router.put("/plate")
+@router.put("/plate", status_code=202)
 def move_plate(body: PlateMove, d: Daemon = Depends(get_daemon)) -> dict:
-    """Move the simulated plate to ``distance_m``, keeping the exposure. Answers once the first frame
-    showing the plate there has been published (rendering the new view takes seconds)."""
+    """Start moving the simulated plate to ``distance_m``, keeping the exposure, and answer at once:
+    rendering the new view takes seconds, meanwhile the camera goes on showing the plate where it was
+    and GET says ``moving_to_m``. Once ``distance_m`` is the new distance (and ``moving_to_m`` null),
+    every frame taken after shows the plate there. 409 while an earlier move is under way."""
     rig = _tank(d)
-    rig.place(body.distance_m)
-    moved = time.monotonic_ns()
-    shown = threading.Event()
-
-    def seen(published) -> None:  # in the loop's thread: only note it
-        if published.frame.host_monotonic_ns > moved:
-            shown.set()
-
-    d.pipeline.subscribe(seen)
-    try:
-        if not shown.wait(FIRST_FRAME_TIMEOUT_S):
-            raise HTTPException(status_code=503, detail=f"the plate moved but no frame came in {FIRST_FRAME_TIMEOUT_S:g} s; "
-                                                        "see /api/v1/status")
-    finally:
-        d.pipeline.unsubscribe(seen)
+    with _MOVING:
+        if rig.placing_to is not None:
+            raise HTTPException(status_code=409, detail=f"the plate is still moving to {rig.placing_to:g} m; "
+                                                        "wait for it (GET shows moving_to_m null) and move it again")
+        rig.placing_to = body.distance_m  # at once, so that a GET right after this answer sees the move
+        threading.Thread(target=_move, args=(rig, body.distance_m), name="simulated-plate-move", daemon=True).start()
     return _where(rig)
+
+
+def _move(rig, distance_m: float) -> None:
+    try:
+        rig.place(distance_m)
+    except Exception:  # a failed render must not leave the rail stuck "moving"
+        log.exception("moving the simulated plate to %g m failed", distance_m)
+        rig.placing_to = None
 
 
 __all__ = ["router"]

@@ -29,7 +29,6 @@ const tank = {
   fitKey: null,
   busy: false,      // a capture, fit or accept in flight
   rail: null,       // the simulated tank's rail, null on a real rig
-  railBusy: false,
 };
 window.uwcamTank = tank;  // read by tests and benchmarks
 
@@ -239,8 +238,9 @@ function render() {
   $("tank-steps").hidden = !running;
   $("tank-rail").hidden = !tank.rail;
   if (tank.rail) {
-    $("tank-rail-state").textContent = tank.railBusy ? "moving the plate…" : `plate at ${tank.rail.distance_m} m`;
-    $("tank-rail-move").disabled = tank.railBusy;
+    const moving = tank.rail.moving_to_m;
+    $("tank-rail-state").textContent = moving !== null ? `moving the plate to ${moving} m…` : `plate at ${tank.rail.distance_m} m`;
+    $("tank-rail-move").disabled = moving !== null;
   }
   if (!running) return;
   const step = nextStep();
@@ -250,7 +250,7 @@ function render() {
   const want = typed();
   const current = live && tank.liveFor && tank.liveFor.distance === want.distance && tank.liveFor.heldBack === want.heldBack;
   if (live) { renderChecks(live); renderBars(live); drawView(live); }
-  const ok = Boolean(current && live.capture_ok && !tank.busy && !tank.railBusy);
+  const ok = Boolean(current && live.capture_ok && !tank.busy && (tank.rail?.moving_to_m ?? null) === null);
   $("tank-capture").disabled = !ok;
   $("tank-why-not").textContent = ok || tank.busy ? "" : !current ? "checking…" : (live.refusals || []).join(" · ");
   renderCaptures();
@@ -268,6 +268,7 @@ function render() {
 // ---------------------------------------------------------------- talking to the daemon
 
 async function poll() {
+  if (tank.rail) { try { tank.rail = await io.api(RAIL); } catch { /* the daemon away for a moment */ } }
   const want = typed();
   const query = new URLSearchParams({ held_back: want.heldBack });
   if (want.distance !== null && want.distance >= 0.05 && want.distance <= 100) query.set("distance", want.distance);
@@ -340,15 +341,10 @@ function wire() {
     const d = Number($("tank-rail-distance").value);
     const [lo, hi] = tank.rail?.rail_m || [0, 0];
     if (!(Number.isFinite(d) && d >= lo && d <= hi)) { io.message(`the rail puts the plate ${lo} to ${hi} m from the camera`); return; }
-    tank.railBusy = true;
+    // The daemon answers at once and renders the moved plate meanwhile; the poll follows the move.
+    const answer = await io.change(`Move the plate to ${d} m`, RAIL, { method: "PUT", body: { distance_m: d } });
+    if (answer) tank.rail = answer;
     render();
-    try {
-      const answer = await io.change(`Move the plate to ${d} m`, RAIL, { method: "PUT", body: { distance_m: d } });
-      if (answer) tank.rail = answer;
-    } finally {
-      tank.railBusy = false;
-      await poll();
-    }
   };
   for (const id of ["tank-distance", "tank-held-back"]) $(id).addEventListener("input", () => { render(); poll(); });
   const today = new Date().toISOString().slice(0, 10);
