@@ -141,10 +141,12 @@ def sight_plate(frame: NDArray, rig: Rig, intrinsics: Intrinsics, *, ignore_ids:
     known = {m.id: m for m in board.markers if m.id not in ignored_ids}
     obj, img, found, ignored = [], [], [], []
     s = board.marker_size_m / 2
-    seen = [int(i) for i in ids.ravel()]
-    for c, i in zip(corners, seen):
-        # An id seen twice: one copy is not on the plate, and nothing says which; use neither.
-        if i not in known or seen.count(i) > 1 or _inside(c.reshape(4, 2).mean(axis=0), ignore_regions):
+    outside = [not _inside(c.reshape(4, 2).mean(axis=0), ignore_regions) for c in corners]
+    seen = [int(i) for i, out in zip(ids.ravel(), outside) if out]
+    for c, i, out in zip(corners, (int(i) for i in ids.ravel()), outside):
+        # An id seen twice (outside the regions left out): one copy is not on the plate, and
+        # nothing says which; use neither.
+        if not out or i not in known or seen.count(i) > 1:
             ignored.append(i)
             continue
         mx, my = known[i].centre_m
