@@ -19,11 +19,11 @@ import httpx
 import numpy as np
 import pytest
 
+from tests.test_page import browser  # noqa: F401  (the module's Chromium, a fixture)
 from tests.waiting import wait_for
 from uwcam.optics.geometry import Intrinsics, pixel_rays, plane_camera_range
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
-CHROMIUM = "/usr/bin/chromium"
 
 
 @pytest.fixture(autouse=True)
@@ -81,17 +81,6 @@ def daemon(tmp_path):
     yield d
     d.stop()
     d.http.close()
-
-
-@pytest.fixture(scope="module")
-def browser():
-    from playwright.sync_api import sync_playwright
-
-    assert Path(CHROMIUM).exists(), "Debian's chromium is needed for the page tests: .ci/run installs it"
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, args=["--headless", "--no-sandbox"])
-        yield b
-        b.close()
 
 
 def open_page(browser, url: str):

@@ -192,3 +192,13 @@ def test_the_vehicles_patch_marker_is_never_taken_for_the_plate(tmp_path):
         r = s.http.post(URL + "/captures", json={"distance_m": 0.8})
         assert r.status_code == 422 and r.json()["detail"].startswith("plate not found"), r.text
         assert s.http.get(URL).json()["session"]["captures"] == []
+
+
+def test_run_takes_a_config_or_a_simulation_not_both(tmp_path, capsys):
+    from uwcam.cli import main
+
+    assert main(["run", "--simulate", "tank", "--config", str(tmp_path / "rig.yaml")]) == 2
+    assert capsys.readouterr().err.strip() == ("uwcam run: error: give either --config FILE or --simulate NAME, not both")
+    with pytest.raises(SystemExit):
+        main(["run", "--simulate", "pool"])
+    assert "invalid choice: 'pool' (choose from 'vehicle', 'tank')" in capsys.readouterr().err
