@@ -43,6 +43,13 @@ def no_leaked_threads_in_module():
 
 
 @pytest.fixture(autouse=True)
+def own_state_home(tmp_path_factory, monkeypatch):
+    """Each test keeps daemon state of its own ($XDG_STATE_HOME: an open calibration session), so
+    a session one test leaves open is never resumed by another test's daemon."""
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path_factory.mktemp("state-home")))
+
+
+@pytest.fixture(autouse=True)
 def no_leaked_threads():
     """Fail any test that leaves a Python thread of its own running (practice 8 of STYLE.md)."""
     before = set(threading.enumerate())

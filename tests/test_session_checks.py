@@ -90,3 +90,34 @@ def test_a_plate_cut_by_the_edge_is_refused_by_both(scene):
     assert live["plate_found"] and live["target_in_view"] is False
     refusals, answer = verdicts(s, cut, 1.5)
     assert answer == f"422 {refusals[0]}" and "runs off the image" in answer
+
+
+def test_a_kept_session_comes_back_whole_and_a_foreign_or_damaged_one_is_set_aside(scene, tmp_path):
+    from uwcam.calibration_session_store import load_session, save_session
+
+    rig, world = scene
+    s = session(scene)
+    frames = [world.frame(k) for k in range(2)]
+    s.capture(frames, 1.5, False, 1.49, [None, None])
+    folder = tmp_path / "calibration-session"
+    save_session(s, str(folder))
+    back = load_session(str(folder), frames[0].shape)
+    assert back.id == s.id and back.rig_name == "charuco-plate" and back.state == "positioning"
+    (c,) = back.captures
+    assert c.distance_m == 1.5 and c.rangefinder_m == 1.49 and not c.held_back
+    assert all(np.array_equal(a, b) for a, b in zip(c.frames, frames))
+    assert c.pose.target_box == s.captures[0].pose.target_box and c.pose.markers_found == s.captures[0].pose.markers_found
+    assert back.base.model_dump() == s.base.model_dump()
+    # The session goes on where it was: the next capture is checked against the kept ones.
+    with pytest.raises(SessionError, match="already used for the fit"):
+        back.capture(frames, 1.5, True, None, [None, None])
+
+    # Another camera's captures (another image size): not resumed, and not lost.
+    assert load_session(str(folder), (480, 640, 3)) is None
+    (aside,) = tmp_path.glob("calibration-session.unreadable-*")
+    assert (aside / "capture-0.npy").exists() and not folder.exists()
+    # A damaged record likewise.
+    save_session(s, str(folder))
+    (folder / "session.json").write_text("{not json")
+    assert load_session(str(folder), frames[0].shape) is None
+    assert len(list(tmp_path.glob("calibration-session.unreadable-*"))) == 2 and not folder.exists()

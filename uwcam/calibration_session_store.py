@@ -77,8 +77,9 @@ def save_session(session: CalibrationSession, folder: str) -> None:
         json.dump(record, fh, indent=1)
 
 
-def load_session(folder: str) -> CalibrationSession | None:
-    """The session kept in ``folder``; None when there is none. A folder that cannot be read is set
+def load_session(folder: str, frame_shape: tuple[int, ...] | None = None) -> CalibrationSession | None:
+    """The session kept in ``folder``; None when there is none. A folder that cannot be read, or
+    whose captures are not of ``frame_shape`` (H, W, N: the camera now in use, when known), is set
     aside (renamed, never deleted: it holds someone's captures) and logged, and None returned."""
     path = os.path.join(folder, SESSION_FILE)
     if not os.path.exists(path):
@@ -96,12 +97,16 @@ def load_session(folder: str) -> CalibrationSession | None:
             ignore_regions=tuple(tuple(int(v) for v in b) for b in record["ignore_regions"]))
         for c in record["captures"]:
             frames = np.load(os.path.join(folder, os.path.basename(c["file"])), allow_pickle=False)
+            if frame_shape is not None and tuple(frames.shape[1:]) != tuple(frame_shape):
+                raise ValueError(f"its captures are {frames.shape[2]}×{frames.shape[1]} images, the camera now gives "
+                                 f"{frame_shape[1]}×{frame_shape[0]}")
             session.captures.append(Capture(float(c["distance_m"]), list(frames), bool(c["held_back"]),
                                             _pose_from_json(c["pose"]), c["rangefinder_m"], c["exposure_us"],
                                             float(c.get("drift", 0.0))))
         return session
     except Exception as exc:  # a damaged session must not stop the daemon, nor be silently lost
-        aside = f"{folder.rstrip(os.sep)}.unreadable-{time.strftime('%Y%m%dT%H%M%S')}"
+        stem = f"{folder.rstrip(os.sep)}.unreadable-{time.strftime('%Y%m%dT%H%M%S')}"
+        aside = next(p for p in (stem, *(f"{stem}-{n}" for n in range(1, 1000))) if not os.path.exists(p))
         log.warning("cannot resume the calibration session in %s (%s); moved it to %s", folder,
                     str(exc).splitlines()[0] if str(exc) else type(exc).__name__, aside)
         try:

@@ -69,6 +69,14 @@ def session_folder(d: Daemon) -> str:
     return os.path.join(root, "calibration-session")
 
 
+def _folder(request: Request) -> str:
+    """This daemon's session folder, fixed at its first use (the environment may change after)."""
+    state = request.app.state
+    if getattr(state, "calibration_session_folder", None) is None:
+        state.calibration_session_folder = session_folder(state.daemon)
+    return state.calibration_session_folder
+
+
 def _current(request: Request) -> CalibrationSession | None:
     """The open session, resumed from disk on the first request after the daemon started."""
     state = request.app.state
@@ -76,7 +84,9 @@ def _current(request: Request) -> CalibrationSession | None:
         if not getattr(state, "calibration_session_resumed", False):
             state.calibration_session_resumed = True
             if getattr(state, "calibration_session", None) is None:
-                state.calibration_session = load_session(session_folder(state.daemon))
+                published = state.daemon.pipeline.latest if state.daemon.pipeline else None
+                shape = None if published is None else published.frame.data.shape
+                state.calibration_session = load_session(_folder(request), shape)
         return getattr(state, "calibration_session", None)
 
 
@@ -164,7 +174,7 @@ def start(body: Start, request: Request, d: Daemon = Depends(get_daemon)) -> dic
                                          _exposure_lock(d), ignore_ids=ignore_ids, ignore_regions=ignore_regions)
         except SessionError as exc:
             raise _refuse(exc) from None
-        folder = session_folder(d)
+        folder = _folder(request)
         remove_session(folder)  # a finished session's leftovers, if any
         try:
             save_session(session, folder)
@@ -196,7 +206,7 @@ def cancel(request: Request) -> dict:
     with _LOCK:
         session.state = "cancelled"
         request.app.state.calibration_session = None
-        remove_session(session_folder(request.app.state.daemon))
+        remove_session(_folder(request))
     return {"id": session.id, "state": "cancelled"}
 
 
@@ -241,7 +251,7 @@ def capture(body: CaptureRequest, request: Request, d: Daemon = Depends(get_daem
         except SessionError as exc:
             raise _refuse(exc) from None
         try:
-            save_session(session, session_folder(d))
+            save_session(session, _folder(request))
         except OSError as exc:  # kept in memory: the session goes on, but would not survive a restart
             session.captures.remove(cap)
             raise HTTPException(status_code=507, detail=f"cannot keep the capture on disk ({exc.strerror or exc}); "
@@ -300,7 +310,7 @@ def accept(body: Accept, request: Request, d: Daemon = Depends(get_daemon)) -> d
         session.state = "accepted"
     with _LOCK:
         request.app.state.calibration_session = None
-        remove_session(session_folder(d))
+        remove_session(_folder(request))
     return {"name": body.name, "active": True, "session": session.id,
             "attenuation_differences": dict(zip(profile.channel_names, map(float, profile.array("attenuation_difference"))))}
 
