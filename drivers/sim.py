@@ -91,7 +91,7 @@ class SimulatedRig:
     _place_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
     """One move of the scene at a time (rendering the new view happens outside ``_lock``)."""
     placing_to: float | None = field(default=None, repr=False)
-    """Where a move in progress takes the scene (m); None when it is still."""
+    """Where a move announced to the operator (the tank's rail) takes the scene (m); None when it is still."""
     _lamp_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
     """Guards lamp_on and lamp_intensity together, so a frame sees one consistent lamp state."""
 
@@ -121,25 +121,21 @@ class SimulatedRig:
 
         Once the world exists, the new view is rendered (seconds at 640×360) before it replaces
         the old one: frames keep coming from the old view meanwhile, so the camera never stalls
-        while the plate moves. One move at a time; ``placing_to`` says where a move is going."""
+        while the plate moves. One move at a time."""
         if self.scene == "survey":
             raise ValueError("the survey moves by itself; only a static scene can be placed")
         with self._place_lock:
-            self.placing_to = float(distance)
-            try:
+            with self._lock:
+                old = self._world
+            if old is None:  # nothing rendered yet: the first world exposes itself at ``distance``
                 with self._lock:
-                    old = self._world
-                if old is None:  # nothing rendered yet: the first world exposes itself at ``distance``
-                    with self._lock:
-                        self.distance, self._cache = float(distance), {}
-                    return
-                new = self._build(float(distance), old.exposure)
-                new.components(True)  # the slow part: rendering the view
-                new.components(False)
-                with self._lock:
-                    self._exposure, self.distance, self._world, self._cache = old.exposure, float(distance), new, {}
-            finally:
-                self.placing_to = None
+                    self.distance, self._cache = float(distance), {}
+                return
+            new = self._build(float(distance), old.exposure)
+            new.components(True)  # the slow part: rendering the view
+            new.components(False)
+            with self._lock:
+                self._exposure, self.distance, self._world, self._cache = old.exposure, float(distance), new, {}
 
     def show(self, scene: str) -> None:
         """Point the camera at another scene (e.g. "open-water": nothing in range), keeping the

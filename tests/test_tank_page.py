@@ -103,17 +103,24 @@ def move_rail(page, distance: float) -> None:
         text(page, "#message")
 
 
-def capture_at(page, distance: float, held_back: bool = False) -> None:
-    """As the engineer does: move the plate, type its distance, wait for the checks, press Capture."""
+def capture_at(page, distance: float, held_back: bool = False, times: dict | None = None) -> None:
+    """As the engineer does: move the plate, type its distance, wait for the checks, press Capture.
+    ``times``: seconds spent moving, waiting for the checks and capturing are added to it."""
+    t0 = time.monotonic()
     move_rail(page, distance)
+    t1 = time.monotonic()
     page.fill("#tank-distance", str(distance))
     page.set_checked("#tank-held-back", held_back)
     assert wait_for(lambda: page.locator("#tank-capture").is_enabled(), 30.0, 0.1), text(page, "#tank-why-not")
     checks = text(page, "#tank-checks")
     assert "Plate found" in checks and "✗" not in checks, checks
     rows = page.locator("#tank-captures tr").count()
+    t2 = time.monotonic()
     page.click("#tank-capture")
     assert wait_for(lambda: page.locator("#tank-captures tr").count() == max(rows, 1) + 1, 60.0, 0.1), text(page, "#message")
+    if times is not None:
+        for key, seconds in (("move", t1 - t0), ("checks", t2 - t1), ("capture", time.monotonic() - t2)):
+            times[key] = times.get(key, 0.0) + seconds
 
 
 def ranged_error(daemon: TankDaemon, distance: float) -> float:
@@ -134,17 +141,19 @@ def ranged_error(daemon: TankDaemon, distance: float) -> float:
 def test_whole_tank_calibration_through_the_page(daemon, browser):
     page = open_page(browser, daemon.url)
     try:
-        t0 = time.monotonic()
+        t0, times = time.monotonic(), {}
         page.click("#tank-start")
         assert wait_for(lambda: page.locator("#tank-steps").is_visible(), 15.0), text(page, "#message")
         assert "Step 1 of 4" in text(page, "#tank-now")
         for d in (1.0, 1.5, 2.0):
-            capture_at(page, d)
+            capture_at(page, d, times=times)
         assert "Step 2 of 4" in text(page, "#tank-now")
-        capture_at(page, 1.75, held_back=True)
+        capture_at(page, 1.75, held_back=True, times=times)
         assert "Step 3 of 4" in text(page, "#tank-now")
+        t_fit = time.monotonic()
         page.click("#tank-fit")
         assert wait_for(lambda: page.locator("#tank-fit-result .validation").count() == 1, 120.0, 0.2), text(page, "#message")
+        times["fit"] = time.monotonic() - t_fit
         fit = text(page, "#tank-fit-result")
         assert "passed" in page.inner_text("#tank-fit-result .validation") and "Good fit" in fit, fit
         assert "attenuation difference" in fit and "residual at" in fit
@@ -161,7 +170,9 @@ def test_whole_tank_calibration_through_the_page(daemon, browser):
         elapsed = time.monotonic() - t0
         assert wait_for(lambda: "from-the-page" in text(page, "#profiles"), 10.0)
         assert page.locator("#tank-intro").is_visible()  # the session ended
-        print(f"\npage workflow (start to accept, scripted): {elapsed:.0f} s")
+        print(f"\npage workflow (start to accept, scripted): {elapsed:.0f} s; of which moving the plate "
+              f"{times['move']:.0f} s, waiting for the checks {times['checks']:.0f} s, capturing {times['capture']:.0f} s, "
+              f"fitting {times['fit']:.0f} s (4 distances)")
 
         # A fourth distance, never captured, moved from the page: ranged within 2 %.
         move_rail(page, 1.25)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, HTTPException
@@ -22,6 +23,8 @@ router = APIRouter(prefix="/api/v1/simulation", tags=["simulation"])
 log = logging.getLogger(__name__)
 # One move starts at a time (checked and started together).
 _MOVING = threading.Lock()
+# How long a move waits for the first frame of the moved plate to be published (s).
+FIRST_FRAME_TIMEOUT_S = 10.0
 
 
 class PlateMove(BaseModel):
@@ -56,23 +59,39 @@ def plate(d: Daemon = Depends(get_daemon)) -> dict:
 def move_plate(body: PlateMove, d: Daemon = Depends(get_daemon)) -> dict:
     """Start moving the simulated plate to ``distance_m``, keeping the exposure, and answer at once:
     rendering the new view takes seconds, meanwhile the camera goes on showing the plate where it was
-    and GET says ``moving_to_m``. Once ``distance_m`` is the new distance (and ``moving_to_m`` null),
-    every frame taken after shows the plate there. 409 while an earlier move is under way."""
+    and GET says ``moving_to_m``. Once ``moving_to_m`` is null again, the newest published frame (the
+    session's live feedback) shows the plate at ``distance_m``. 409 while an earlier move is under way."""
     rig = _tank(d)
     with _MOVING:
         if rig.placing_to is not None:
             raise HTTPException(status_code=409, detail=f"the plate is still moving to {rig.placing_to:g} m; "
                                                         "wait for it (GET shows moving_to_m null) and move it again")
         rig.placing_to = body.distance_m  # at once, so that a GET right after this answer sees the move
-        threading.Thread(target=_move, args=(rig, body.distance_m), name="simulated-plate-move", daemon=True).start()
+        threading.Thread(target=_move, args=(d, rig, body.distance_m), name="simulated-plate-move", daemon=True).start()
     return _where(rig)
 
 
-def _move(rig, distance_m: float) -> None:
+def _move(d: Daemon, rig, distance_m: float) -> None:
+    """Render the moved plate, swap it in, and call the move done once a frame taken after has been
+    published: from then on the live feedback (the newest frame) shows the plate there."""
     try:
         rig.place(distance_m)
+        moved = time.monotonic_ns()
+        shown = threading.Event()
+
+        def seen(published) -> None:  # in the loop's thread: only note it
+            if published.frame.host_monotonic_ns > moved:
+                shown.set()
+
+        d.pipeline.subscribe(seen)
+        try:
+            if not shown.wait(FIRST_FRAME_TIMEOUT_S):
+                log.warning("the simulated plate moved to %g m but no frame came in %g s", distance_m, FIRST_FRAME_TIMEOUT_S)
+        finally:
+            d.pipeline.unsubscribe(seen)
     except Exception:  # a failed render must not leave the rail stuck "moving"
         log.exception("moving the simulated plate to %g m failed", distance_m)
+    finally:
         rig.placing_to = None
 
 
