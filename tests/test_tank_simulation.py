@@ -58,6 +58,7 @@ def capture(s: Server, distance: float, held_back: bool = False) -> dict:
 
 def test_the_rail_moves_the_plate_and_refuses_numbers_outside_it(tmp_path):
     with started((tank_with_state(tmp_path))) as s:
+        assert s.http.get("/api/v1/simulation").json() == {"camera_simulated": True, "scene": "plate", "tank": True}
         assert s.http.get(RAIL).json() == {"distance_m": 1.0, "moving_to_m": None, "rig": "charuco-plate",
                                            "rail_m": [0.5, 4.0]}
         move(s, 1.5)
@@ -69,7 +70,10 @@ def test_the_rail_moves_the_plate_and_refuses_numbers_outside_it(tmp_path):
         move(s, 1.5)
         assert s.daemon.rig.true_range() == pytest.approx(1.5, rel=1e-6)
         # The markers see the plate where the rail put it (the session's live feedback).
-        assert s.http.post(URL, json={}).status_code == 201
+        assert s.http.get("/api/v1/status").json()["calibration_session"] is None
+        started_session = s.http.post(URL, json={}).json()
+        assert s.http.get("/api/v1/status").json()["calibration_session"] == {"id": started_session["id"],
+                                                                             "state": "positioning", "captures": 0}
         assert live(s, 1.5)["marker_distance_m"] == pytest.approx(1.5, abs=0.02)
         for body in ({"distance_m": 0.49}, {"distance_m": 4.01}, {"distance_m": -1}, {"distance_m": "near"}, {},
                      {"distance_m": 2.0, "tilt_deg": 3}, {"distance_m": 1e308}):
@@ -96,12 +100,14 @@ def test_no_rail_without_the_simulated_tank(tmp_path):
     real = DaemonConfig(camera=CameraConfig(driver="replay", options={"source": str(frames), "fps": 10.0}),
                         calibration=str(tmp_path / "p.yaml"))
     with Server(real) as s:
+        assert s.http.get("/api/v1/simulation").json() == {"camera_simulated": False, "scene": None, "tank": False}
         for r in (s.http.get(RAIL), s.http.put(RAIL, json={"distance_m": 1.0})):
             assert r.status_code == 404
             assert r.json()["detail"] == ("the camera is not simulated, so there is no simulated plate to move; "
                                           "move the real plate and type its distance")
     vehicle = default_config().model_copy(update={"simulation": {**default_config().simulation, "size": [320, 180]}})
     with Server(vehicle) as s:
+        assert s.http.get("/api/v1/simulation").json() == {"camera_simulated": True, "scene": "survey", "tank": False}
         r = s.http.put(RAIL, json={"distance_m": 1.0})
         assert r.status_code == 404 and "uwcam run --simulate tank" in r.json()["detail"]
 

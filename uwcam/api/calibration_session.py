@@ -90,6 +90,14 @@ def _current(request: Request) -> CalibrationSession | None:
         return getattr(state, "calibration_session", None)
 
 
+def open_session(request: Request) -> dict | None:
+    """The open session in brief (for the status), None when there is none."""
+    session = _current(request)
+    if session is None:
+        return None
+    return {"id": session.id, "state": session.state, "captures": len(session.captures)}
+
+
 def _session(request: Request) -> CalibrationSession:
     session = _current(request)
     if session is None:

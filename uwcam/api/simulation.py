@@ -49,6 +49,14 @@ def _where(rig) -> dict:
             "rail_m": list(TANK_RAIL_M)}
 
 
+@router.get("")
+def simulation(d: Daemon = Depends(get_daemon)) -> dict:
+    """What is simulated: whether the camera is, its scene, and whether it is the tank (with a rail)."""
+    simulated = d.rig is not None and d.config.camera.driver == "sim"
+    scene = d.rig.scene if simulated else None
+    return {"camera_simulated": simulated, "scene": scene, "tank": scene == "plate"}
+
+
 @router.get("/plate")
 def plate(d: Daemon = Depends(get_daemon)) -> dict:
     """Where the simulated plate is (m along the optical axis), and where a move in progress takes it."""

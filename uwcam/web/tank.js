@@ -267,19 +267,36 @@ function render() {
 
 // ---------------------------------------------------------------- talking to the daemon
 
+let sent = 0, applied = 0, polls = 0;
 async function poll() {
-  if (tank.rail) { try { tank.rail = await io.api(RAIL); } catch { /* the daemon away for a moment */ } }
+  // Polls overlap (typing polls at once): an answer older than one already shown is dropped.
+  const seq = ++sent;
+  if (!tank.session) {
+    // No session known: the status says whether one is open (asking the session itself would be a 404).
+    try {
+      const status = await io.api("api/v1/status");
+      if (seq < applied) return;
+      if (!status.calibration_session) { applied = seq; tank.live = null; render(); return; }
+    } catch { return; }  // the daemon away for a moment
+  }
+  // The rail changes only when moved: asked while a move goes on, else every few polls (another client).
+  if (tank.rail && (tank.rail.moving_to_m !== null || ++polls % 5 === 0)) {
+    try { tank.rail = await io.api(RAIL); } catch { /* the daemon away for a moment */ }
+  }
   const want = typed();
   const query = new URLSearchParams({ held_back: want.heldBack });
   if (want.distance !== null && want.distance >= 0.05 && want.distance <= 100) query.set("distance", want.distance);
   try {
     const answer = await io.api(`${TANK}?${query}`);
+    if (seq < applied) return;
+    applied = seq;
     tank.session = answer.session;
     tank.live = answer.live;
     tank.liveFor = want;
   } catch (error) {
     // 404: no session (none started, or accepted or cancelled elsewhere); otherwise the daemon is away
     // for a moment (a restart): keep what is shown, try again.
+    if (seq < applied) return;
     if (/ 404 /.test(error.message)) { tank.session = null; tank.live = null; }
   }
   render();
@@ -291,7 +308,9 @@ async function pollLoop() {
 }
 
 async function loadRail() {
-  try { tank.rail = await io.api(RAIL); } catch { tank.rail = null; }  // 404: a real rig, no rail
+  try {
+    tank.rail = (await io.api("api/v1/simulation")).tank ? await io.api(RAIL) : null;
+  } catch { tank.rail = null; }
   if (tank.rail) $("tank-rail-distance").value = tank.rail.distance_m;
   render();
 }
