@@ -271,6 +271,10 @@ let sent = 0, applied = 0, polls = 0;
 async function poll() {
   // Polls overlap (typing polls at once): an answer older than one already shown is dropped.
   const seq = ++sent;
+  // The rail changes only when moved: asked while a move goes on, else every few polls (another client).
+  if (tank.rail && (tank.rail.moving_to_m !== null || ++polls % 5 === 0)) {
+    try { tank.rail = await io.api(RAIL); } catch { /* the daemon away for a moment */ }
+  }
   if (!tank.session) {
     // No session known: the status says whether one is open (asking the session itself would be a 404).
     try {
@@ -278,10 +282,6 @@ async function poll() {
       if (seq < applied) return;
       if (!status.calibration_session) { applied = seq; tank.live = null; render(); return; }
     } catch { return; }  // the daemon away for a moment
-  }
-  // The rail changes only when moved: asked while a move goes on, else every few polls (another client).
-  if (tank.rail && (tank.rail.moving_to_m !== null || ++polls % 5 === 0)) {
-    try { tank.rail = await io.api(RAIL); } catch { /* the daemon away for a moment */ }
   }
   const want = typed();
   const query = new URLSearchParams({ held_back: want.heldBack });
