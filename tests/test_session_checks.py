@@ -121,3 +121,19 @@ def test_a_kept_session_comes_back_whole_and_a_foreign_or_damaged_one_is_set_asi
     (folder / "session.json").write_text("{not json")
     assert load_session(str(folder), frames[0].shape) is None
     assert len(list(tmp_path.glob("calibration-session.unreadable-*"))) == 2 and not folder.exists()
+
+
+def test_a_fit_on_two_close_distances_says_why_it_is_poor(scene):
+    rig, world = scene
+    s = session(scene)
+    s.base = s.base.model_copy(update={"channels": [c.model_copy(update={"dark_level": world.camera.dark_level_dn})
+                                                    for c in s.base.channels]})
+    for d in (1.5, 1.6):
+        w = SimulatedWorld(scene="plate", distance=d, size=(640, 360), rig=rig, lamp=Lamp(position=(0.3, -0.8, 0)),
+                           fixed_exposure=world.exposure)
+        s.capture([w.frame(k) for k in range(3)], d, False, None, [None] * 3)
+    result = s.fit()
+    warnings = result["warnings"]
+    assert any(w.startswith("only 2 distances") for w in warnings), warnings
+    assert any(w.startswith("the distances span only 0.10 m") for w in warnings), warnings
+    assert not any("changed colour" in w for w in warnings)  # the simulated lamp is steady
