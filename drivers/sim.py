@@ -95,36 +95,54 @@ class SimulatedRig:
     _t0: float = field(default=0.0, repr=False)
     _cache: dict = field(default_factory=dict, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+    _place_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+    """One move of the scene at a time (rendering the new view happens outside ``_lock``)."""
+    placing_to: float | None = field(default=None, repr=False)
+    """Where a move announced to the operator (the tank's rail) takes the scene (m); None when it is still."""
     _lamp_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
     """Guards lamp_on and lamp_intensity together, so a frame sees one consistent lamp state."""
+
+    def _build(self, distance: float, exposure: float | None) -> SimulatedWorld | SurveyWorld:
+        wl = (675.0, 575.0, 475.0)
+        common = dict(water=water_preset(self.water, list(wl)), lamp=Lamp(position=tuple(self.lamp_offset)),
+                      camera=CameraModel(bits=self.bits), seed=self.seed, material=self.material,
+                      ambient=None if self.ambient is None else Ambient(tuple(self.ambient)))
+        if self.scene == "survey":
+            motion = SurveyMotion(speed=self.speed, altitude=tuple(self.altitude), altitude_period=self.altitude_period)
+            return SurveyWorld(size=tuple(self.size), motion=motion, **common)
+        return SimulatedWorld(scene=self.scene, distance=distance, size=tuple(self.size), **common,
+                              rig=None if self.plate_rig is None else load_rig(builtin_rig_path(self.plate_rig)),
+                              fixed_exposure=exposure)
 
     @property
     def world(self) -> SimulatedWorld | SurveyWorld:
         with self._lock:
             if self._world is None:
-                wl = (675.0, 575.0, 475.0)
-                common = dict(water=water_preset(self.water, list(wl)), lamp=Lamp(position=tuple(self.lamp_offset)),
-                              camera=CameraModel(bits=self.bits), seed=self.seed, material=self.material,
-                              ambient=None if self.ambient is None else Ambient(tuple(self.ambient)))
-                if self.scene == "survey":
-                    motion = SurveyMotion(speed=self.speed, altitude=tuple(self.altitude),
-                                          altitude_period=self.altitude_period)
-                    self._world = SurveyWorld(size=tuple(self.size), motion=motion, **common)
-                else:
-                    self._world = SimulatedWorld(
-                        scene=self.scene, distance=self.distance, size=tuple(self.size), **common,
-                        rig=None if self.plate_rig is None else load_rig(builtin_rig_path(self.plate_rig)),
-                        fixed_exposure=self._exposure)
+                self._world = self._build(self.distance, self._exposure)
                 self._t0 = self.clock()
             return self._world
 
     def place(self, distance: float) -> None:
-        """Move the scene (e.g. the plate in a tank) to ``distance`` m, keeping the exposure; the next frame shows it."""
-        with self._lock:
-            self._exposure = None if self._world is None else self._world.exposure
-            self.distance = float(distance)
-            self._world = None
-            self._cache = {}
+        """Move the scene (e.g. the plate on a tank's rail) to ``distance`` m, keeping the exposure, as a
+        crew would; every frame rendered after the return shows it.
+
+        Once the world exists, the new view is rendered (seconds at 640×360) before it replaces
+        the old one: frames keep coming from the old view meanwhile, so the camera never stalls
+        while the plate moves. One move at a time."""
+        if self.scene == "survey":
+            raise ValueError("the survey moves by itself; only a static scene can be placed")
+        with self._place_lock:
+            with self._lock:
+                old = self._world
+            if old is None:  # nothing rendered yet: the first world exposes itself at ``distance``
+                with self._lock:
+                    self.distance, self._cache = float(distance), {}
+                return
+            new = self._build(float(distance), old.exposure)
+            new.components(True)  # the slow part: rendering the view
+            new.components(False)
+            with self._lock:
+                self._exposure, self.distance, self._world, self._cache = old.exposure, float(distance), new, {}
 
     def show(self, scene: str) -> None:
         """Point the camera at another scene (e.g. "open-water": nothing in range), keeping the

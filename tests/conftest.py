@@ -10,6 +10,9 @@ import pytest
 # What uwcam keeps between runs (the simulated calibration) goes into a folder of this test run,
 # never the user's ~/.cache: tests start from nothing, and the daemons they start see the same.
 os.environ["UWCAM_CACHE_DIR"] = tempfile.mkdtemp(prefix="uwcam-test-cache-")
+# Likewise what a daemon keeps of an open tank calibration session without a state folder
+# ($XDG_STATE_HOME/uwcam): never the user's, and a test that needs its own gives a state_dir.
+os.environ["XDG_STATE_HOME"] = tempfile.mkdtemp(prefix="uwcam-test-state-")
 
 # Worker threads of the thread pools that a server's event loop keeps: anyio's for sync handlers,
 # asyncio's default executor for asyncio.to_thread (parsing uploads, encoding the page's view).
@@ -37,6 +40,13 @@ def no_leaked_threads_in_module():
     yield
     leaked = _leaked(before, (), 15.0)
     assert not leaked, f"test module left threads running: {[t.name for t in leaked]}"
+
+
+@pytest.fixture(autouse=True)
+def own_state_home(tmp_path_factory, monkeypatch):
+    """Each test keeps daemon state of its own ($XDG_STATE_HOME: an open calibration session), so
+    a session one test leaves open is never resumed by another test's daemon."""
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path_factory.mktemp("state-home")))
 
 
 @pytest.fixture(autouse=True)

@@ -562,42 +562,6 @@ def test_recording_started_and_stopped_from_the_page(browser, tmp_path):
             page.close()
 
 
-@pytest.mark.slow
-def test_tank_calibration_guided_from_the_page(browser):
-    """The tank workflow in Chromium on the simulated tank: start, live feedback, captures at two
-    distances and one held back, fit with plots, accept; the new profile becomes active."""
-    from tests.test_calibration_session import move_plate, tank_config
-
-    with Server(tank_config()) as tank:
-        assert wait_for(lambda: tank.daemon.pipeline.latest is not None, 60.0)
-        page = open_page(browser, tank.url + "/", tank.url)
-        try:
-            assert wait_for(lambda: page.locator("#tank-start").is_enabled(), 15.0)
-            page.click("#tank-start")
-            assert wait_for(lambda: page.locator("#tank-steps").is_visible(), 15.0), page.inner_text("#message")
-            for distance, held_back in ((1.0, False), (1.8, False), (1.4, True)):
-                move_plate(tank, distance)
-                page.fill("#tank-distance", str(distance))
-                page.set_checked("#tank-held-back", held_back)
-                assert wait_for(lambda: "plate_found" in page.inner_text("#tank-live"), 10.0)
-                n = page.locator("#tank-captures li").count()
-                page.click("#tank-capture")
-                assert wait_for(lambda: page.locator("#tank-captures li").count() == n + 1, 30.0), page.inner_text("#message")
-            page.click("#tank-fit")
-            assert wait_for(lambda: "attenuation difference" in page.inner_text("#tank-fit-result"), 60.0), \
-                page.inner_text("#message")
-            assert "passed" in page.inner_text("#tank-fit-result")
-            assert wait_for(lambda: page.evaluate("[...document.querySelectorAll('#tank-fit-result img')]"
-                                                  ".every(i => i.complete && i.naturalWidth > 100)"), 30.0)
-            page.fill("#tank-name", "from-the-page")
-            page.click("#tank-accept")
-            assert wait_for(lambda: tank.daemon.profile_name == "from-the-page", 15.0), page.inner_text("#message")
-            assert wait_for(lambda: "from-the-page" in page.inner_text("#profiles"), 10.0)
-            assert page.errors == [], page.errors
-        finally:
-            page.close()
-
-
 def test_sigma_colour_scale_follows_the_bulk_of_the_pixels_not_the_worst_one(server, browser):
     page = open_page(browser, server.url + "/", server.url)
     try:

@@ -452,11 +452,13 @@ def cmd_run(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
     from uwcam.api import create_app
-    from uwcam.config import DaemonConfig, default_config, load_config
+    from uwcam.config import SIMULATED_SETUPS, DaemonConfig, load_config
     from uwcam.daemon import Daemon, check_devices
     from uwcam.fileio import explain_validation_error
 
-    config = load_config(args.config) if args.config else default_config()
+    if args.config and args.simulate:
+        raise UserInputError("give either --config FILE or --simulate NAME, not both")
+    config = load_config(args.config) if args.config else SIMULATED_SETUPS[args.simulate or "vehicle"]()
     overrides = {k: v for k, v in (("host", args.host), ("port", args.port)) if v is not None}
     if overrides:
         try:  # validated like the file: --port 80808 is a one-line error
@@ -483,7 +485,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     try:
         app = create_app(config, daemon)
         daemon.start()  # devices and calibration: a configuration that cannot work fails here, in one line
-        where = "embedded default (simulated rig)" if not args.config else args.config
+        where = args.config or ("embedded simulated tank" if args.simulate == "tank" else "embedded default (simulated rig)")
         shown = f"[{host}]" if ":" in host else host  # IPv6 literal
         root = f"http://{shown}:{sock.getsockname()[1]}"
         print(f"uwcam {__version__}: {where}; operator page {root}/, API {root}/docs", flush=True)
@@ -663,6 +665,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = sub.add_parser("run", help="run the camera daemon (default: simulated rig, API on 127.0.0.1:8080)")
     run.add_argument("--config", metavar="FILE", help="rig configuration (YAML); default: the embedded simulated rig")
+    run.add_argument("--simulate", choices=("vehicle", "tank"),
+                     help="run an embedded simulation: vehicle (the default: a survey over a varied seabed) or tank "
+                          "(a calibration plate on a rail, moved with PUT /api/v1/simulation/plate)")
     run.add_argument("--host", help="API address (default 127.0.0.1)")
     run.add_argument("--port", type=int, help="API port (default 8080)")
     run.add_argument("--record", metavar="FILE.mcap", help="record the dive into this MCAP file from start to stop")

@@ -507,3 +507,27 @@ def default_config() -> DaemonConfig:
         # at 2-98 % colour limits; 3×3 mean smoothing of the range map brings it to 0.7 %.
         processing=ProcessingConfig(smoothing="mean"),
     )
+
+
+TANK_RAIL_M = (0.5, 4.0)
+"""Where the simulated tank's rail can put the plate (m from the camera along the optical axis)."""
+
+
+def tank_config() -> DaemonConfig:
+    """``uwcam run --simulate tank``: the embedded simulated tank. The camera faces the marker
+    calibration plate (charuco-plate) on a rail 1 m away, square to the optical axis, in the default
+    vehicle's water with its lamp where the default vehicle has it; no vehicle bracket in view. The
+    exposure is set on the plate at 1 m and then held, as for a calibration; the image is 640×360
+    (the vehicle's field of view at half its resolution) so that moving the plate re-renders the
+    view in seconds. Move the plate with ``PUT /api/v1/simulation/plate``."""
+    return DaemonConfig(
+        camera=CameraConfig(driver="sim", options={"fps": 15.0}),
+        lamp=DeviceConfig(driver="sim"),
+        rangefinder=DeviceConfig(driver="sim-ping1d"),
+        simulation={"scene": "plate", "plate_rig": "charuco-plate", "distance": 1.0, "size": [640, 360],
+                    "water": "jerlov-IA", "lamp_offset": [0.3, -0.8, 0.0], "seed": 0},
+    )
+
+
+SIMULATED_SETUPS = {"vehicle": default_config, "tank": tank_config}
+"""What ``uwcam run --simulate NAME`` starts."""

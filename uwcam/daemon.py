@@ -286,7 +286,9 @@ class Daemon:
                 if not processing.vehicle_mask:
                     processing = processing.model_copy(update={"vehicle_mask": simulated_vehicle_mask(self.rig)})
             if processing.reflectance is None and self.rig is not None and cfg.rangefinder is not None \
-                    and cfg.rangefinder.driver in SIMULATED:
+                    and cfg.rangefinder.driver in SIMULATED and self.rig.scene != "plate":
+                # (Not in the tank: the plate is the calibration's own material, and a profile made
+                # there must range it unaided, or the tank could not tell a bad profile.)
                 # The simulated sonar looks along the optical axis: its footprint is the image centre.
                 w, h = self.rig.size
                 processing = processing.model_copy(update={"reflectance": ReflectanceConfig(

@@ -26,7 +26,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from uwcam import __version__
 from uwcam.api import (backscatter, calibration_session, lamp, metrics, profiles, recordings, session, settings,
-                       snapshots, status, stream, view, web)
+                       simulation, snapshots, status, stream, view, web)
 from uwcam.api.backpressure import ConnectionSocket
 from uwcam.api.common import Broadcaster
 from uwcam.api.limits import BodyLimit
@@ -54,7 +54,7 @@ def openapi_with_bearer(app: FastAPI) -> dict:
 
 
 ROUTERS = (status.router, snapshots.router, settings.router, profiles.router, lamp.router, backscatter.router, session.router,
-           stream.router, view.router, metrics.router, recordings.router, calibration_session.router, web.router)
+           stream.router, view.router, metrics.router, recordings.router, calibration_session.router, simulation.router, web.router)
 
 
 def json_safe(value: Any) -> Any:

@@ -1,22 +1,29 @@
 """/api/v1/calibration/session: a guided tank calibration (start, live feedback, captures, fit with
-plots, held-back validation, accept or cancel). The session's logic is in
+plots and report, held-back validation, accept or cancel). The session's logic is in
 :mod:`uwcam.calibration_session`; here only HTTP. Every handler is sync (threadpool): marker
-detection, waiting for frames and fitting never run on the event loop.
+detection, waiting for frames, fitting and writing captures never run on the event loop.
+
+The session is kept on disk (:mod:`uwcam.calibration_session_store`) in
+``<state_dir>/calibration-session`` (or ``$XDG_STATE_HOME/uwcam/calibration-session``, default
+``~/.local/state/uwcam/…``, when no state folder is configured) from its start until it is
+accepted or cancelled; a daemon that restarts resumes it at the first request.
 """
 
 from __future__ import annotations
 
+import os
 import queue
 import threading
 import time
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request
-from fastapi.responses import Response
+from fastapi.responses import HTMLResponse, Response
 from pydantic import BaseModel, ConfigDict, Field
 
 from uwcam.api.common import get_daemon, latest
 from uwcam.calibration_session import CalibrationSession, SessionError
+from uwcam.calibration_session_store import load_session, remove_session, save_session
 from uwcam.daemon import Daemon
 from uwcam.fileio import UserInputError
 from uwcam.optics.geometry import Intrinsics
@@ -56,11 +63,64 @@ class Accept(BaseModel):
     """Name the new profile is saved and activated under."""
 
 
+def session_folder(d: Daemon) -> str:
+    """Where the open session is kept until accepted or cancelled."""
+    root = d.state_dir or os.path.join(os.environ.get("XDG_STATE_HOME") or os.path.expanduser("~/.local/state"), "uwcam")
+    return os.path.join(root, "calibration-session")
+
+
+def _folder(request: Request) -> str:
+    """This daemon's session folder, fixed at its first use (the environment may change after)."""
+    state = request.app.state
+    if getattr(state, "calibration_session_folder", None) is None:
+        state.calibration_session_folder = session_folder(state.daemon)
+    return state.calibration_session_folder
+
+
+def _current(request: Request) -> CalibrationSession | None:
+    """The open session, resumed from disk on the first request after the daemon started."""
+    state = request.app.state
+    with _LOCK:
+        if not getattr(state, "calibration_session_resumed", False):
+            state.calibration_session_resumed = True
+            if getattr(state, "calibration_session", None) is None:
+                published = state.daemon.pipeline.latest if state.daemon.pipeline else None
+                shape = None if published is None else published.frame.data.shape
+                state.calibration_session = load_session(_folder(request), shape)
+        return getattr(state, "calibration_session", None)
+
+
+def open_session(request: Request) -> dict | None:
+    """The open session in brief (for the status), None when there is none."""
+    session = _current(request)
+    if session is None:
+        return None
+    return {"id": session.id, "state": session.state, "captures": len(session.captures)}
+
+
 def _session(request: Request) -> CalibrationSession:
-    session = getattr(request.app.state, "calibration_session", None)
+    session = _current(request)
     if session is None:
         raise HTTPException(status_code=404, detail="no calibration session; POST /api/v1/calibration/session to start one")
     return session
+
+
+def _not_the_plate(d: Daemon, dictionary: str) -> tuple[tuple[int, ...], tuple[tuple[int, int, int, int], ...]]:
+    """Marker ids and image regions that belong to the vehicle, never to the plate: the patch's marker
+    (configured, or the simulated vehicle's) when it shares the plate's dictionary, and the vehicle mask."""
+    ids = []
+    patch = d.pipeline.processing.patch if d.pipeline else None
+    if patch is not None and patch.marker is not None and patch.marker.dictionary == dictionary:
+        ids.append(int(patch.marker.id))
+    if d.rig is not None and d.rig.scene != "plate":
+        from uwcam.daemon import PATCH_SCENES
+
+        if d.rig.scene in PATCH_SCENES:
+            from uwcam.simulation.scene import MARKER_ID
+
+            ids.append(MARKER_ID)  # the simulated vehicle's patch marker, DICT_4X4_50
+    mask = d.pipeline.processing.vehicle_mask if d.pipeline else []
+    return tuple(sorted(set(ids))), tuple(tuple(int(v) for v in b) for b in mask)
 
 
 def _refuse(exc: SessionError) -> HTTPException:
@@ -110,6 +170,8 @@ def start(body: Start, request: Request, d: Daemon = Depends(get_daemon)) -> dic
         intr = base.camera_intrinsics()
     else:
         raise HTTPException(status_code=422, detail="the active profile has no intrinsics; give intrinsics [fx, fy, cx, cy]")
+    ignore_ids, ignore_regions = _not_the_plate(d, rig.plate.markers.dictionary if rig.plate.markers else "")
+    _current(request)  # a session kept on disk by an earlier run counts as running
     with _LOCK:
         current = getattr(request.app.state, "calibration_session", None)
         if current is not None and current.state in ("positioning", "fitted"):
@@ -117,20 +179,30 @@ def start(body: Start, request: Request, d: Daemon = Depends(get_daemon)) -> dic
                                                         "(DELETE /api/v1/calibration/session)")
         try:
             session = CalibrationSession(body.rig, rig, intr, base, body.frames_per_capture, body.distance_tolerance_m,
-                                         _exposure_lock(d))
+                                         _exposure_lock(d), ignore_ids=ignore_ids, ignore_regions=ignore_regions)
         except SessionError as exc:
             raise _refuse(exc) from None
+        folder = _folder(request)
+        remove_session(folder)  # a finished session's leftovers, if any
+        try:
+            save_session(session, folder)
+        except OSError as exc:
+            raise HTTPException(status_code=507, detail=f"cannot keep the session in {folder}: {exc.strerror or exc}; "
+                                                        "free some space or set state_dir") from None
         request.app.state.calibration_session = session
     return session.summary()
 
 
 @router.get("")
-def status(request: Request, distance: Annotated[float | None, Query(ge=0.05, le=100)] = None,
-           d: Daemon = Depends(get_daemon)) -> dict:
-    """The session and live feedback from the newest frame; ``distance``: the distance typed so far (m)."""
+def status(request: Request, distance: Annotated[float | None, Query(ge=0.05, le=100, allow_inf_nan=False)] = None,
+           held_back: bool = False, d: Daemon = Depends(get_daemon)) -> dict:
+    """The session and live feedback from the newest frame; ``distance``: the distance typed so far (m);
+    ``held_back``: whether the next capture would be held back. ``live.capture_ok`` says whether a
+    capture now would be accepted, ``live.refusals`` why not (the capture's own checks)."""
     session = _session(request)
     published = latest(d)
-    live = session.feedback(published.frame.data, distance, _rangefinder(d), published.frame.exposure_us)
+    frame = published.frame
+    live = session.feedback(frame.data, distance, _rangefinder(d), frame.exposure_us, held_back, frame.exposures()[0])
     with session.lock:
         return {"session": session.summary(), "live": live}
 
@@ -138,10 +210,11 @@ def status(request: Request, distance: Annotated[float | None, Query(ge=0.05, le
 @router.delete("")
 def cancel(request: Request) -> dict:
     """End the session; nothing it measured is kept and no profile changes."""
+    session = _session(request)
     with _LOCK:
-        session = _session(request)
         session.state = "cancelled"
         request.app.state.calibration_session = None
+        remove_session(_folder(request))
     return {"id": session.id, "state": "cancelled"}
 
 
@@ -185,6 +258,12 @@ def capture(body: CaptureRequest, request: Request, d: Daemon = Depends(get_daem
                                   [f.exposure_us for f in frames], [f.exposures()[0] for f in frames])
         except SessionError as exc:
             raise _refuse(exc) from None
+        try:
+            save_session(session, _folder(request))
+        except OSError as exc:  # kept in memory: the session goes on, but would not survive a restart
+            session.captures.remove(cap)
+            raise HTTPException(status_code=507, detail=f"cannot keep the capture on disk ({exc.strerror or exc}); "
+                                                        "free some space and capture again") from None
         return {"capture": cap.summary(), "session": session.summary()}
 
 
@@ -210,6 +289,18 @@ def plot(name: str, request: Request) -> Response:
             raise _refuse(exc) from None
 
 
+@router.get("/report.html", response_class=HTMLResponse)
+def report(request: Request) -> HTMLResponse:
+    """The fit as one self-contained HTML page (tables and every plot), to download and keep."""
+    session = _session(request)
+    with session.lock:
+        try:
+            page = session.report()
+        except SessionError as exc:
+            raise _refuse(exc) from None
+    return HTMLResponse(page, headers={"Content-Disposition": f'attachment; filename="tank-calibration-{session.id}.html"'})
+
+
 @router.post("/accept")
 def accept(body: Accept, request: Request, d: Daemon = Depends(get_daemon)) -> dict:
     """Save the validated profile under ``name`` and make it active; the session ends."""
@@ -228,6 +319,7 @@ def accept(body: Accept, request: Request, d: Daemon = Depends(get_daemon)) -> d
         session.state = "accepted"
     with _LOCK:
         request.app.state.calibration_session = None
+        remove_session(_folder(request))
     return {"name": body.name, "active": True, "session": session.id,
             "attenuation_differences": dict(zip(profile.channel_names, map(float, profile.array("attenuation_difference"))))}
 

@@ -5,6 +5,7 @@
 import { COLOUR_MAPS, REASON_COLOURS, cssColour, lut, reasonColour } from "./colormap.js";
 import { ViewStream, centreAndMinimum, float16, sample } from "./stream.js";
 import { PointCloudView } from "./viewer3d.js";
+import { startTank } from "./tank.js";
 
 const $ = (id) => document.getElementById(id);
 const STALE_AFTER_MS = 1500;
@@ -749,101 +750,6 @@ function wireControls() {
   $("patch-cancel").onclick = () => { state.patchDraft = null; $("patch-form").hidden = true; drawMarks(); };
 }
 
-// ---------------------------------------------------------------- tank calibration
-
-const TANK = "api/v1/calibration/session";
-
-function flat(object, prefix = "") {
-  // {a: {b: 1}} → [["a b", 1]]: live feedback shown as it comes, whatever its keys.
-  return Object.entries(object || {}).flatMap(([k, v]) =>
-    v && typeof v === "object" && !Array.isArray(v) ? flat(v, `${prefix}${k} `) : [[`${prefix}${k}`, v]]);
-}
-
-function show(value) {
-  if (typeof value === "number") return Number.isInteger(value) ? String(value) : value.toPrecision(4);
-  if (Array.isArray(value)) return value.map(show).join(", ");
-  return value === null || value === undefined ? "—" : String(value);
-}
-
-function renderTank(answer) {
-  const running = answer && ["positioning", "fitted"].includes(answer.session?.state);
-  $("tank-steps").hidden = !running;
-  if (!running) return;
-  $("tank-live").replaceChildren(...flat(answer.live).flatMap(([k, v]) => {
-    const dt = document.createElement("dt"); dt.textContent = k;
-    const dd = document.createElement("dd"); dd.textContent = show(v);
-    return [dt, dd];
-  }));
-  $("tank-captures").replaceChildren(...(answer.session.captures || []).map((c) => {
-    const li = document.createElement("li");
-    li.textContent = `${c.distance_m} m · ${c.frames} frames${c.held_back ? " · held back" : ""}`;
-    return li;
-  }));
-}
-
-async function pollTank() {
-  if (!$("tank-steps").hidden || state.tankStarted) {
-    try {
-      const distance = Number($("tank-distance").value);
-      const answer = await api(`${TANK}${distance > 0 ? `?distance=${distance}` : ""}`);
-      renderTank(answer);
-    } catch (error) {
-      $("tank-steps").hidden = true;  // no session (ended, or the daemon restarted)
-      state.tankStarted = false;
-    }
-  }
-  setTimeout(pollTank, 1000);
-}
-
-function renderFit(result) {
-  const box = $("tank-fit-result");
-  const lines = Object.entries(result.channels || {}).map(([name, c]) =>
-    `${name}: attenuation difference ${show(c.attenuation_difference)} ± ${show(c.attenuation_difference_std)} 1/m`);
-  lines.push(`rms residual ${show(result.rms_residual)}`);
-  for (const v of result.validation || []) lines.push(`held back at ${v.distance_m} m: ${v.passed ? "passed" : "FAILED"}` +
-    (v.median_range_error_m !== undefined ? `, median range error ${show(v.median_range_error_m)} m` : ""));
-  const text = document.createElement("pre");
-  text.textContent = lines.join("\n");
-  const plots = (result.plots || []).map((src) => {
-    const img = document.createElement("img");
-    img.src = `${TANK}/${src}?t=${Date.now()}`;
-    img.alt = src;
-    img.style.maxWidth = "100%";
-    return img;
-  });
-  box.replaceChildren(text, ...plots);
-}
-
-function wireTank() {
-  $("tank-start").onclick = async () => {
-    const answer = await change("Start tank calibration", TANK, { method: "POST", body: { rig: $("tank-rig").value.trim() } });
-    if (answer) { state.tankStarted = true; $("tank-steps").hidden = false; $("tank-fit-result").replaceChildren(); }
-  };
-  $("tank-cancel").onclick = async () => {
-    await change("Cancel tank calibration", TANK, { method: "DELETE" });
-    state.tankStarted = false;
-    $("tank-steps").hidden = true;
-  };
-  $("tank-capture").onclick = async () => {
-    const distance = Number($("tank-distance").value);
-    if (!(distance >= 0.05 && distance <= 100)) { message("the plate's distance is 0.05 to 100 m"); return; }
-    $("tank-capture").disabled = true;
-    try {
-      await change(`Capture at ${distance} m`, `${TANK}/captures`, { method: "POST", body: { distance_m: distance, held_back: $("tank-held-back").checked } });
-    } finally { $("tank-capture").disabled = false; }
-  };
-  $("tank-fit").onclick = async () => {
-    const result = await change("Fit", `${TANK}/fit`, { method: "POST" });
-    if (result) renderFit(result);
-  };
-  $("tank-accept").onclick = async () => {
-    const name = $("tank-name").value.trim();
-    if (!/^[A-Za-z0-9._-]{1,64}$/.test(name)) { message("name the new profile with letters, digits, '.', '_' or '-'"); return; }
-    const result = await change(`Accept ${name}`, `${TANK}/accept`, { method: "POST", body: { name } });
-    if (result) { state.tankStarted = false; $("tank-steps").hidden = true; loadProfiles(); }
-  };
-}
-
 // ---------------------------------------------------------------- view settings and pointer tools
 
 function wireView() {
@@ -976,8 +882,7 @@ const stream = new ViewStream({
 
 wireView();
 wireControls();
-wireTank();
-pollTank();
+startTank({ api, change, message, onProfilesChanged: loadProfiles, liveImage: () => state.colourBitmap });
 drawProfile();
 loadSession();
 loadProfiles();
