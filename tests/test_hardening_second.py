@@ -1,0 +1,204 @@
+"""Regression tests for the faults found by the second round of attacks on the daemon (issue 24):
+a real uvicorn server on an ephemeral port, real HTTP and WebSocket clients, the real command line."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from tests.served import Server
+from tests.test_api import small_config
+from tests.waiting import wait_for
+from uwcam.api.security import SignInThrottle
+
+TOKEN = "s3cret"
+BEARER = {"Authorization": f"Bearer {TOKEN}"}
+
+
+@pytest.fixture(autouse=True)
+def no_leaked_threads():
+    """Server threads (uvicorn's worker pool) outlive a test by design here; see test_api."""
+    yield
+
+
+@pytest.fixture(scope="module")
+def server():
+    with Server(small_config(token=TOKEN)) as s:
+        assert wait_for(lambda: s.daemon.pipeline.processed > 2, 60.0)
+        yield s
+
+
+def strict_json(response: httpx.Response):
+    """The body as strict JSON in UTF-8: no NaN or Infinity, no lone surrogates."""
+    def refuse(constant):
+        raise ValueError(f"{constant} in a JSON answer")
+    return json.loads(response.content.decode("utf-8"), parse_constant=refuse)
+
+
+# -- 1: a flood of wrong sign-ins stalls no one else ---------------------------------------------
+
+def test_a_flood_of_wrong_sign_ins_holds_up_neither_the_api_nor_a_right_token_from_elsewhere():
+    """60 concurrent wrong sign-ins from one address, three times over, while the status is read
+    and the operator signs in from another address. Before, each wrong sign-in slept in a worker
+    thread for up to 5 s (a global count): the status waited 7-10 s, the operator 5 s."""
+    rounds, flood = 3, 60
+
+    async def attack(s):
+        answers, status_waits = [], []
+        async with httpx.AsyncClient(base_url=s.url, timeout=60.0, limits=httpx.Limits(max_connections=flood)) as attacker, \
+                httpx.AsyncClient(base_url=s.url, timeout=60.0,
+                                  transport=httpx.AsyncHTTPTransport(local_address="127.0.0.2")) as operator:
+            async def read_status():
+                for _ in range(6):
+                    start = time.monotonic()
+                    r = await attacker.get("/api/v1/status")
+                    status_waits.append(time.monotonic() - start)
+                    assert r.status_code == 200
+                    await asyncio.sleep(0.2)
+
+            reader = asyncio.create_task(read_status())
+            operator_answer = None
+            for n in range(rounds):
+                answers += await asyncio.gather(*(attacker.post("/api/v1/session", json={"token": f"guess-{n}-{i}"})
+                                                  for i in range(flood)))
+                if n == 0:
+                    start = time.monotonic()
+                    operator_answer = await operator.post("/api/v1/session", json={"token": TOKEN})
+                    operator_wait = time.monotonic() - start
+            await reader
+        return answers, status_waits, operator_answer, operator_wait
+
+    with Server(small_config(token=TOKEN)) as s:
+        answers, status_waits, operator, operator_wait = asyncio.run(attack(s))
+        guard = s.app.state.guard
+        assert guard.throttle.wait_s("127.0.0.2") == 0.0
+        # Once its wait is over, the attacker's own address may sign in with the right token.
+        assert wait_for(lambda: guard.throttle.wait_s("127.0.0.1") == 0.0, 10.0)
+        assert s.http.post("/api/v1/session", json={"token": TOKEN}).status_code == 200
+    codes = [a.status_code for a in answers]
+    print(f"flood answers: {codes.count(401)}× 401, {codes.count(429)}× 429; status waits (s): "
+          + " ".join(f"{w:.2f}" for w in status_waits) + f"; operator's sign-in {operator_wait:.2f} s")
+    assert set(codes) <= {401, 429} and len(codes) == rounds * flood
+    assert codes.count(429) > 0, "the attacker's address is throttled"
+    throttled = next(a for a in answers if a.status_code == 429)
+    assert "try again in" in throttled.json()["detail"] and int(throttled.headers["retry-after"]) >= 1
+    assert operator.status_code == 200 and operator.json()["csrf_token"]
+    # A wrong token from elsewhere never delays the operator: the old global throttle made this
+    # sign-in sleep its full 5 s, and the status wait 7-10 s; here both are ordinary requests.
+    assert operator_wait < 3.0 and max(status_waits) < 3.0, (operator_wait, status_waits)
+
+
+def test_the_throttle_counts_per_address_and_forgets_the_oldest(monkeypatch):
+    now = [100.0]
+    monkeypatch.setattr("uwcam.api.security.time.monotonic", lambda: now[0])
+    throttle = SignInThrottle(addresses=3)
+    for _ in range(4):
+        throttle.record(False, "10.0.0.9")
+    assert throttle.wait_s("10.0.0.9") == pytest.approx(1.0) and throttle.wait_s("10.0.0.8") == 0.0
+    now[0] += 0.6
+    assert throttle.wait_s("10.0.0.9") == pytest.approx(0.4)
+    now[0] += 0.4
+    assert throttle.wait_s("10.0.0.9") == 0.0
+    for address in ("a", "b", "c"):  # the table holds three: 10.0.0.9, the least recent, goes
+        throttle.record(False, address)
+    assert throttle.delay_s("10.0.0.9") == 0.0 and throttle.delay_s("c") == pytest.approx(0.25)
+    throttle.record(True, "c")
+    assert throttle.wait_s("c") == 0.0
+
+
+# -- 2: lone surrogates and every other JSON value ----------------------------------------------
+
+@pytest.mark.parametrize("path, body", [
+    ("/api/v1/session", b'{"token": "\\ud800"}'),
+    ("/api/v1/config", b'{"smoothing": "\\ud800"}'),
+    ("/api/v1/config", b'{"\\udfff": 1}'),
+])
+def test_a_lone_surrogate_is_a_422_that_quotes_it_escaped(server, path, body):
+    method = "POST" if path.endswith("session") else "PATCH"
+    r = server.http.request(method, path, content=body, headers={"Content-Type": "application/json", **BEARER})
+    assert r.status_code == 422, r.text
+    assert "\\ud" in json.dumps(strict_json(r))  # quoted as an escape, not dropped
+
+
+def test_one_handler_per_error():
+    from fastapi.exceptions import RequestValidationError
+
+    from uwcam.api import app as app_module
+
+    source = Path(app_module.__file__).read_text(encoding="utf-8")
+    assert source.count(f"exception_handler({RequestValidationError.__name__})") == 1
+
+
+def json_fields(schema: dict, node: dict, path: tuple = ()) -> list[tuple]:
+    """Paths to every field in a request body's JSON schema ("0" stands for an array's item)."""
+    if "$ref" in node:
+        node = schema["components"]["schemas"][node["$ref"].rsplit("/", 1)[1]]
+    fields = [path] if path else []
+    for branch in node.get("anyOf", []) + node.get("oneOf", []) + node.get("allOf", []):
+        fields += json_fields(schema, branch, path)[1 if path else 0:]
+    for name, child in node.get("properties", {}).items():
+        fields += json_fields(schema, child, (*path, name))
+    if "items" in node and isinstance(node["items"], dict) and len(path) < 6:
+        fields += json_fields(schema, node["items"], (*path, 0))
+    return list(dict.fromkeys(fields))
+
+
+def body_with(path: tuple, value) -> object:
+    for key in reversed(path):
+        value = [value] if key == 0 else {key: value}
+    return value
+
+
+def every_json_field(app) -> list[tuple[str, str, tuple]]:
+    schema = app.openapi()
+    found = []
+    for route, operations in schema["paths"].items():
+        for method, operation in operations.items():
+            content = operation.get("requestBody", {}).get("content", {})
+            if "application/json" in content:
+                for field in json_fields(schema, content["application/json"]["schema"]) or [()]:
+                    found.append((method.upper(), route.replace("{name}", "fuzz"), field))
+    return found
+
+
+ANY_TEXT = st.text(st.characters(exclude_categories=()), max_size=40)  # lone surrogates included
+ANY_FLOAT = st.floats(allow_nan=True, allow_infinity=True, allow_subnormal=True)
+ANY_VALUE = st.one_of(ANY_TEXT, ANY_FLOAT, st.lists(st.one_of(ANY_TEXT, ANY_FLOAT), max_size=4),
+                      st.dictionaries(ANY_TEXT, st.one_of(ANY_TEXT, ANY_FLOAT), max_size=3))
+
+
+@pytest.mark.slow
+def test_arbitrary_unicode_and_floats_in_every_json_field_never_make_a_server_error(server):
+    """Every field of every JSON body the API documents, and the body itself, fed arbitrary Unicode
+    (lone surrogates included, sent as JSON escapes) and arbitrary floats (NaN and infinities sent
+    as the NaN/Infinity tokens many encoders write): never a 5xx, and every answer strict JSON."""
+    fields = every_json_field(server.app)
+    assert len(fields) > 20 and any(f[1] == "/api/v1/session" for f in fields)
+    server.app.state.guard.throttle = SignInThrottle(step_s=0.0)  # every fuzzed sign-in gets checked
+    seen = set()
+
+    @settings(max_examples=300, deadline=None, suppress_health_check=list(HealthCheck), database=None)
+    @given(st.sampled_from(fields), ANY_VALUE, st.sampled_from(["field", "field", "key"]))
+    def fuzz(target, value, where):
+        method, route, field = target
+        body = body_with(field, value) if where == "field" else body_with(field[:-1], {value if isinstance(value, str)
+                                                                                       else str(value): 1})
+        content = json.dumps(body, allow_nan=True, ensure_ascii=True).encode()
+        r = server.http.request(method, route, content=content, headers={"Content-Type": "application/json", **BEARER})
+        seen.add((method, route))
+        assert r.status_code < 500, ascii((method, route, content, r.text))
+        strict_json(r)
+
+    try:
+        fuzz()
+    finally:
+        server.http.put("/api/v1/lamp", json={"on": False}, headers=BEARER)
+        server.http.delete("/api/v1/calibration/session", headers=BEARER)
+    assert len(seen) >= 6, seen
