@@ -202,3 +202,124 @@ def test_arbitrary_unicode_and_floats_in_every_json_field_never_make_a_server_er
         server.http.put("/api/v1/lamp", json={"on": False}, headers=BEARER)
         server.http.delete("/api/v1/calibration/session", headers=BEARER)
     assert len(seen) >= 6, seen
+
+
+# -- 3: every number of a profile within physical bounds -----------------------------------------
+
+def active_profile(s) -> tuple[str, dict]:
+    name = next(p["name"] for p in s.http.get("/api/v1/calibration/profiles").json() if p["active"])
+    return name, s.http.get(f"/api/v1/calibration/profiles/{name}").json()
+
+
+def altered(profile: dict, path: tuple, value) -> dict:
+    out = json.loads(json.dumps(profile))
+    node = out
+    for key in path[:-1]:
+        node = node[key]
+    node[path[-1]] = value
+    return out
+
+
+@pytest.mark.parametrize("path, value, words", [
+    (("intrinsics", "fx"), 1e308, "intrinsics.fx"),
+    (("intrinsics", "cx"), 1e12, "intrinsics.cx"),
+    (("intrinsics", "cx"), 50_000.0, "far outside the camera's 160×120 image"),  # in bounds, not for this camera
+    (("quantisation_step",), 0, "quantisation_step 0"),
+    (("backscatter", "distances_m", 0), 1e300, "backscatter.distances_m.0"),
+    (("channels", 1, "attenuation_difference"), -1e6, "channels.1.attenuation_difference"),
+    (("channels", 0, "read_noise"), 1e200, "channels.0.read_noise"),
+    (("lamp_position_m", 0), 1e9, "lamp_position_m.0"),
+])
+def test_absurd_profile_numbers_are_refused_and_the_active_profile_stays(server, path, value, words):
+    """The values the second round of attacks had the daemon apply (fx = 1e308 moved the median
+    range from 3.28 m to 0.55 m): refused with one line naming the key, nothing changes."""
+    name, original = active_profile(server)
+    live = server.daemon.pipeline.profile
+    r = server.http.put("/api/v1/calibration/profiles/absurd", json=altered(original, path, value), headers=BEARER)
+    if r.status_code == 200:  # within a profile's bounds, but not for this camera: activating it is refused
+        assert words in ("far outside the camera's 160×120 image", "quantisation_step 0")
+        r = server.http.post("/api/v1/calibration/profiles/absurd/activate", headers=BEARER)
+    assert r.status_code == 422, r.text
+    detail = r.json()["detail"]
+    assert words in detail and "\n" not in detail, detail
+    assert server.daemon.pipeline.profile is live and server.daemon.profile_name == name
+    assert server.http.get(f"/api/v1/calibration/profiles/{name}").json() == original
+    n = server.daemon.pipeline.processed
+    assert wait_for(lambda: server.daemon.pipeline.processed > n + 2, 30.0)  # ranging all along
+
+
+def test_a_profile_file_with_an_absurd_number_is_refused_on_load(server, tmp_path):
+    import yaml
+
+    from uwcam.fileio import UserInputError
+    from uwcam.profile import load_profile
+
+    _, original = active_profile(server)
+    path = tmp_path / "absurd.yaml"
+    path.write_text(yaml.safe_dump(altered(original, ("intrinsics", "fy"), 1e308)))
+    with pytest.raises(UserInputError, match=r"absurd.yaml: key 'intrinsics.fy': .*less than or equal to 100000"):
+        load_profile(path)
+    path.write_text(yaml.safe_dump(original))
+    assert load_profile(path).intrinsics == original["intrinsics"]  # the profile itself loads
+
+
+# -- 5: `uwcam calibrate` says what is wrong in one line ------------------------------------------
+
+def run_cli(*args: str, cwd=None):
+    import os
+    import subprocess
+    import sys
+
+    environment = {k: v for k, v in os.environ.items() if k != "UWCAM_TOKEN"}
+    return subprocess.run([sys.executable, "-m", "uwcam", *args], capture_output=True, text=True, timeout=300,
+                          env=environment, cwd=cwd)
+
+
+def one_line_error(result, *fragments: str) -> None:
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode == 2, (result.returncode, result.stderr)
+    assert len(lines) == 1 and "Traceback" not in result.stderr, result.stderr
+    for fragment in fragments:
+        assert fragment in lines[0], (fragment, lines[0])
+
+
+@pytest.fixture(scope="module")
+def calibration_images(tmp_path_factory):
+    import numpy as np
+
+    folder = tmp_path_factory.mktemp("calibrate")
+    rng = np.random.default_rng(7)
+    # Lit target frames: brighter near, each channel attenuated differently.
+    np.save(folder / "near.npy", (rng.random((40, 40, 3)) * 50 + [3000, 2000, 1000]).astype(np.uint16))
+    np.save(folder / "far.npy", (rng.random((40, 40, 3)) * 50 + [1500, 1500, 900]).astype(np.uint16))
+    np.save(folder / "uniform1.npy", np.full((40, 40, 3), 1000, np.uint16))
+    np.save(folder / "uniform2.npy", np.full((40, 40, 3), 1000, np.uint16))
+    np.save(folder / "nan1.npy", np.full((40, 40, 3), np.nan, np.float32))
+    np.save(folder / "nan2.npy", np.full((40, 40, 3), np.nan, np.float32))
+    np.save(folder / "int8.npy", np.full((40, 40, 3), 50, np.int8))
+    return folder
+
+
+@pytest.mark.parametrize("images, extra, fragments", [
+    (("uniform1.npy", "uniform2.npy"), (), ("all alike", "lit target")),
+    (("nan1.npy", "nan2.npy"), (), ("nan1.npy", "NaN or infinite")),
+    (("int8.npy", "near.npy"), (), ("near.npy holds uint16", "int8.npy holds int8")),
+    (("near.npy", "far.npy"), ("--distance", "1e300"), ("--distance", "up to 1000", "1e+300")),
+    (("near.npy", "far.npy"), ("--intrinsics", "1e308,1e308,20,20"), ("--intrinsics", "40×40")),
+    (("near.npy", "far.npy"), ("--lamp-offset", "1e300,0,0"), ("--lamp-offset", "at most 10")),
+])
+def test_calibrate_refuses_unusable_images_and_numbers_in_one_line(calibration_images, images, extra, fragments):
+    distances = ["--distance", "1.0"] + (list(extra[:2]) if extra[:1] == ("--distance",) else ["--distance", "2.0"])
+    options = [] if extra[:1] == ("--distance",) else list(extra)
+    result = run_cli("calibrate", *images, *distances, *options, "-o", "out.yaml", cwd=calibration_images)
+    one_line_error(result, *fragments)
+    assert not (calibration_images / "out.yaml").exists()
+
+
+def test_calibrate_writes_a_profile_from_usable_images(calibration_images):
+    from uwcam.profile import load_profile
+
+    result = run_cli("calibrate", "near.npy", "far.npy", "--distance", "1", "--distance", "2", "-o", "good.yaml",
+                     cwd=calibration_images)
+    assert result.returncode == 0, result.stderr
+    assert len(load_profile(calibration_images / "good.yaml").channels) == 3
