@@ -304,7 +304,7 @@ def calibration_images(tmp_path_factory):
     (("uniform1.npy", "uniform2.npy"), (), ("all alike", "lit target")),
     (("nan1.npy", "nan2.npy"), (), ("nan1.npy", "NaN or infinite")),
     (("int8.npy", "near.npy"), (), ("near.npy holds uint16", "int8.npy holds int8")),
-    (("near.npy", "far.npy"), ("--distance", "1e300"), ("--distance", "up to 1000", "1e+300")),
+    (("near.npy", "far.npy"), ("--distance", "1e300"), ("--distance 1e+300 m", "at most 1000")),
     (("near.npy", "far.npy"), ("--intrinsics", "1e308,1e308,20,20"), ("--intrinsics", "40×40")),
     (("near.npy", "far.npy"), ("--lamp-offset", "1e300,0,0"), ("--lamp-offset", "at most 10")),
 ])
@@ -323,3 +323,109 @@ def test_calibrate_writes_a_profile_from_usable_images(calibration_images):
                      cwd=calibration_images)
     assert result.returncode == 0, result.stderr
     assert len(load_profile(calibration_images / "good.yaml").channels) == 3
+
+
+# -- 4: a lamp that falls silent is shown so, while nothing is commanded --------------------------
+
+def test_a_lamp_that_falls_silent_is_shown_not_answering_and_answering_again():
+    """No lamp-off cycle, so no command is due: before, the lamp was asked only at start and on
+    GET /api/v1/lamp, and a silent one stayed 'ok / answering' (40 s in the attack)."""
+    with Server(small_config(token=TOKEN)) as s:
+        def lamp_health() -> dict:
+            return s.http.get("/api/v1/status").json()["lamp"]["health"]
+
+        assert wait_for(lambda: lamp_health()["state"] == "ok", 30.0)
+        device = s.daemon.lamp.device
+        device.received = lambda data: None  # the lamp hears nothing and says nothing
+        try:
+            assert wait_for(lambda: lamp_health()["state"] != "ok", 20.0), lamp_health()
+            assert "no complete reply" in lamp_health()["reason"]
+            assert s.http.get("/api/v1/status").json()["frames"]["fps"] > 0  # ranging goes on
+        finally:
+            del device.received
+        assert wait_for(lambda: (lambda h: (h["state"], h["reason"]) == ("ok", "answering"))(lamp_health()), 20.0)
+
+
+# -- 6: `uwcam reprocess` never reads damaged chunks, and says what it skipped ---------------------
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    """A short dive recorded with small chunks (many of them): its path and ranged frame count."""
+    from tests.test_recording import recording_config, running
+
+    folder = tmp_path_factory.mktemp("dive")
+    path = str(folder / "dive.mcap")
+    with running(recording_config(folder)) as d:
+        d.recorder.start(path)
+        assert wait_for(lambda: d.recorder.status()["frames_written"] >= 30, 90.0)
+        d.recorder.stop()
+    return path
+
+
+def damage(source: str, target, chunks: int) -> list[int]:
+    """A copy of ``source`` with one byte flipped in the middle of ``chunks`` of its chunks (every
+    other one from the second); returns the damaged chunks' offsets."""
+    import shutil
+
+    from uwcam import recording as rec
+
+    shutil.copy(source, target)
+    with open(source, "rb") as fh:
+        summary = rec.open_reader(fh).get_summary()
+    picked = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)[1::2][:chunks]
+    with open(target, "r+b") as fh:
+        for c in picked:
+            fh.seek(c.chunk_start_offset + c.chunk_length // 2)
+            byte = fh.read(1)
+            fh.seek(-1, 1)
+            fh.write(bytes([byte[0] ^ 0xFF]))
+    return [c.chunk_start_offset for c in picked]
+
+
+def depth_by_time(path: str) -> dict:
+    from tests.test_recording import decoded, image
+
+    from uwcam import recording as rec
+
+    return {t: image(m) for t, m in decoded(path, rec.DEPTH)}
+
+
+def test_reprocess_refuses_damaged_chunks_unless_told_and_then_says_which_frames_it_skipped(recorded, tmp_path):
+    import numpy as np
+
+    from uwcam.fileio import UserInputError
+    from uwcam.reprocess import ranged_frame_count, reprocess
+
+    damaged = tmp_path / "damaged.mcap"
+    assert len(damage(recorded, damaged, 3)) == 3
+    refused = run_cli("reprocess", str(damaged), "-o", str(tmp_path / "out.mcap"), "--quiet")
+    one_line_error(refused, "3 of", "fail their CRC check", "--skip-corrupt")
+    assert not (tmp_path / "out.mcap").exists()
+
+    warnings = []
+    reprocess([str(damaged)], str(tmp_path / "rest.mcap"), progress=False, skip_corrupt=True, warn=warnings.append)
+    again, original = depth_by_time(str(tmp_path / "rest.mcap")), depth_by_time(recorded)
+    total = ranged_frame_count(recorded)
+    assert 0 < len(again) < total
+    for t, depth in again.items():  # whatever was ranged again came from undamaged bytes
+        assert np.array_equal(depth, original[t], equal_nan=True), t
+    assert warnings and "skipping damaged chunks" in warnings[0] and "3 of" in warnings[0]
+    said = int(warnings[0].split(" ranged frame(s)")[0].rsplit(" ", 1)[1])
+    lost_images = [w for w in warnings[1:] if "raw image is missing" in w]
+    assert said + len(lost_images) == total - len(again), warnings  # every frame not ranged again is told
+
+    with pytest.raises(UserInputError, match="--skip-corrupt"):
+        reprocess([str(damaged)], str(tmp_path / "again.mcap"), progress=False)
+
+
+def test_an_unfinished_recording_is_refused_with_the_command_that_repairs_it(recorded, tmp_path):
+    unfinished = tmp_path / "killed.mcap"
+    data = Path(recorded).read_bytes()
+    unfinished.write_bytes(data[: int(len(data) * 0.7)])  # as a killed recorder leaves it: no summary, no footer
+    refused = run_cli("reprocess", str(unfinished), "-o", str(tmp_path / "out.mcap"), "--quiet")
+    one_line_error(refused, "never finished", f"uwcam repair {unfinished}")
+    repaired = run_cli("repair", str(unfinished))
+    assert repaired.returncode == 0 and "repaired" in repaired.stdout, repaired.stderr
+    done = run_cli("reprocess", str(unfinished), "-o", str(tmp_path / "out.mcap"), "--quiet")
+    assert done.returncode == 0, done.stderr
+    assert 0 < len(depth_by_time(str(tmp_path / "out.mcap")))

@@ -108,8 +108,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             f"got {len(args.images)} image(s) but {len(distances)} --distance value(s); give one --distance per image, in order"
         )
     for d in distances:
-        if not (np.isfinite(d) and 0 < d <= MAX_DISTANCE_M):
-            raise UserInputError(f"--distance must be a positive number of metres up to {MAX_DISTANCE_M:g}, got {d}")
+        if not (np.isfinite(d) and d > 0):
+            raise UserInputError(f"--distance must be a positive number of metres, got {d}")
+        if d > MAX_DISTANCE_M:
+            raise UserInputError(f"--distance {d:g} m is farther than a lamp lights a target in water; give metres, "
+                                 f"at most {MAX_DISTANCE_M:g}")
     frames = [read_frame(p) for p in args.images]
     check_calibration_frames(args.images, frames, distances)
     n = frames[0].shape[-1]
@@ -466,9 +469,30 @@ def cmd_reprocess(args: argparse.Namespace) -> int:
     if not 0.01 <= args.part_mb <= 1e5:
         raise UserInputError(f"--part-mb must be 0.01 to 100000, got {args.part_mb}")
     outputs = reprocess(args.inputs, args.output, profile=args.profile, scheduler=args.scheduler,
-                        workers=args.workers, progress=not args.quiet, part_mb=args.part_mb)
+                        workers=args.workers, progress=not args.quiet, part_mb=args.part_mb,
+                        skip_corrupt=args.skip_corrupt, warn=lambda text: print(f"uwcam reprocess: warning: {text}",
+                                                                               file=sys.stderr))
     for path in outputs:
         print(f"wrote {path}")
+    return 0
+
+
+def cmd_repair(args: argparse.Namespace) -> int:
+    from uwcam import recording as rec
+
+    for path in args.recordings:
+        if not Path(path).is_file():
+            raise UserInputError(f"recording {path} does not exist")
+        if rec.is_complete(path):
+            print(f"{path} is complete; left as it is")
+            continue
+        try:
+            kept = rec.repair(path)
+        except rec.RecordingError as exc:
+            raise UserInputError(str(exc)) from None
+        except OSError as exc:
+            raise UserInputError(f"cannot repair {path}: {exc.strerror}") from None
+        print(f"repaired {path}: {kept} bytes of complete records kept, the unfinished rest removed")
     return 0
 
 
@@ -585,7 +609,14 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--part-mb", type=float, default=64.0, metavar="MB",
                      help="megabytes of recording per unit of work, cut at MCAP chunks (default 64)")
     rep.add_argument("--quiet", action="store_true", help="no progress bar")
+    rep.add_argument("--skip-corrupt", action="store_true",
+                     help="reprocess a recording with damaged chunks (failing their CRC check), leaving them out; "
+                          "without it such a recording is refused")
     rep.set_defaults(func=cmd_reprocess)
+
+    fix = sub.add_parser("repair", help="make unfinished recordings (writer killed, disk full) readable, in place")
+    fix.add_argument("recordings", nargs="+", metavar="FILE.mcap")
+    fix.set_defaults(func=cmd_repair)
 
     cfg = sub.add_parser("config", help="configuration tools")
     cfg_sub = cfg.add_subparsers(dest="config_command", required=True, metavar="ACTION")
