@@ -429,3 +429,25 @@ def test_an_unfinished_recording_is_refused_with_the_command_that_repairs_it(rec
     done = run_cli("reprocess", str(unfinished), "-o", str(tmp_path / "out.mcap"), "--quiet")
     assert done.returncode == 0, done.stderr
     assert 0 < len(depth_by_time(str(tmp_path / "out.mcap")))
+
+
+# -- 7: `config check` refuses what `run` refuses --------------------------------------------------
+
+@pytest.mark.parametrize("text, fragments", [
+    ("camera:\n  driver: sim\n  options: {fps: -5}\n", ("camera driver 'sim' options", "key 'fps'", "greater than 0")),
+    ("camera:\n  driver: sim\n  options: {fps: 1.0e+308}\n", ("key 'fps'", "less than or equal to 1000")),
+    ("camera:\n  driver: nosuch\n", ("unknown camera driver 'nosuch'", "known camera drivers: ")),
+    ("camera:\n  driver: sim\nlamp:\n  driver: nosuch\n", ("unknown lamp driver 'nosuch'",)),
+])
+def test_config_check_and_run_refuse_the_same_driver_options_and_name_an_unknown_driver_first(tmp_path, text, fragments):
+    path = tmp_path / "uwcam.yaml"
+    path.write_text(text)
+    one_line_error(run_cli("config", "check", str(path)), *fragments)
+    one_line_error(run_cli("run", "--config", str(path), "--port", "0"), *fragments)
+
+
+def test_config_check_passes_what_run_accepts(tmp_path):
+    path = tmp_path / "uwcam.yaml"
+    path.write_text("camera:\n  driver: sim\n  options: {fps: 20, one_exposure: true}\n")
+    result = run_cli("config", "check", str(path))
+    assert result.returncode == 0 and "valid" in result.stdout, result.stderr
