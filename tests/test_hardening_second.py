@@ -451,3 +451,53 @@ def test_config_check_passes_what_run_accepts(tmp_path):
     path.write_text("camera:\n  driver: sim\n  options: {fps: 20, one_exposure: true}\n")
     result = run_cli("config", "check", str(path))
     assert result.returncode == 0 and "valid" in result.stdout, result.stderr
+
+
+# -- 8: a slow stream reader gets fresh range maps ------------------------------------------------
+
+def stream_ages(port: int, read_every_s: float, reads: int, ack: bool) -> list[float]:
+    """Ages (s, capture to the moment the client takes it) of the range maps a client gets that
+    takes one every ``read_every_s``; with ``ack`` it acknowledges each when it wants the next."""
+    import socket
+
+    import websockets
+
+    from uwcam.api import HEADER
+
+    async def client():
+        sock = socket.socket()
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)  # room for a backlog, as a default client has
+        sock.connect(("127.0.0.1", port))
+        sock.setblocking(False)
+        ages = []
+        url = f"ws://127.0.0.1:{port}/api/v1/stream?rate=30{'&ack=true' if ack else ''}"
+        async with websockets.connect(url, sock=sock, max_size=None) as ws:
+            hello = json.loads(await asyncio.wait_for(ws.recv(), 30.0))
+            assert hello["ack"]["enabled"] is ack and hello["ack"]["window"] == 1
+            number = 0
+            while len(ages) < reads:
+                await asyncio.sleep(read_every_s)
+                if ack:  # "I want the next map"
+                    await ws.send(json.dumps({"ack": number}))
+                while True:  # telemetry first, then the map
+                    msg = await asyncio.wait_for(ws.recv(), 30.0)
+                    if isinstance(msg, bytes):
+                        break
+                number, captured = HEADER.unpack_from(msg)[1:3]
+                ages.append((time.time_ns() - captured) / 1e9)
+        return ages
+
+    return asyncio.run(client())
+
+
+def test_a_client_reading_every_two_seconds_gets_maps_at_most_1_5_s_old():
+    """The attack's reader took a map every 2 s and got maps 5.9 s old: its own buffers held
+    the backlog. Asking for each map (``ack=true``, ``{"ack": N}`` when it wants the next), it is
+    sent none it has not asked for: each map it takes was the newest when it asked."""
+    config = small_config(token=TOKEN)
+    config.simulation["size"] = [320, 240]  # 150 kB per map: a default client's buffers would hold several
+    with Server(config) as s:
+        assert wait_for(lambda: s.daemon.pipeline.processed > 5, 60.0)
+        ages = stream_ages(s.port, 2.0, 5, ack=True)
+    print("ages of the maps taken (s):", " ".join(f"{a:.2f}" for a in ages))
+    assert max(ages) <= 1.5, ages
