@@ -501,3 +501,72 @@ def test_a_client_reading_every_two_seconds_gets_maps_at_most_1_5_s_old():
         ages = stream_ages(s.port, 2.0, 5, ack=True)
     print("ages of the maps taken (s):", " ".join(f"{a:.2f}" for a in ages))
     assert max(ages) <= 1.5, ages
+
+
+# -- 10: the smaller ones ----------------------------------------------------------------------
+
+def test_pty_folders_of_killed_processes_are_removed_by_the_next_start(tmp_path, monkeypatch):
+    """A daemon killed with SIGKILL leaves its simulated lamp's and sonar's pty folders; the next
+    simulated device to start removes those whose process is gone, and nothing else."""
+    import os
+    import subprocess
+    import sys
+    import tempfile
+
+    from uwcam.drivers.sim_serial import SimulatedLampDevice
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))  # a temp dir of our own: others share /tmp
+    killed = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    killed.kill()
+    killed.wait()
+    stale = []
+    for name in ("lamp", "ranger"):
+        folder = tmp_path / f"uwcam-pty-{killed.pid}-{name}x"
+        folder.mkdir()
+        (folder / name).symlink_to("/dev/pts/999999")  # its pty went with the process
+        stale.append(folder)
+    alive = tmp_path / f"uwcam-pty-{os.getppid()}-livex"  # a running process's: kept
+    alive.mkdir()
+    (alive / "lamp").symlink_to("/dev/pts/999999")
+    old = tmp_path / "uwcam-pty-abcdef"  # made before owners were named, long ago, its pty gone
+    old.mkdir()
+    (old / "device").symlink_to("/dev/pts/999998")
+    os.utime(old, (0, 0))
+    other = tmp_path / f"uwcam-pty-{killed.pid}-otherx"  # holds a file someone put there: left alone
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+
+    device = SimulatedLampDevice().start()
+    try:
+        mine = set(tmp_path.glob(f"uwcam-pty-{os.getpid()}-*"))
+        assert len(mine) == 1
+    finally:
+        device.stop()
+    assert set(tmp_path.glob("uwcam-pty-*")) == {alive, other}
+
+
+def test_the_profile_parser_is_libyaml_where_pyyaml_has_it():
+    """A 1 MB profile took 16-21 s of CPU with the pure-Python parser, and the frame rate fell."""
+    import yaml
+
+    from uwcam.fileio import SAFE_LOADER
+
+    assert yaml.__with_libyaml__, "PyYAML here is built with libyaml"
+    assert SAFE_LOADER is yaml.CSafeLoader
+
+
+def test_a_missing_token_is_reported_before_the_socket_is_bound():
+    """With --host 0.0.0.0 and no token, uwcam refuses before it listens: here the port is taken,
+    so binding first would have said 'cannot listen' instead."""
+    import socket
+
+    with socket.create_server(("0.0.0.0", 0)) as busy:
+        port = busy.getsockname()[1]
+        one_line_error(run_cli("run", "--host", "0.0.0.0", "--port", str(port)), "without a token", "UWCAM_TOKEN")
+
+
+def test_the_calibration_session_refuses_a_distance_written_as_a_string(server):
+    r = server.http.post("/api/v1/calibration/session/captures", json={"distance_m": "1"}, headers=BEARER)
+    assert r.status_code == 422 and "distance_m" in json.dumps(r.json()), r.text
+    r = server.http.post("/api/v1/calibration/session/captures", json={"distance_m": 1, "held_back": 1}, headers=BEARER)
+    assert r.status_code == 422 and "held_back" in json.dumps(r.json()), r.text

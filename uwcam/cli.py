@@ -422,6 +422,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         except ValidationError as exc:
             raise UserInputError(explain_validation_error(exc, "command line").replace("key 'api.", "option '--")) from None
     check_devices(config)
+    from uwcam.api import required_token
+
+    required_token(config)  # before the socket is bound: no listening beyond loopback without a token
     if args.record:
         if os.path.exists(args.record):
             raise UserInputError(f"{args.record} exists; give a new file name (recordings are never overwritten)")

@@ -9,7 +9,7 @@ from fastapi import APIRouter, Depends, HTTPException, Request
 
 from uwcam.api.common import get_daemon
 from uwcam.daemon import Daemon
-from uwcam.fileio import UserInputError
+from uwcam.fileio import UserInputError, safe_load
 from uwcam.profile import CalibrationProfile
 
 router = APIRouter(prefix="/api/v1/calibration/profiles", tags=["calibration"])
@@ -40,7 +40,7 @@ def parse_profile(body: bytes, name: str) -> CalibrationProfile:
     from uwcam.profile import profile_from_mapping
 
     try:
-        data = yaml.safe_load(body.decode("utf-8"))
+        data = safe_load(body.decode("utf-8"))
     except (UnicodeDecodeError, yaml.YAMLError) as exc:
         raise HTTPException(status_code=422, detail=f"profile is not valid YAML or JSON: {exc}") from None
     except RecursionError:
