@@ -40,6 +40,8 @@ MAX_LOG_CONSTANT = 50.0
 """ln of a ratio of channel gains × reflectances: e^50 ≈ 5·10²¹, far beyond any sensor's range."""
 MAX_DN = 1e12
 """Raw values (DN, or a float camera's units): 32-bit sensors reach 4.3·10⁹."""
+MAX_SATURATION = float(np.finfo(np.float32).max)
+"""A float camera's frames clip only where float32 does (uwcam calibrate's default for them)."""
 MAX_PIXELS = 100_000.0
 """Pixels: image coordinates and focal lengths of any camera stay below this."""
 MAX_DISTANCE_M = 1000.0
@@ -179,7 +181,7 @@ class CalibrationProfile(Strict):
     """Name of the channel whose attenuation and constant the others are relative to."""
     channels: Annotated[list[ChannelCalibration], Field(min_length=2)]
     """Per-channel calibration in the order the camera delivers channels."""
-    saturation_level: Bounded(0.0, MAX_DN, low_open=True)
+    saturation_level: Bounded(0.0, MAX_SATURATION, low_open=True)
     """Raw value (DN) at or above which a pixel is clipped."""
     quantisation_step: DigitalNumber = 1.0
     """Size of one code in DN (0 for float data, which a camera delivering integers refuses);
