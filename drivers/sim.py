@@ -11,9 +11,10 @@ from __future__ import annotations
 import threading
 import time
 from dataclasses import dataclass, field, replace
-from typing import Callable, NamedTuple
+from typing import Annotated, Callable, NamedTuple
 
 import numpy as np
+from pydantic import Field
 from numpy.typing import NDArray
 
 from uwcam.drivers.base import (
@@ -27,6 +28,9 @@ from uwcam.drivers.base import (
     Frame,
     FrameTimeout,
 )
+from uwcam.drivers.options import DriverOptions as _DriverOptions
+from uwcam.drivers.options import Flag as _Flag
+from uwcam.drivers.options import Real as _Real
 from uwcam.rig import builtin_rig_path, load_rig
 from uwcam.simulation import Ambient, CameraModel, Lamp, SimulatedWorld, water_preset
 from uwcam.jit import set_threads
@@ -263,6 +267,15 @@ class SimulatedRig:
 
 class SimulatedCamera(CameraDriver):
     """Frames of a :class:`SimulatedRig` at ``fps``, paced on the monotonic clock."""
+
+    class Options(_DriverOptions):
+        """What ``camera.options`` may hold for ``driver: sim`` (the rig itself is set under
+        ``simulation:``): checked alike by ``uwcam config check`` and ``uwcam run``."""
+
+        fps: Annotated[_Real, Field(gt=0, le=1000)] = 10.0
+        """Frames per second."""
+        serial_number: Annotated[str, Field(min_length=1, max_length=64)] | None = "SIM-0001"
+        one_exposure: _Flag = False
 
     name = "sim"
     exposure_control = "per-channel"

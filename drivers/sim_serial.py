@@ -28,6 +28,49 @@ from uwcam.drivers.sim import SimulatedRig
 log = logging.getLogger(__name__)
 
 
+FOLDER_PREFIX = "uwcam-pty-"
+"""Then the owning process's id and a random part: a folder whose owner is gone (killed, so it
+could not clean up) is removed by the next simulated device that starts."""
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process
+        return True
+    return True
+
+
+def remove_stale_folders(folder: str | None = None, min_age_s: float = 60.0) -> list[str]:
+    """Remove the pty folders that simulated devices of dead processes left in the temporary
+    folder (a process killed with SIGKILL cannot remove its own); returns what was removed. A
+    folder is stale when its owner's process is gone, or, for folders without an owner in their
+    name, when it holds nothing but links to ptys that no longer exist and is ``min_age_s`` old."""
+    import time
+
+    removed = []
+    for path in Path(folder or tempfile.gettempdir()).glob(f"{FOLDER_PREFIX}*"):
+        try:
+            owner = path.name[len(FOLDER_PREFIX):].split("-", 1)[0]
+            entries = list(path.iterdir())
+            if owner.isdigit():
+                stale = int(owner) != os.getpid() and not _alive(int(owner))
+            else:
+                stale = time.time() - path.stat().st_mtime > min_age_s and all(
+                    e.is_symlink() and not e.exists() for e in entries)
+            if not stale or any(not e.is_symlink() for e in entries):
+                continue  # not ours to judge, or something else was put there: leave it
+            for e in entries:
+                e.unlink()
+            path.rmdir()
+            removed.append(str(path))
+        except OSError:  # another process removed it meanwhile, or it is not ours
+            continue
+    return removed
+
+
 class PtyDevice:
     """A device on the master side of a pty, serving the slave side at ``path``."""
 
@@ -36,7 +79,9 @@ class PtyDevice:
     def __init__(self, rig: SimulatedRig | None = None, folder: str | None = None) -> None:
         self.rig = rig or SimulatedRig()
         self._own_folder = folder is None  # made here, so removed here when the device stops
-        self._folder = Path(folder or tempfile.mkdtemp(prefix="uwcam-pty-"))
+        if folder is None:
+            remove_stale_folders()
+        self._folder = Path(folder or tempfile.mkdtemp(prefix=f"{FOLDER_PREFIX}{os.getpid()}-"))
         self.path = str(self._folder / self.name)
         self._lock = threading.Lock()
         self._stop_r, self._stop_w = os.pipe()  # wakes the select when stopping

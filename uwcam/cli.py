@@ -67,10 +67,34 @@ def default_saturation(dtype: np.dtype) -> float:
     return float(np.finfo(np.float32).max)
 
 
+def check_calibration_frames(paths: list, frames: list[np.ndarray], distances: list[float]) -> None:
+    """UserInputError, naming the image, unless the frames can be calibrated from: one camera's
+    (same channels, same data type), each holding finite values, and not all alike when their
+    distances differ (no attenuation can be seen then: the lamp did not light the target)."""
+    first, n = paths[0], frames[0].shape[-1]
+    for p, f in zip(paths, frames):
+        if f.shape[-1] != n:
+            raise UserInputError(f"image {p} has {f.shape[-1]} channels but {first} has {n}; use images from one camera")
+        if f.dtype != frames[0].dtype:
+            raise UserInputError(f"image {p} holds {f.dtype} values but {first} holds {frames[0].dtype}; use images "
+                                 "from one camera, saved the same way")
+        finite = float(np.isfinite(f).mean()) if np.issubdtype(f.dtype, np.floating) else 1.0
+        if finite < 0.5:  # the fit averages regions: NaN in them leaves nothing to fit
+            raise UserInputError(f"image {p} holds {100 * (1 - finite):.0f} % NaN or infinite values; use the camera's "
+                                 "frames, with finite values at the target")
+    if len(set(distances)) > 1 and all(f.shape == frames[0].shape and np.array_equal(f, frames[0], equal_nan=True)
+                                       for f in frames[1:]):
+        raise UserInputError("the images are all alike although their distances differ, so no attenuation can be "
+                             "measured; image the lit target at each distance")
+
+
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from uwcam.calibration import CalibrationInputs, calibrate_with_details, project_plate_box
+    from pydantic import ValidationError
+
+    from uwcam.fileio import explain_validation_error
     from uwcam.imageio import read_frame
-    from uwcam.profile import save_profile
+    from uwcam.profile import MAX_DISTANCE_M, MAX_LAMP_OFFSET_M, check_intrinsics_fit, save_profile
     from uwcam.rig import load_rig, resolve_reflectance
 
     out = Path(args.output)
@@ -86,11 +110,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     for d in distances:
         if not (np.isfinite(d) and d > 0):
             raise UserInputError(f"--distance must be a positive number of metres, got {d}")
+        if d > MAX_DISTANCE_M:
+            raise UserInputError(f"--distance {d:g} m is farther than a lamp lights a target in water; give metres, "
+                                 f"at most {MAX_DISTANCE_M:g}")
     frames = [read_frame(p) for p in args.images]
+    check_calibration_frames(args.images, frames, distances)
     n = frames[0].shape[-1]
-    for p, f in zip(args.images, frames):
-        if f.shape[-1] != n:
-            raise UserInputError(f"image {p} has {f.shape[-1]} channels but {args.images[0]} has {n}; use images from one camera")
     names, wavelengths = parse_channels(args.channels, n)
     curve = None
     if args.response:
@@ -104,7 +129,15 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     intrinsics = Intrinsics(*parse_floats(args.intrinsics, "--intrinsics", 4)) if args.intrinsics else None
     if intrinsics is not None and not (intrinsics.fx > 0 and intrinsics.fy > 0):
         raise UserInputError("--intrinsics focal lengths FX and FY must be positive")
+    if intrinsics is not None:
+        h, w = frames[0].shape[:2]
+        try:
+            check_intrinsics_fit({"fx": intrinsics.fx, "fy": intrinsics.fy, "cx": intrinsics.cx, "cy": intrinsics.cy}, w, h)
+        except ValueError as exc:
+            raise UserInputError(f"--intrinsics: {exc}") from None
     lamp = tuple(parse_floats(args.lamp_offset, "--lamp-offset", 3)) if args.lamp_offset else (0.0, 0.0, 0.0)
+    if any(abs(v) > MAX_LAMP_OFFSET_M for v in lamp):
+        raise UserInputError(f"--lamp-offset values are metres from the camera, at most {MAX_LAMP_OFFSET_M:g}, got {args.lamp_offset}")
 
     rig = load_rig(resolve_rig_path(args.rig)) if args.rig else None
     target_reflectance = np.ones(n)
@@ -163,8 +196,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         step = 0.0
         if raw_dtype != np.uint8 and args.response not in ("srgb", "rec709"):
             raise UserInputError("a recovered response curve applies to 8-bit frames")
-    if args.lamp_radius is not None and args.lamp_radius < 0:
-        raise UserInputError("--lamp-radius must be zero (a point source) or a positive number of metres")
+    if args.lamp_radius is not None and not 0 <= args.lamp_radius <= MAX_LAMP_OFFSET_M:
+        raise UserInputError(f"--lamp-radius must be zero (a point source) or a positive number of metres up to "
+                             f"{MAX_LAMP_OFFSET_M:g}, got {args.lamp_radius}")
 
     inputs = CalibrationInputs(
         channel_names=names,
@@ -191,7 +225,14 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             raise UserInputError(f"--report {report} must be an .html file")
         if not report.parent.exists():
             raise UserInputError(f"output folder {report.parent} of --report does not exist")
-    details = calibrate_with_details(frames, distances, inputs)
+    try:
+        details = calibrate_with_details(frames, distances, inputs)
+    except ValidationError as exc:  # the fit's result is outside what a profile may hold
+        raise UserInputError(explain_validation_error(exc, "the images do not give a usable calibration")
+                             + "; check that the lamp lights the target and that each --distance is right") from None
+    except np.linalg.LinAlgError as exc:
+        raise UserInputError(f"the images do not give a usable calibration ({exc}); check that the target region "
+                             "holds finite, lit values in every image") from None
     profile = details.profile
     if curve is not None:
         from uwcam.profile import ResponseRecord
@@ -466,6 +507,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         except ValidationError as exc:
             raise UserInputError(explain_validation_error(exc, "command line").replace("key 'api.", "option '--")) from None
     check_devices(config)
+    from uwcam.api import required_token
+
+    required_token(config)  # before the socket is bound: no listening beyond loopback without a token
     if args.record:
         if os.path.exists(args.record):
             raise UserInputError(f"{args.record} exists; give a new file name (recordings are never overwritten)")
@@ -544,9 +588,30 @@ def cmd_reprocess(args: argparse.Namespace) -> int:
     if not 0.01 <= args.part_mb <= 1e5:
         raise UserInputError(f"--part-mb must be 0.01 to 100000, got {args.part_mb}")
     outputs = reprocess(args.inputs, args.output, profile=args.profile, scheduler=args.scheduler,
-                        workers=args.workers, progress=not args.quiet, part_mb=args.part_mb)
+                        workers=args.workers, progress=not args.quiet, part_mb=args.part_mb,
+                        skip_corrupt=args.skip_corrupt, warn=lambda text: print(f"uwcam reprocess: warning: {text}",
+                                                                               file=sys.stderr))
     for path in outputs:
         print(f"wrote {path}")
+    return 0
+
+
+def cmd_repair(args: argparse.Namespace) -> int:
+    from uwcam import recording as rec
+
+    for path in args.recordings:
+        if not Path(path).is_file():
+            raise UserInputError(f"recording {path} does not exist")
+        if rec.is_complete(path):
+            print(f"{path} is complete; left as it is")
+            continue
+        try:
+            kept = rec.repair(path)
+        except rec.RecordingError as exc:
+            raise UserInputError(str(exc)) from None
+        except OSError as exc:
+            raise UserInputError(f"cannot repair {path}: {exc.strerror}") from None
+        print(f"repaired {path}: {kept} bytes of complete records kept, the unfinished rest removed")
     return 0
 
 
@@ -690,7 +755,14 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--part-mb", type=float, default=64.0, metavar="MB",
                      help="megabytes of recording per unit of work, cut at MCAP chunks (default 64)")
     rep.add_argument("--quiet", action="store_true", help="no progress bar")
+    rep.add_argument("--skip-corrupt", action="store_true",
+                     help="reprocess a recording with damaged chunks (failing their CRC check), leaving them out; "
+                          "without it such a recording is refused")
     rep.set_defaults(func=cmd_reprocess)
+
+    fix = sub.add_parser("repair", help="make unfinished recordings (writer killed, disk full) readable, in place")
+    fix.add_argument("recordings", nargs="+", metavar="FILE.mcap")
+    fix.set_defaults(func=cmd_repair)
 
     cfg = sub.add_parser("config", help="configuration tools")
     cfg_sub = cfg.add_subparsers(dest="config_command", required=True, metavar="ACTION")

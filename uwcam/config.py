@@ -475,6 +475,13 @@ class DaemonConfig(Strict):
 
     @model_validator(mode="after")
     def _calibration_needed(self) -> "DaemonConfig":
+        from uwcam.drivers.registry import known
+
+        # An unknown driver first: asking for a calibration of a camera uwcam cannot drive misleads.
+        for kind, device in (("camera", self.camera), ("lamp", self.lamp), ("rangefinder", self.rangefinder)):
+            if device is not None and device.driver not in known(kind):
+                raise ValueError(f"{kind}.driver: unknown {kind} driver '{device.driver}'; known {kind} drivers: "
+                                 f"{', '.join(known(kind))}")
         if self.calibration is None and self.camera.driver != "sim":
             raise ValueError("calibration: give the path of a calibration profile (uwcam calibrate makes one)")
         if self.processing.lamp_off_interval and self.lamp is None:

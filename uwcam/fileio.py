@@ -39,6 +39,16 @@ def atomic_write(path: str | os.PathLike[str], mode: str = "wb") -> Iterator[IO[
         raise
 
 
+SAFE_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+"""libyaml's parser where PyYAML has it (about 9× less CPU than the pure-Python one: a 1 MB
+profile upload held the interpreter for seconds and the frame rate fell), the same safe types."""
+
+
+def safe_load(text: str | bytes) -> Any:
+    """``yaml.safe_load`` with :data:`SAFE_LOADER`."""
+    return yaml.load(text, Loader=SAFE_LOADER)  # noqa: S506 (a safe loader)
+
+
 def load_yaml_mapping(path: str | os.PathLike[str], what: str) -> dict[str, Any]:
     """Read a YAML file that must hold a mapping; errors name the file and the problem."""
     try:
@@ -48,7 +58,7 @@ def load_yaml_mapping(path: str | os.PathLike[str], what: str) -> dict[str, Any]
     except UnicodeDecodeError:
         raise UserInputError(f"{what} {path} is not a UTF-8 text file; give a YAML file") from None
     try:
-        data = yaml.safe_load(text)
+        data = safe_load(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""

@@ -16,11 +16,18 @@ log = logging.getLogger(__name__)
 
 
 class LampCommander:
-    """Drives ``lamp.on()``/``lamp.off()`` in a thread of its own; the newest request wins."""
+    """Drives ``lamp.on()``/``lamp.off()`` in a thread of its own; the newest request wins.
 
-    def __init__(self, lamp: object, backoff_s: tuple[float, float] = (0.25, 10.0)) -> None:
+    With no command to send for ``poll_s`` seconds, it asks the lamp for its status, so that a
+    lamp which falls silent while nothing is commanded shows as not answering within about
+    ``poll_s`` plus the lamp's reply timeout (its health, in /api/v1/status and on the page),
+    as the camera's watchdog and the rangefinder's readings do for theirs."""
+
+    def __init__(self, lamp: object, backoff_s: tuple[float, float] = (0.25, 10.0), poll_s: float = 2.0) -> None:
         self.lamp = lamp
         self.backoff_s = backoff_s
+        self.poll_s = poll_s
+        self._polls = 0
         self._cond = threading.Condition()
         self._want: bool | None = None  # guarded by _cond
         self._requested = 0
@@ -74,14 +81,32 @@ class LampCommander:
         if self._thread is not None:
             self._thread.join(timeout=10.0)
 
+    @property
+    def polls(self) -> int:
+        """Status queries made while no command was due."""
+        with self._cond:
+            return self._polls
+
+    def _poll(self) -> None:
+        """Ask the lamp for its status; its driver records in its health whether it answered."""
+        try:
+            self.lamp.status()
+        except Exception as exc:  # the driver's health says so; the loop goes on
+            log.debug("lamp status query failed: %s", exc)
+        with self._cond:
+            self._polls += 1
+
     def _run(self) -> None:
         delay = self.backoff_s[0]
         while not self._stop.is_set():
             with self._cond:
-                self._cond.wait_for(lambda: self._want is not None or self._stop.is_set())
+                self._cond.wait_for(lambda: self._want is not None or self._stop.is_set(), timeout=self.poll_s)
                 if self._stop.is_set():
                     return
                 want, ticket = self._want, self._requested
+            if want is None:
+                self._poll()
+                continue
             try:
                 self.lamp.on() if want else self.lamp.off()
             except Exception as exc:  # not answering, unplugged, refusing: retry later, loop unaffected

@@ -31,7 +31,7 @@ from uwcam.optics.geometry import Intrinsics, path_length_from_camera_range, pix
 from uwcam.optics.orientation import (beam_pattern, block_irradiance, block_means, incidence_from_blocks, normals_from_range,
                                       surface_scale)
 from uwcam.optics.reflectance import surface_log_constant
-from uwcam.profile import CalibrationProfile
+from uwcam.profile import CalibrationProfile, check_intrinsics_fit
 from uwcam.ranging import RangeEstimator, RangeResult, range_frame
 
 QUEUED_FRAME_BUDGET_S = 0.030
@@ -421,6 +421,8 @@ class FramePipeline:
         self._compensation_ms: collections.deque[float] = collections.deque(maxlen=100)
         self._frame_shape: tuple[int, ...] | None = None
         """(H, W, N) of the last frame taken, for building the compensator before it is needed."""
+        self._frame_integer: bool | None = None
+        """Whether the last frame taken held integer DN (None: no frame yet), to check profiles against."""
         self._lock = threading.Lock()  # guards configuration swaps and the published result
         self._apply(processing, profile)
         self.previous_processing: ProcessingConfig | None = None
@@ -451,6 +453,12 @@ class FramePipeline:
         if processing.exposure is not None and control not in ("per-channel", "common"):
             raise ValueError("exposure control needs a camera whose exposure can be set while streaming "
                              f"(driver '{getattr(getattr(self.camera, 'driver', None), 'name', '?')}' cannot)")
+        if self._frame_shape is not None:
+            check_intrinsics_fit(profile.intrinsics, self._frame_shape[1], self._frame_shape[0])
+        # A response curve gives each code its own width (uwcam.response): its step 0 is right.
+        if self._frame_integer and profile.quantisation_step == 0 and profile.response is None:
+            raise ValueError(f"profile '{profile.name}' has quantisation_step 0 (float data) but the camera delivers "
+                             "integer values; calibrate with this camera")
         estimator = RangeEstimator(profile, pair=processing.pair, path_length_bounds=processing.path_length_bounds)
         tracker = PatchTracker(processing.patch, profile) if processing.patch else None
         beam = processing.orientation.beam_half_angle_deg if processing.orientation else None
@@ -798,6 +806,7 @@ class FramePipeline:
 
     def _process(self, frame: Frame) -> None:
         self._frame_shape = frame.data.shape
+        self._frame_integer = bool(np.issubdtype(frame.data.dtype, np.integer))
         if frame.lamp_on is None and self.lamp is not None:
             # The camera cannot know: record the lamp's last reported state with the frame.
             last = getattr(self.lamp, "last_status", None)

@@ -31,6 +31,39 @@ PROFILE_VERSION = 2
 NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 
+# Physical bounds of every number a profile holds: a finite but absurd value (fx = 1e308, a
+# backscatter distance of 1e300) is refused with the key and the bound, on upload, on load and
+# when `uwcam calibrate` writes one, rather than changing the live range.
+MAX_ATTENUATION_PER_M = 100.0
+"""1/m: beam attenuation of the murkiest harbour water is tens per metre (light falls e-fold in a
+centimetre at 100); differences between channels are bounded by it too."""
+MAX_LOG_CONSTANT = 50.0
+"""ln of a ratio of channel gains × reflectances: e^50 ≈ 5·10²¹, far beyond any sensor's range."""
+MAX_DN = 1e12
+"""Raw values (DN, or a float camera's units): 32-bit sensors reach 4.3·10⁹."""
+MAX_SATURATION = float(np.finfo(np.float32).max)
+"""A float camera's frames clip only where float32 does (uwcam calibrate's default for them)."""
+MAX_PIXELS = 100_000.0
+"""Pixels: image coordinates and focal lengths of any camera stay below this."""
+MAX_DISTANCE_M = 1000.0
+"""Metres: no lamp lights a target further away in water."""
+MAX_LAMP_OFFSET_M = 10.0
+"""Metres: the lamp is mounted on the vehicle."""
+
+
+def Bounded(low: float, high: float, low_open: bool = False) -> Any:  # noqa: N802 (a type factory)
+    """A finite float in [low, high] (or (low, high] with ``low_open``)."""
+    return Annotated[float, Field(gt=low, le=high, allow_inf_nan=False) if low_open
+                     else Field(ge=low, le=high, allow_inf_nan=False)]
+
+
+Attenuation = Bounded(-MAX_ATTENUATION_PER_M, MAX_ATTENUATION_PER_M)
+LogConstant = Bounded(-MAX_LOG_CONSTANT, MAX_LOG_CONSTANT)
+DigitalNumber = Bounded(0.0, MAX_DN)
+Pixel = Bounded(-MAX_PIXELS, MAX_PIXELS)
+Distance = Bounded(0.0, MAX_DISTANCE_M)
+LampOffset = Bounded(-MAX_LAMP_OFFSET_M, MAX_LAMP_OFFSET_M)
+
 
 class Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -41,31 +74,31 @@ class ChannelCalibration(Strict):
 
     name: Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z0-9_\-]+$")]
     """Channel name, e.g. R, G, B or a band name."""
-    wavelength_nm: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
+    wavelength_nm: Bounded(100.0, 3000.0) | None = None
     """Centre wavelength in nanometres, if known."""
-    attenuation_difference: Finite
+    attenuation_difference: Attenuation
     """c_k − c_ref in 1/m (0 for the reference channel)."""
-    attenuation_difference_std: NonNegative = 0.0
+    attenuation_difference_std: Bounded(0.0, MAX_ATTENUATION_PER_M) = 0.0
     """Standard uncertainty of attenuation_difference, 1/m."""
-    log_constant: Finite
+    log_constant: LogConstant
     """b_k = ln(K_k ρ_k / K_ref ρ_ref) for the calibration target (0 for the reference)."""
-    log_constant_std: NonNegative = 0.0
+    log_constant_std: Bounded(0.0, MAX_LOG_CONSTANT) = 0.0
     """Standard uncertainty of log_constant."""
-    attenuation: NonNegative | None = None
+    attenuation: Bounded(0.0, MAX_ATTENUATION_PER_M) | None = None
     """Absolute beam attenuation c_k in 1/m, when a lamp spreading model was given."""
     target_reflectance: Annotated[float, Field(gt=0, le=1)] = 1.0
     """Reflectance of the calibration target in this channel (only ratios matter)."""
-    dark_level: NonNegative = 0.0
+    dark_level: DigitalNumber = 0.0
     """Dark/black level in DN, subtracted from raw values before anything else."""
-    read_noise: NonNegative = 0.0
+    read_noise: DigitalNumber = 0.0
     """Read noise, DN rms."""
-    shot_gain: NonNegative = 0.0
+    shot_gain: DigitalNumber = 0.0
     """Shot-noise variance per DN of signal (DN per photo-electron)."""
-    fixed_pattern: NonNegative = 0.0
+    fixed_pattern: Bounded(0.0, 1.0) = 0.0
     """Pixel response non-uniformity: relative rms of the fixed pattern (0.01 = 1 %), variance (fixed_pattern·E)²."""
-    noise_floor: NonNegative = 0.0
+    noise_floor: DigitalNumber = 0.0
     """Dark-corrected signal in DN at or below which the channel carries no surface signal (0: not measured)."""
-    exposure_us: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
+    exposure_us: Bounded(0.0, 1e9, low_open=True) | None = None
     """Exposure time (µs) of this channel in the calibration frames; None: not recorded (then
     every channel is taken to have had the same exposure)."""
     gain_db: Annotated[float, Field(ge=-100, le=100, allow_inf_nan=False)] | None = None
@@ -79,36 +112,36 @@ class Provenance(Strict):
     """ISO 8601 time the profile was made."""
     method: str
     """How attenuation differences were found."""
-    distances_m: list[Finite] = []
+    distances_m: list[Distance] = []
     """Camera-to-target distances along the optical axis, metres (one per distance imaged)."""
-    frames_per_distance: list[Annotated[int, Field(ge=1)]] = []
+    frames_per_distance: list[Annotated[int, Field(ge=1, le=1_000_000)]] = []
     """Frames averaged at each distance (empty: one each)."""
-    path_lengths_m: list[Finite] = []
+    path_lengths_m: list[Bounded(0.0, 2 * MAX_DISTANCE_M)] = []
     """Mean lamp→target→camera path length over the target region at each distance, metres."""
     images: list[str] = []
     """The images used, in order."""
     target: str = "spectrally flat target"
     """What was imaged."""
-    roi: list[int] | None = None
+    roi: list[Annotated[int, Field(ge=0, le=int(MAX_PIXELS))]] | None = None
     """Target region x, y, width, height in pixels; None: the whole image."""
-    residuals: dict[str, list[float]] = {}
+    residuals: dict[str, list[Bounded(-1e3, 1e3)]] = {}
     """Per channel, residual of ln(E_k/E_ref) at each distance after the fit."""
-    rms_residual: NonNegative = 0.0
+    rms_residual: Bounded(0.0, 1e3) = 0.0
     """Root mean square of all residuals (natural-log units)."""
 
 
 class BackscatterSamples(Strict):
     """Backscatter measured at the calibration plate's black patch, for compensation in ranging."""
 
-    distances_m: Annotated[list[Annotated[float, Field(gt=0, allow_inf_nan=False)]], Field(min_length=1)]
+    distances_m: Annotated[list[Bounded(0.0, MAX_DISTANCE_M, low_open=True)], Field(min_length=1)]
     """Depth (camera z) of the plate in each calibration image, metres."""
-    patch_pixels: list[tuple[float, float]]
+    patch_pixels: list[tuple[Pixel, Pixel]]
     """Pixel (x, y) at the centre of the black patch in each image."""
-    levels: dict[str, list[NonNegative]]
+    levels: dict[str, list[DigitalNumber]]
     """Per channel, dark-corrected backscatter (DN) at the patch in each image."""
-    noise_sigma: dict[str, NonNegative]
+    noise_sigma: dict[str, DigitalNumber]
     """Per channel, pixel noise σ (DN) at the black patch: the floor once backscatter is subtracted is 3σ."""
-    exposure_scale: list[Annotated[float, Field(gt=0)]] = []
+    exposure_scale: list[Bounded(0.0, 1e6, low_open=True)] = []
     """Relative exposure of each image (levels are divided by it); 1 when exposure was fixed."""
 
 
@@ -121,7 +154,7 @@ class CalibrationCovariance(Strict):
 
     parameters: Annotated[list[str], Field(min_length=2)]
     """Row and column names, e.g. [V:G, V:B, b:G, b:B]."""
-    matrix: list[list[Finite]]
+    matrix: list[list[Bounded(-1e4, 1e4)]]
     """Symmetric positive semi-definite matrix, units (1/m)², 1/m and 1 as the names say."""
 
     @model_validator(mode="after")
@@ -170,16 +203,18 @@ class CalibrationProfile(Strict):
     """Name of the channel whose attenuation and constant the others are relative to."""
     channels: Annotated[list[ChannelCalibration], Field(min_length=2)]
     """Per-channel calibration in the order the camera delivers channels."""
-    saturation_level: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+    saturation_level: Bounded(0.0, MAX_SATURATION, low_open=True)
     """Raw value (DN) at or above which a pixel is clipped."""
-    quantisation_step: NonNegative = 1.0
-    """Size of one code in DN (0 for float data)."""
-    lamp_position_m: tuple[Finite, Finite, Finite] = (0.0, 0.0, 0.0)
+    quantisation_step: DigitalNumber = 1.0
+    """Size of one code in DN (0 for float data, which a camera delivering integers refuses);
+    below the saturation level."""
+    lamp_position_m: tuple[LampOffset, LampOffset, LampOffset] = (0.0, 0.0, 0.0)
     """Lamp position in the camera frame (x right, y down, z forward), metres."""
-    lamp_radius_m: NonNegative | None = None
+    lamp_radius_m: Bounded(0.0, MAX_LAMP_OFFSET_M) | None = None
     """Effective lamp radius sqrt(A0/Ω) in metres used for absolute attenuation, if any."""
-    intrinsics: dict[str, Annotated[float, Field(allow_inf_nan=False)]] | None = None
-    """Pinhole intrinsics fx, fy, cx, cy in pixels."""
+    intrinsics: dict[str, Pixel] | None = None
+    """Pinhole intrinsics fx, fy, cx, cy in pixels (fx, fy > 0); checked against the camera's
+    image size when the profile is put in use (:func:`check_intrinsics_fit`)."""
     backscatter: BackscatterSamples | None = None
     """Backscatter measured during calibration (when the target had a black patch)."""
     covariance: CalibrationCovariance | None = None
@@ -221,6 +256,14 @@ class CalibrationProfile(Strict):
                 raise ValueError(f"intrinsics need exactly fx, fy, cx, cy, got {sorted(self.intrinsics)}")
             if not (self.intrinsics["fx"] > 0 and self.intrinsics["fy"] > 0):
                 raise ValueError("intrinsics fx and fy must be positive")
+        for c in self.channels:
+            for key in ("dark_level", "noise_floor", "read_noise"):
+                if getattr(c, key) >= self.saturation_level:
+                    raise ValueError(f"channel {c.name}: {key} {getattr(c, key):g} DN must be below the saturation "
+                                     f"level {self.saturation_level:g} DN")
+        if self.quantisation_step >= self.saturation_level:
+            raise ValueError(f"quantisation_step {self.quantisation_step:g} DN must be below the saturation level "
+                             f"{self.saturation_level:g} DN")
         return self
 
     # Convenience views as arrays, in channel order.
@@ -345,3 +388,18 @@ def save_profile(profile: CalibrationProfile, path: str | os.PathLike[str]) -> N
 
 def now_iso() -> str:
     return dt.datetime.now(dt.timezone.utc).replace(microsecond=0).isoformat()
+
+
+def check_intrinsics_fit(k: dict[str, float] | None, width: int, height: int) -> None:
+    """ValueError unless intrinsics ``k`` (fx, fy, cx, cy in pixels; None: none) suit images of ``width`` × ``height`` pixels: the
+    principal point within an image size of the image, focal lengths between a hundredth and a
+    hundred image sizes (a fisheye's is about a third, a narrow telephoto's a few)."""
+    if k is None:
+        return
+    size = max(width, height)
+    if not (-width <= k["cx"] <= 2 * width and -height <= k["cy"] <= 2 * height):
+        raise ValueError(f"intrinsics cx {k['cx']:g}, cy {k['cy']:g} px lie far outside the camera's "
+                         f"{width}×{height} image; calibrate with this camera")
+    if not all(size / 100 <= k[f] <= 100 * size for f in ("fx", "fy")):
+        raise ValueError(f"intrinsics fx {k['fx']:g}, fy {k['fy']:g} px do not suit the camera's {width}×{height} image "
+                         f"(between {size / 100:g} and {100 * size:g} px); calibrate with this camera")

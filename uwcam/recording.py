@@ -371,6 +371,15 @@ def open_reader(stream: IO[bytes]):
     return make_reader(stream, decoder_factories=[DecoderFactory(), _JsonDecoderFactory()])
 
 
+def open_checked_reader(stream: IO[bytes], skip_offsets: tuple[int, ...] = ()):
+    """Like :func:`open_reader`, but never reading a damaged chunk (:mod:`uwcam.chunk_check`)."""
+    from mcap_protobuf.decoder import DecoderFactory
+
+    from uwcam.chunk_check import CheckedReader
+
+    return CheckedReader(stream, skip_offsets, decoder_factories=[DecoderFactory(), _JsonDecoderFactory()])
+
+
 class _JsonDecoderFactory:
     def decoder_for(self, message_encoding: str, schema: Any):
         if message_encoding == "json":

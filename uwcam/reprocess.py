@@ -16,6 +16,7 @@ water) and the surface's log constants relative to the target's (a surface of an
 
 from __future__ import annotations
 
+import logging
 import os
 import tempfile
 from functools import partial
@@ -26,12 +27,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from uwcam import recording as rec
+from uwcam.chunk_check import CorruptChunk, find_corrupt_chunks
 from uwcam.fileio import UserInputError
 from uwcam.outputs.recorder import to_depth
 from uwcam.profile import CalibrationProfile, load_profile, profile_to_yaml
 from uwcam.ranging import RangeEstimator, range_frame
 
 END_OF_TIME = 2**63 - 1
+DECIMATED = object()
+"""Marks a frame whose raw image the recorder left out to fit its disk budget (not a loss)."""
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -41,6 +46,8 @@ class Part:
     path: str
     start_ns: int
     end_ns: int
+    skip_offsets: tuple[int, ...] = ()
+    """Byte offsets of chunks that failed their CRC check: never read."""
 
 
 @dataclass
@@ -65,6 +72,8 @@ class PartResult:
     frames: list[FrameResult] = field(default_factory=list)
     profiles: dict[str, str] = field(default_factory=dict)
     """Profiles used, by name, as YAML (attached to the output)."""
+    skipped: list[tuple[int, str]] = field(default_factory=list)
+    """Ranged frames not ranged again: (log time ns, why)."""
 
 
 def _open(path: str):
@@ -76,9 +85,16 @@ def _open(path: str):
 
 
 def _summary(path: str):
-    """The MCAP summary (None for a file without one); UserInputError if it is no MCAP file."""
+    """The MCAP summary (None for a file without one); UserInputError if it is no MCAP file, or
+    one its writer never finished (saying how to repair it)."""
     from mcap.exceptions import McapError
 
+    if not rec.is_complete(path):
+        with _open(path) as fh:
+            is_mcap = fh.read(8) == b"\x89MCAP0\r\n"
+        if is_mcap:
+            raise UserInputError(f"{path} was never finished (its recorder was stopped before closing it, e.g. killed "
+                                 f"or out of disk space); repair it with `uwcam repair {path}`, then reprocess it")
     with _open(path) as fh:
         try:
             return rec.open_reader(fh).get_summary()
@@ -101,14 +117,14 @@ def ranged_frame_count(path: str) -> int:
     return min(count(rec.RANGING), count(rec.IMAGE))
 
 
-def plan(path: str, part_mb: float = 64.0) -> list[Part]:
+def plan(path: str, part_mb: float = 64.0, skip_offsets: tuple[int, ...] = ()) -> list[Part]:
     """Cut a recording into parts of about ``part_mb`` megabytes of (uncompressed) chunks each,
     at chunk boundaries, by the chunks' start times: big enough that opening the file and
     building the estimator are small beside the ranging, small enough to spread a dive over
     many workers. A file without a chunk index (a repaired one) is a single part."""
     summary = _summary(path)
     if summary is None or not summary.chunk_indexes:
-        return [Part(path, 0, END_OF_TIME)]
+        return [Part(path, 0, END_OF_TIME, skip_offsets)]
     chunks = sorted(summary.chunk_indexes, key=lambda c: c.message_start_time)
     bounds, size = [0], 0
     for chunk in chunks:
@@ -116,7 +132,7 @@ def plan(path: str, part_mb: float = 64.0) -> list[Part]:
             bounds.append(chunk.message_start_time)
             size = 0
         size += chunk.uncompressed_size
-    return [Part(path, a, b) for a, b in zip(bounds, bounds[1:] + [END_OF_TIME])]
+    return [Part(path, a, b, skip_offsets) for a, b in zip(bounds, bounds[1:] + [END_OF_TIME])]
 
 
 def _corrected(profile: CalibrationProfile, recorded: CalibrationProfile | None, record: dict) -> tuple[NDArray, NDArray]:
@@ -176,7 +192,7 @@ def process_part(part: Part, profile_yaml: str | None = None, kernel_threads: in
     estimators: dict[tuple, RangeEstimator] = {}
     factors: dict[tuple, NDArray] = {}
     with _open(part.path) as fh:
-        reader = rec.open_reader(fh)
+        reader = rec.open_checked_reader(fh, part.skip_offsets)
         recorded = rec.read_profiles(reader)
         ambient = None
         open_water = None
@@ -200,7 +216,8 @@ def process_part(part: Part, profile_yaml: str | None = None, kernel_threads: in
                 images[t] = rec.decode_raw_image(decoded)
                 continue
             if channel.topic == rec.IMAGE_METADATA:
-                exposures[t] = (decoded.get("exposure_us"), decoded.get("gain_db"))  # per channel, or None
+                exposures[t] = (DECIMATED if not decoded.get("raw_kept", True)  # no image, by design
+                                else (decoded.get("exposure_us"), decoded.get("gain_db")))  # per channel, or None
                 continue
             if channel.topic == rec.AMBIENT:
                 ambient = rec.decode_raw_image(decoded).astype(np.float64)
@@ -211,8 +228,11 @@ def process_part(part: Part, profile_yaml: str | None = None, kernel_threads: in
                 continue
             record, raw = decoded, images.pop(t, None)
             if raw is None:
-                exposures.pop(t, None)
-                continue  # its image was decimated to fit the disk budget, or lost (a write cut short)
+                if exposures.pop(t, None) is DECIMATED:
+                    continue  # its image was left out to fit the disk budget, as the recording says
+                # its image was lost (a write cut short, a damaged chunk): nothing to range
+                out.skipped.append((t, f"frame {record.get('number', '?')}: its raw image is missing"))
+                continue
             was = recorded.get(record["profile"])
             profile = override or was
             if profile is None:
@@ -309,17 +329,55 @@ def output_paths(inputs: list[str], output: str) -> list[str]:
     return paths
 
 
+def corrupt_chunks(path: str) -> list[CorruptChunk]:
+    """The chunks of a recording that fail their CRC check or cannot be read."""
+    _summary(path)  # a readable, finished MCAP file, or the reason why not
+    with _open(path) as fh:
+        return find_corrupt_chunks(fh, rec.RANGING)
+
+
+def describe_corrupt(path: str, bad: list[CorruptChunk]) -> str:
+    """One line: how many chunks are damaged, which ranged frames they held, the first reason."""
+    summary = _summary(path)
+    total = len(summary.chunk_indexes) if summary is not None and summary.chunk_indexes else None
+    known = [t for c in bad if c.frames_ns is not None for t in c.frames_ns]
+    frames = f"{len(known)} ranged frame(s) (log times {_times(known)})" if known else "the frames they hold"
+    if any(c.frames_ns is None for c in bad):
+        frames += f"; frames logged {_times([t for c in bad if c.frames_ns is None for t in (c.start_ns, c.end_ns)])}"
+    return (f"{path}: {len(bad)}{f' of {total}' if total else ''} chunk(s) fail their CRC check (damaged bytes), "
+            f"losing {frames}; first: {bad[0].reason}")
+
+
+def _times(ns: list[int], most: int = 4) -> str:
+    shown = ", ".join(f"{t / 1e9:.3f} s" for t in sorted(ns)[:most])
+    return shown + (f" … ({len(ns)} in all)" if len(ns) > most else "")
+
+
 def reprocess(inputs: Iterable[str], output: str, profile: str | None = None, scheduler: str | None = None,
-              workers: int | None = None, progress: bool = True, part_mb: float = 64.0) -> list[str]:
+              workers: int | None = None, progress: bool = True, part_mb: float = 64.0, skip_corrupt: bool = False,
+              warn: Callable[[str], None] | None = None) -> list[str]:
     """Range recordings again into new MCAP files with depth, variance, reasons and ranging topics.
-    Returns the output paths; each is written to a temporary name and renamed when complete."""
+    Returns the output paths; each is written to a temporary name and renamed when complete.
+
+    Every chunk's CRC is checked first: a recording with damaged chunks is refused
+    (UserInputError, nothing written) unless ``skip_corrupt``, when its damaged chunks are left
+    out. Every ranged frame not ranged again (in a damaged chunk, or its image missing) is told
+    to ``warn`` (default: the log), with why."""
     from tqdm import tqdm
 
+    warn = warn or log.warning
     inputs = list(inputs)
     for p in inputs:
         if not os.path.isfile(p):
             raise UserInputError(f"recording {p} does not exist")
     outputs = output_paths(inputs, output)
+    damaged = {p: corrupt_chunks(p) for p in inputs}
+    for p, bad in damaged.items():
+        if bad and not skip_corrupt:
+            raise UserInputError(describe_corrupt(p, bad) + "; nothing written: give --skip-corrupt to reprocess the "
+                                                            "rest without them")
+        if bad:
+            warn("skipping damaged chunks of " + describe_corrupt(p, bad))
     profile_yaml = None
     if profile is not None:
         profile_yaml = profile_to_yaml(load_profile(profile))
@@ -331,11 +389,11 @@ def reprocess(inputs: Iterable[str], output: str, profile: str | None = None, sc
     bar = Bar(total=total or None, unit="frame", desc="reprocess", disable=not progress, dynamic_ncols=True)
     results = None
     try:
-        parts_by_input = [plan(p, part_mb) for p in inputs]
+        parts_by_input = [plan(p, part_mb, tuple(c.offset for c in damaged[p] if c.offset is not None)) for p in inputs]
         flat = [part for parts in parts_by_input for part in parts]
         results = _in_order(flat, fn, scheduler, workers)
         for parts, out_path in zip(parts_by_input, outputs):
-            _write_output(out_path, (next(results) for _ in parts), bar)
+            _write_output(out_path, (next(results) for _ in parts), bar, warn)
     finally:
         if results is not None:
             results.close()  # on an error too: the Dask client and any local cluster shut down now
@@ -343,7 +401,7 @@ def reprocess(inputs: Iterable[str], output: str, profile: str | None = None, sc
     return outputs
 
 
-def _write_output(path: str, results: Iterable[PartResult], bar) -> None:
+def _write_output(path: str, results: Iterable[PartResult], bar, warn: Callable[[str], None]) -> None:
     folder = os.path.dirname(os.path.abspath(path))
     fd, tmp = tempfile.mkstemp(prefix=".reprocess-", suffix=".mcap", dir=folder)
     os.close(fd)
@@ -374,6 +432,8 @@ def _write_output(path: str, results: Iterable[PartResult], bar) -> None:
                 out.write(rec.VARIANCE, "foxglove.RawImage", fr.variance, t)
                 out.write(rec.REASONS, "foxglove.RawImage", fr.reasons, t)
             bar.update(len(result.frames))
+            for t, why in result.skipped:
+                warn(f"{result.part.path}: skipped the ranged frame logged at {t / 1e9:.3f} s ({why})")
         out.finish()
         os.replace(tmp, path)
     except BaseException:

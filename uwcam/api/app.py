@@ -15,7 +15,6 @@ from contextlib import asynccontextmanager
 from typing import Any
 
 from fastapi import Depends, FastAPI, Request
-from fastapi.encoders import jsonable_encoder
 from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
@@ -58,15 +57,23 @@ ROUTERS = (status.router, snapshots.router, settings.router, profiles.router, la
 
 
 def json_safe(value: Any) -> Any:
-    """``value`` with every NaN or infinity replaced by its name: an error message quoting a
-    user's ``NaN`` must still be valid JSON (strict JSON has no such numbers)."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return str(value)
+    """``value`` as something strict JSON in UTF-8 can always hold: an error message quotes the
+    user's input, and that input may hold NaN or infinity (no such numbers in strict JSON), lone
+    surrogates from ``"\\ud800"`` escapes (no UTF-8 for them: written as ``\\ud800``), or objects
+    JSON has no form for (written as their ``repr``)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else str(value)
+    if isinstance(value, str):
+        return value.encode("utf-8", "backslashreplace").decode("utf-8")
     if isinstance(value, dict):
-        return {k: json_safe(v) for k, v in value.items()}
+        return {json_safe(str(k)): json_safe(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [json_safe(v) for v in value]
-    return value
+    if value is None or isinstance(value, (int, bool)):
+        return value
+    if isinstance(value, bytes):
+        return value.decode("utf-8", "backslashreplace")
+    return json_safe(str(value) if isinstance(value, BaseException) else repr(value))
 
 
 def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
@@ -101,18 +108,14 @@ def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
     app.add_middleware(BodyLimit, limits={profiles.router.prefix + "/": profiles.MAX_PROFILE_BYTES})
     app.add_middleware(ConnectionSocket)  # outermost: it must see the server's own send
 
-    @app.exception_handler(RequestValidationError)
-    async def _invalid(request: Request, exc: RequestValidationError):
-        # The errors quote the input; NaN or Infinity in it cannot be written as JSON.
-        return JSONResponse(status_code=422, content={"detail": _json_safe(exc.errors())})
-
     @app.exception_handler(UserInputError)
     async def _user_error(request: Request, exc: UserInputError):
-        return JSONResponse(status_code=400, content={"error": str(exc)})
+        return JSONResponse(status_code=400, content={"error": json_safe(str(exc))})
 
     @app.exception_handler(RequestValidationError)
     async def _invalid_request(request: Request, exc: RequestValidationError):
-        return JSONResponse(status_code=422, content={"detail": json_safe(jsonable_encoder(exc.errors()))})
+        # The errors quote the input, which may hold what JSON cannot: see json_safe.
+        return JSONResponse(status_code=422, content={"detail": json_safe(exc.errors())})
 
     @app.exception_handler(StarletteHTTPException)
     async def _http_error(request: Request, exc: StarletteHTTPException):
@@ -138,15 +141,3 @@ def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
     app.mount("/static", StaticFiles(packages=[("uwcam", "web")]), name="static")
     return app
 
-
-def _json_safe(value: Any) -> Any:
-    """``value`` with non-finite floats as strings and anything else JSON cannot hold as its repr."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else repr(value)
-    if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    if value is None or isinstance(value, (str, int, bool)):
-        return value
-    return repr(value)

@@ -24,6 +24,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from uwcam.api.common import get_daemon, latest
 from uwcam.calibration_session import CalibrationSession, SessionError
 from uwcam.calibration_session_store import load_session, remove_session, save_session
+from uwcam.config import Flag, Real, Whole  # numbers are numbers: "1" and true are refused, as docs/api.md says
 from uwcam.daemon import Daemon
 from uwcam.fileio import UserInputError
 from uwcam.optics.geometry import Intrinsics
@@ -39,21 +40,21 @@ class Start(BaseModel):
     model_config = ConfigDict(extra="forbid")
     rig: Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]{1,64}$")] = "charuco-plate"
     """A rig shipped in calibration_rigs/, with markers."""
-    intrinsics: tuple[Annotated[float, Field(ge=1, le=1e5)], Annotated[float, Field(ge=1, le=1e5)],
-                      Annotated[float, Field(ge=-1e5, le=1e5)], Annotated[float, Field(ge=-1e5, le=1e5)]] | None = None
+    intrinsics: tuple[Annotated[Real, Field(ge=1, le=1e5)], Annotated[Real, Field(ge=1, le=1e5)],
+                      Annotated[Real, Field(ge=-1e5, le=1e5)], Annotated[Real, Field(ge=-1e5, le=1e5)]] | None = None
     """fx, fy, cx, cy in pixels; default: the active profile's."""
-    frames_per_capture: Annotated[int, Field(ge=1, le=50)] = 4
-    distance_tolerance_m: Annotated[float, Field(gt=0, le=1)] = 0.05
+    frames_per_capture: Annotated[Whole, Field(ge=1, le=50)] = 4
+    distance_tolerance_m: Annotated[Real, Field(gt=0, le=1)] = 0.05
     """How far a typed distance may differ from the markers' and the rangefinder's (at least 2 % of it)."""
 
 
 class CaptureRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    distance_m: Annotated[float, Field(ge=0.05, le=100)]
+    distance_m: Annotated[Real, Field(ge=0.05, le=100)]
     """Camera-to-plate distance along the optical axis, as measured (m)."""
-    frames: Annotated[int, Field(ge=1, le=50)] | None = None
+    frames: Annotated[Whole, Field(ge=1, le=50)] | None = None
     """Frames to take (default: the session's frames_per_capture)."""
-    held_back: bool = False
+    held_back: Flag = False
     """Keep this distance out of the fit, to validate the new profile."""
 
 

@@ -9,7 +9,7 @@ from fastapi import APIRouter, Depends, HTTPException, Request
 
 from uwcam.api.common import get_daemon
 from uwcam.daemon import Daemon
-from uwcam.fileio import UserInputError
+from uwcam.fileio import UserInputError, safe_load
 from uwcam.profile import CalibrationProfile
 
 router = APIRouter(prefix="/api/v1/calibration/profiles", tags=["calibration"])
@@ -41,9 +41,16 @@ def parse_profile(body: bytes, name: str) -> CalibrationProfile:
     from uwcam.profile import profile_from_mapping
 
     try:
-        data = yaml.safe_load(body.decode("utf-8"))
-    except (UnicodeDecodeError, yaml.YAMLError) as exc:
+        data = safe_load(body.decode("utf-8"))
+    except UnicodeDecodeError as exc:
         raise HTTPException(status_code=422, detail=f"profile is not valid YAML or JSON: {exc}") from None
+    except yaml.YAMLError as exc:
+        problem = getattr(exc, "problem", None) or str(exc)
+        if "nesting depth" in problem:  # libyaml's own limit: a profile is a few levels deep
+            raise HTTPException(status_code=422, detail="profile is nested too deeply to be a calibration profile") from None
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        raise HTTPException(status_code=422, detail=f"profile is not valid YAML or JSON{where}: {problem}") from None
     except RecursionError:
         raise HTTPException(status_code=422, detail="profile is nested too deeply to be a calibration profile") from None
     except ValueError as exc:  # e.g. an integer of thousands of digits

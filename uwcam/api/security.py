@@ -60,7 +60,12 @@ def required_token(config: DaemonConfig) -> str | None:
 
 
 def _utf8(text: str) -> bytes:
-    return text.encode("utf-8", "surrogateescape")
+    """The text's bytes: an environment variable's undecodable bytes come back as they were, and
+    any other lone surrogate (only a wrong token can hold one) is encoded rather than raised on."""
+    try:
+        return text.encode("utf-8", "surrogateescape")
+    except UnicodeEncodeError:
+        return text.encode("utf-8", "surrogatepass")
 
 
 def _same(given: bytes, expected: bytes) -> bool:
@@ -112,20 +117,44 @@ class Sessions:
 
 
 class SignInThrottle:
-    """Slows down guessing: every wrong token in a row costs the next attempt more waiting."""
+    """Slows down guessing, per client address: every wrong token in a row from an address makes
+    that address wait longer before its next attempt (``step_s`` more each time, at most
+    ``most_s``); a right token clears the address's count.
 
-    def __init__(self, step_s: float = 0.25, most_s: float = 5.0) -> None:
-        self._failures = 0
-        self._step_s, self._most_s = step_s, most_s
+    The wait is not spent holding a request: an attempt that comes too early is refused at once
+    (429, with the seconds left) without its token being checked, so a flood of wrong sign-ins
+    costs neither a worker thread nor the time of anyone at another address. At most ``addresses``
+    addresses are remembered (the longest unused forgotten first), so a flood from many addresses
+    costs bounded memory."""
+
+    def __init__(self, step_s: float = 0.25, most_s: float = 5.0, addresses: int = 4096) -> None:
+        self._table: dict[str, tuple[int, float]] = {}  # address → (wrong tokens in a row, last one, monotonic s)
+        self._step_s, self._most_s, self._limit = step_s, most_s, addresses
         self._lock = threading.Lock()
 
-    def delay_s(self) -> float:
+    def delay_s(self, address: str = "") -> float:
+        """The wait (s) that ``address``'s wrong tokens in a row impose after the last of them."""
         with self._lock:
-            return min(self._failures * self._step_s, self._most_s)
+            failures = self._table.get(address, (0, 0.0))[0]
+        return min(failures * self._step_s, self._most_s)
 
-    def record(self, ok: bool) -> None:
+    def wait_s(self, address: str = "") -> float:
+        """Seconds ``address`` must still wait before its next attempt; 0 when it may try now."""
         with self._lock:
-            self._failures = 0 if ok else self._failures + 1
+            failures, last = self._table.get(address, (0, 0.0))
+        if failures == 0:
+            return 0.0
+        return max(0.0, last + min(failures * self._step_s, self._most_s) - time.monotonic())
+
+    def record(self, ok: bool, address: str = "") -> None:
+        with self._lock:
+            if ok:
+                self._table.pop(address, None)
+                return
+            failures = self._table.pop(address, (0, 0.0))[0]  # re-inserted last: the table stays in order of use
+            while len(self._table) >= self._limit:
+                self._table.pop(next(iter(self._table)))
+            self._table[address] = (failures + 1, time.monotonic())
 
 
 DEFAULT_HOST_NAMES = ("localhost", "*.localhost", "*.local")

@@ -7,10 +7,10 @@ call returns (``X-CSRF-Token``) with every state change. See :mod:`uwcam.api.sec
 
 from __future__ import annotations
 
+import math
+
 from fastapi import APIRouter, HTTPException, Request, Response
 from pydantic import BaseModel, ConfigDict, Field
-
-import time
 
 from uwcam.api.security import SESSION_PATH, Guard
 
@@ -38,12 +38,20 @@ def session_state(request: Request) -> dict:
 
 
 @router.post("")
-def sign_in(body: SignIn, request: Request, response: Response) -> dict:
-    """Exchange the token for a session cookie; returns the CSRF token to send as X-CSRF-Token."""
+async def sign_in(body: SignIn, request: Request, response: Response) -> dict:
+    """Exchange the token for a session cookie; returns the CSRF token to send as X-CSRF-Token.
+
+    After wrong tokens an address must wait before its next attempt; one that comes earlier is
+    answered 429 at once, its token unchecked. Runs on the event loop (checking a token takes
+    microseconds): no attempt, right or wrong, holds a worker thread or waits for another."""
     guard: Guard = request.app.state.guard
-    time.sleep(guard.throttle.delay_s())  # a thread-pool route: the wait holds no one else up
+    address = request.client.host if request.client else ""
+    wait = guard.throttle.wait_s(address)
+    if wait > 0:
+        raise HTTPException(status_code=429, headers={"Retry-After": str(math.ceil(wait))},
+                            detail=f"too many wrong tokens from {address}: try again in {wait:.1f} s")
     ok = guard.check_token(body.token)
-    guard.throttle.record(ok)
+    guard.throttle.record(ok, address)
     if not ok:
         raise HTTPException(status_code=401, detail="wrong token")
     session, csrf = guard.sessions.open()

@@ -61,24 +61,63 @@ def encode_range(published: Published, encoding: str) -> bytes:
     return b"".join((header, _encoded_map(published, encoding)))
 
 
+WINDOW = 1
+"""Range maps a client that acknowledges may have unacknowledged (sent, not yet taken)."""
+
+
 @router.websocket("/stream")
-async def stream(ws: WebSocket, rate: float = 30.0, encoding: Literal["float16", "mm"] = "float16") -> None:
+async def stream(ws: WebSocket, rate: float = 30.0, encoding: Literal["float16", "mm"] = "float16",
+                 ack: bool = False) -> None:
     """Hello (JSON), then the newest range map per frame (binary) and telemetry (JSON, ~10 Hz).
 
     A client only ever gets the newest frame: while the previous message is still on its way
     (being sent, or not yet taken by the client from the network), newer frames are skipped,
-    never queued (:mod:`uwcam.api.backpressure`).
+    never queued (:mod:`uwcam.api.backpressure`). With ``ack=true`` the client asks for each
+    map: ``{"ack": 0}`` for the first, ``{"ack": N}`` after the map of frame N when it wants the
+    next; it is sent at most one map it has not acknowledged, so whatever its pace the map it
+    gets was the newest when it asked (its own buffers can hold no backlog).
     """
     await ws.accept()
     # Clients connected now, for /metrics; changed only on the event loop, so no lock.
     ws.app.state.stream_clients = getattr(ws.app.state, "stream_clients", 0) + 1
     try:
-        await _serve(ws, rate, encoding)
+        await _serve(ws, rate, encoding, ack)
     finally:
         ws.app.state.stream_clients -= 1
 
 
-async def _serve(ws: WebSocket, rate: float, encoding: str) -> None:
+class _Flow:
+    """What a client has acknowledged: once it acknowledges at all, at most ``WINDOW`` maps unacknowledged."""
+
+    def __init__(self, acking: bool) -> None:
+        self.acking = acking
+        # Acknowledging from the start: the first map waits for {"ack": 0}, so that none is
+        # sent before the client asks (it would wait in the client's buffers meanwhile).
+        self.unacked: set[int] = {0} if acking else set()
+
+    def may_send_map(self) -> bool:
+        return not self.acking or len(self.unacked) < WINDOW
+
+    def ack(self, number: int) -> None:
+        self.acking = True
+        self.unacked.difference_update({k for k in self.unacked if k <= number})
+
+
+async def _read_acks(ws: WebSocket, flow: _Flow, changed: asyncio.Event) -> None:
+    """Takes the client's messages: acknowledgements count, anything else is ignored."""
+    while True:
+        message = await ws.receive()
+        if message["type"] == "websocket.disconnect":
+            return
+        try:
+            number = int(json.loads(message.get("text") or "")["ack"])
+        except (ValueError, KeyError, TypeError, OverflowError):
+            continue  # a client's noise (binary, malformed) must not end its stream
+        flow.ack(number)
+        changed.set()  # a slot opened: look for the newest frame now
+
+
+async def _serve(ws: WebSocket, rate: float, encoding: str, ack: bool) -> None:
     rate = min(max(rate, 0.1), ws.app.state.config.api.stream_rate_hz)
     b: Broadcaster = ws.app.state.broadcaster
     d: Daemon = ws.app.state.daemon
@@ -90,6 +129,9 @@ async def _serve(ws: WebSocket, rate: float, encoding: str) -> None:
                    "magic": MAGIC.decode(), "dtypes": {"1": "float16 metres", "2": "uint16 millimetres, 0 invalid"},
                    "encoding": encoding},
         "telemetry_hz": 10, "rate_hz": rate,
+        "ack": {"enabled": ack, "window": WINDOW, "message": '{"ack": <frame>}',
+                "meaning": "with ?ack=true, send {\"ack\": 0} for the first range map and {\"ack\": N} "
+                           "after frame N's when you want the next: at most one unacknowledged map is sent"},
     }))
 
     async def send_frame(published: Published) -> None:
@@ -105,15 +147,17 @@ async def _serve(ws: WebSocket, rate: float, encoding: str) -> None:
                            "camera": s["camera"]["health"] if s["camera"] else None,
                            "rangefinder": s["rangefinder"]}, default=str)
 
+    flow, changed = _Flow(ack), b.listen()
+    reader = asyncio.ensure_future(_read_acks(ws, flow, changed))
     last_sent, next_telemetry, next_frame, period = 0, 0.0, 0.0, 1.0 / rate
     in_flight: asyncio.Task | None = None
     try:
-        while True:
+        while not reader.done():
             try:
-                await asyncio.wait_for(b.changed.wait(), timeout=0.02 if in_flight or connection else 0.1)
+                await asyncio.wait_for(changed.wait(), timeout=0.02 if in_flight or connection else 0.1)
             except TimeoutError:
                 pass
-            b.changed.clear()
+            changed.clear()
             if in_flight is not None:
                 if not in_flight.done():
                     continue  # still sending: whatever is newer waits for the next turn
@@ -122,17 +166,25 @@ async def _serve(ws: WebSocket, rate: float, encoding: str) -> None:
             if unsent_bytes(connection):
                 continue  # the client has not taken the last message yet
             now = time.monotonic()
-            if now >= next_telemetry:
+            if now >= next_telemetry and flow.may_send_map():  # acking: telemetry at the client's pace too
                 next_telemetry = now + 0.1
                 in_flight = asyncio.create_task(ws.send_text(telemetry()))
                 continue
-            if b.latest is not None and b.latest.number != last_sent and now >= next_frame:
+            if b.latest is not None and b.latest.number != last_sent and now >= next_frame and flow.may_send_map():
                 newest = b.latest  # read once: the loop's thread replaces it at any time
                 last_sent, next_frame = newest.number, now + period
+                if flow.acking:
+                    flow.unacked.add(newest.number)
                 in_flight = asyncio.create_task(send_frame(newest))
                 del newest  # held by the task alone, and only until it is encoded
     except (WebSocketDisconnect, RuntimeError, OSError):
         return
     finally:
-        if in_flight is not None and not in_flight.done():
-            in_flight.cancel()
+        b.forget(changed)
+        for task in (in_flight, reader):
+            if task is not None and not task.done():
+                task.cancel()
+        try:
+            await reader
+        except (asyncio.CancelledError, WebSocketDisconnect, RuntimeError, OSError):
+            pass
