@@ -21,11 +21,11 @@ import pytest
 import websockets.sync.client
 
 from tests.fresh_install import UserDaemon, copy_checkout, free_port, readme_run_command
+from tests.test_page import browser  # noqa: F401  (Debian's Chromium through Playwright, a fixture)
 from tests.waiting import wait_for
 
 pytestmark = [pytest.mark.slow, pytest.mark.install]
 
-CHROMIUM = "/usr/bin/chromium"
 INSTALL_TIMEOUT_S = 1200.0  # pip install into an empty .venv on a slow machine, then the first start
 
 # Said by uvicorn when it has no WebSocket library: every WebSocket route then answers 404.
@@ -60,17 +60,6 @@ def installed(clone, tmp_path_factory):
         yield daemon
     finally:
         daemon.kill()
-
-
-@pytest.fixture(scope="module")
-def browser():
-    from playwright.sync_api import sync_playwright
-
-    assert Path(CHROMIUM).exists(), "Debian's chromium is needed: .ci/run installs it"
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, args=["--headless", "--no-sandbox"])
-        yield b
-        b.close()
 
 
 def daemon_output(output: str) -> str:
