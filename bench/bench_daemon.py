@@ -46,6 +46,7 @@ import numpy as np
 import websockets
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+from tests.ports import free_port
 
 # The stream's header as docs/api.md gives it. The measuring process imports nothing of uwcam's
 # (the rig is written by a child process): a process here that loaded numba would share the
@@ -65,14 +66,6 @@ def proc_figures(pid: int) -> tuple[float, float, float]:
     with open(f"/proc/{pid}/status") as fh:
         kb = {line.split(":")[0]: int(line.split()[1]) for line in fh if line.startswith(("VmRSS:", "RssAnon:"))}
     return cpu, kb["VmRSS"] / 1024.0, kb["RssAnon"] / 1024.0
-
-
-def free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def write_replay_rig(folder: str, size: tuple[int, int], fps: float, frames: int, port: int,

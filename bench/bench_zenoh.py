@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import socket
 import sys
 import threading
 import time
@@ -26,14 +25,9 @@ import zenoh  # noqa: E402
 
 from uwcam.config import CameraConfig, DaemonConfig, DeviceConfig, ZenohConfig  # noqa: E402
 from uwcam.daemon import Daemon  # noqa: E402
+from tests.ports import free_port  # noqa: E402
 
 PREFIX = "uwcam/bench"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def measure(budget_kbit_s: float, seconds: float, size: tuple[int, int], fps: float, preview_hz: float,

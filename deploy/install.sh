@@ -3,8 +3,9 @@
 # Raspberry Pi OS refuse `pip install` into the system Python (PEP 668, "externally-managed-
 # environment"), so uwcam always lives in its own environment.
 #
-#   bash deploy/install.sh          # the daemon
-#   bash deploy/install.sh test     # the daemon and everything its tests need
+#   bash deploy/install.sh          # the daemon with all its optional parts (reports, cluster, zenoh)
+#   bash deploy/install.sh lean     # the daemon alone: ranging, recording, the page, MAVLink
+#   bash deploy/install.sh test     # the daemon and everything its tests need (editable)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 extras="${1:-}"
@@ -20,6 +21,8 @@ export PIP_DISABLE_PIP_VERSION_CHECK=1
 .venv/bin/python -m pip install --quiet --upgrade pip
 if [ -z "$extras" ]; then
   # A user's install: a plain (non-editable) one, as the container image has it.
+  .venv/bin/python -m pip install --quiet ".[cluster,reports,zenoh]"
+elif [ "$extras" = "lean" ]; then
   .venv/bin/python -m pip install --quiet .
 else
   # A developer's: editable, so that the tests run the checkout's code as it is edited.

@@ -119,10 +119,14 @@ def test_requirements_per_architecture(arch):
     out = subprocess.run([sys.executable, str(ROOT / "deploy/blueos/requirements.py"), arch],
                          capture_output=True, text=True, check=True).stdout.splitlines()  # markers hold spaces
     names = {re.split(r"[<>=!~]", d)[0].lower() for d in out}
-    declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    declared = project["dependencies"] + project["optional-dependencies"]["reports"] + project["optional-dependencies"]["zenoh"]
     assert len(out) == len(declared) - (3 if arch == "arm" else 0)
     # The image serves the page's live view: uvicorn needs a WebSocket library beside it.
     assert {"numpy", "opencv-python-headless", "fastapi", "uvicorn", "websockets"} <= names
+    # A tank calibration from the page draws plots; a vehicle may be watched on Zenoh; it does
+    # not reprocess dives on a Dask cluster.
+    assert {"matplotlib", "eclipse-zenoh"} <= names and "distributed" not in names
     if arch == "arm":
         assert not names & {"numba", "harvesters", "pymavlink"}
     else:

@@ -9,7 +9,6 @@ from __future__ import annotations
 import os
 import select
 import signal
-import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -24,18 +23,13 @@ from uwcam.drivers.supervisor import SupervisedCamera
 from uwcam.ranging import RangeEstimator
 from uwcam.simulation import CameraModel, Lamp, SimulatedWorld, water_preset
 from uwcam.simulation.tank import calibrate_in_simulation
+from tests.ports import free_port
 
 SERVER = Path(__file__).parent / "rtsp_server.py"
 SIZE = (160, 120)
 WATER = water_preset("jerlov-IB", [675.0, 575.0, 475.0])
 LAMP = Lamp(position=(0.3, 0.0, 0.0))
 CAMERA = CameraModel(bits=8, response="srgb")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class Server:

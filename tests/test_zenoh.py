@@ -23,6 +23,7 @@ from uwcam.fileio import UserInputError
 from uwcam.outputs.zenoh_publisher import QUEUE_FRAMES, ByteBucket, ByteRates, area_mean, next_preview_width, range_summary
 from uwcam.pipeline import Published
 from uwcam.ranging import RangeResult
+from tests.ports import free_port
 
 PREFIX = "uwcam/test-rov"
 SEABED_M = 2.0  # the simulated seabed-patch scene of small_config is a plane at this distance
@@ -30,12 +31,6 @@ KEYS = {"status": "application/json", "range/summary": "application/json",
         "range/preview/range": "image/png", "range/preview/colour": "image/jpeg",
         "health/camera": "application/json", "health/lamp": "application/json",
         "health/rangefinder": "application/json"}
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @contextlib.contextmanager

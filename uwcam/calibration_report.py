@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from uwcam.calibration import CalibrationDetails
+from uwcam.extras import require_extra
 from uwcam.optics.calibration_variance import calibration_path_variance
 from uwcam.optics.geometry import camera_range_derivative, path_length_from_camera_range
 from uwcam.optics.noise import signal_variance
@@ -28,7 +29,7 @@ PLOTS = {
 
 
 def _figure():
-    import matplotlib
+    matplotlib = require_extra("reports")
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -225,6 +225,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             raise UserInputError(f"--report {report} must be an .html file")
         if not report.parent.exists():
             raise UserInputError(f"output folder {report.parent} of --report does not exist")
+        from uwcam.extras import require_extra
+
+        require_extra("reports")  # before the fit, not after the user has waited for it
     try:
         details = calibrate_with_details(frames, distances, inputs)
     except ValidationError as exc:  # the fit's result is outside what a profile may hold

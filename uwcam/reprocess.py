@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 
 from uwcam import recording as rec
 from uwcam.chunk_check import CorruptChunk, find_corrupt_chunks
+from uwcam.extras import require_extra
 from uwcam.fileio import UserInputError
 from uwcam.outputs.recorder import to_depth
 from uwcam.profile import CalibrationProfile, load_profile, profile_to_yaml
@@ -237,7 +238,8 @@ def _in_order(parts: list[Part], fn: Callable[[Part], PartResult], scheduler: st
         for part in parts:
             yield fn(part)
         return
-    from distributed import Client, LocalCluster
+    distributed = require_extra("cluster")
+    Client, LocalCluster = distributed.Client, distributed.LocalCluster
 
     # On a cluster the parallelism is across parts: one kernel thread per task, or every worker's
     # numba threads would fight over the same cores.

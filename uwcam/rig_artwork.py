@@ -7,6 +7,7 @@ import os
 
 import numpy as np
 
+from uwcam.extras import require_extra
 from uwcam.fileio import UserInputError, atomic_write
 from uwcam.rig import Rig
 
@@ -29,7 +30,8 @@ def write_artwork(rig: Rig, path: str | os.PathLike[str], dpi: float = 150.0) ->
     """Write the plate at true scale: one PDF page the plate's size (plate coordinates: x right, y down).
     A path ending in .png gets a raster at ``dpi`` instead (for checking the markers by eye or by detector)."""
     import cv2
-    import matplotlib
+
+    matplotlib = require_extra("reports")
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -17,12 +17,18 @@ import tomllib
 from pathlib import Path
 
 ARM32_SKIP = {"numba", "harvesters", "pymavlink"}
+# Optional parts the vehicle's image carries: plots of a tank calibration made from the page, and
+# remote monitoring on Zenoh. Not "cluster": a vehicle does not reprocess dives on a Dask cluster.
+IMAGE_EXTRAS = ("reports", "zenoh")
 
 
 def requirements(arch: str, pyproject: Path) -> list[str]:
     if arch not in ("amd64", "arm64", "arm"):
         raise SystemExit(f"unknown target architecture '{arch}'; expected amd64, arm64 or arm")
-    deps = tomllib.loads(pyproject.read_text())["project"]["dependencies"]
+    project = tomllib.loads(pyproject.read_text())["project"]
+    deps = list(project["dependencies"])
+    for extra in IMAGE_EXTRAS:
+        deps += project["optional-dependencies"][extra]
     skip = ARM32_SKIP if arch == "arm" else set()
     return [d for d in deps if re.split(r"[<>=!~\[; ]", d, maxsplit=1)[0].lower().replace("_", "-") not in skip]
 

@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 
 from uwcam.config import ZenohConfig
+from uwcam.extras import require_extra
 from uwcam.fileio import UserInputError
 from uwcam.outputs.foxglove import preview_rgb8
 from uwcam.outputs.mavlink import region_statistic
@@ -61,12 +62,7 @@ RATE_WINDOW_S = 5.0
 
 def require_zenoh():
     """The zenoh module; UserInputError saying what to install when it is missing."""
-    try:
-        import zenoh
-    except ImportError:
-        raise UserInputError("zenoh: is configured but the Zenoh library is missing; "
-                             "pip install 'uwcam[zenoh]' (or remove the zenoh: section)") from None
-    return zenoh
+    return require_extra("zenoh")
 
 
 def default_key_prefix() -> str:
