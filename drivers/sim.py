@@ -34,7 +34,8 @@ from uwcam.drivers.options import Real as _Real
 from uwcam.rig import builtin_rig_path, load_rig
 from uwcam.simulation import Ambient, CameraModel, Lamp, SimulatedWorld, water_preset
 from uwcam.jit import set_threads
-from uwcam.simulation.survey import SurveyMotion, SurveyWorld
+from uwcam.simulation.survey import SurveyWorld
+from uwcam.simulation.terrain import SurveyMotion
 
 
 # The simulated sensor's exposure time at which it has the world's auto-exposure (µs).

@@ -11,7 +11,8 @@ from uwcam.drivers import registry
 from uwcam.drivers.sim import SimulatedCamera, SimulatedRig
 from uwcam.ranging import RangeEstimator
 from uwcam.simulation import CameraModel, Lamp, water_preset
-from uwcam.simulation.survey import CELL_M, SurveyMotion, SurveyWorld, Terrain, build_terrain
+from uwcam.simulation.survey import SurveyWorld
+from uwcam.simulation.terrain import CELL_M, SurveyMotion, Terrain, build_terrain
 from uwcam.simulation.tank import calibrate_in_simulation
 from tests.waiting import wait_for
 
@@ -134,7 +135,7 @@ def test_numpy_twins_give_the_same_frames(terrain):
 
 def test_expose_twins_are_identical_on_the_same_radiance():
     from uwcam.simulation.camera import frame_key
-    from uwcam.simulation.survey import NOISE_BLOCK, _expose, expose_numpy, noise_pool
+    from uwcam.simulation.survey_kernels import NOISE_BLOCK, _expose, expose_numpy, noise_pool
 
     rng = np.random.default_rng(1)
     radiance = rng.uniform(0, 2e-5, 3 * 7777).astype(np.float32)  # several noise blocks and a partial one
@@ -151,7 +152,7 @@ def test_survey_noise_has_the_camera_models_mean_and_variance_and_is_new_every_f
     mean (E + dark)·g DN and variance (E + dark)·g² + (read·g)² DN², for a flat radiance; frames
     with other keys get independent noise; neighbouring pixels are uncorrelated."""
     from uwcam.simulation.camera import frame_key
-    from uwcam.simulation.survey import _expose, expose_numpy, noise_pool
+    from uwcam.simulation.survey_kernels import _expose, expose_numpy, noise_pool
 
     n, g, dark, read = 400_000, 65535 / 20000, 40.0, 5.0
     electrons = 3000.0
@@ -178,7 +179,7 @@ def test_survey_noise_has_the_camera_models_mean_and_variance_and_is_new_every_f
 def test_noise_pool_is_standard_normal():
     from statistics import NormalDist
 
-    from uwcam.simulation.survey import NOISE_BLOCK, NOISE_POOL_SIZE, noise_pool
+    from uwcam.simulation.survey_kernels import NOISE_BLOCK, NOISE_POOL_SIZE, noise_pool
 
     pool = noise_pool()
     z = pool[:NOISE_POOL_SIZE].astype(np.float64)

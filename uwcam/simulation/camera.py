@@ -145,7 +145,8 @@ def jpeg_roundtrip(rgb: NDArray[np.uint8], quality: int) -> NDArray[np.uint8]:
 
 
 @njit(cache=True, inline="always")
-def _splitmix(x):
+def splitmix(x):
+    """SplitMix64 of a uint64 (wrapping arithmetic): the simulator's counter-based noise."""
     x = x + uint64(0x9E3779B97F4A7C15)
     z = (x ^ (x >> uint64(30))) * uint64(0xBF58476D1CE4E5B9)
     z = (z ^ (z >> uint64(27))) * uint64(0x94D049BB133111EB)
@@ -156,7 +157,7 @@ _MASK64 = (1 << 64) - 1
 
 
 def _splitmix_int(x: int) -> int:
-    """SplitMix64 on a Python int (the same function as the compiled ``_splitmix``)."""
+    """SplitMix64 on a Python int (the same function as the compiled ``splitmix``)."""
     x = (x + 0x9E3779B97F4A7C15) & _MASK64
     z = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & _MASK64
     z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & _MASK64
@@ -184,15 +185,23 @@ def _inverse_normal_table() -> NDArray[np.float64]:
     return np.array([0.0] + [nd.inv_cdf(i / 65536.0) for i in range(1, 65536)] + [0.0], dtype=np.float64)
 
 
-@njit(cache=True, inline="always")
-def _lower_tail(p):
-    """Φ⁻¹(p) for p < 0.02425 (Acklam's rational approximation, relative error < 1.2e-9)."""
-    q = math.sqrt(-2.0 * math.log(p))
+def _acklam_lower_tail(q):
+    """Φ⁻¹(p) for p < 0.02425 from q = √(−2 ln p) (Acklam's rational approximation, relative error
+    < 1.2e-9). Plain arithmetic: the same function serves the kernel's scalars and the twin's arrays."""
     num = ((((-7.784894002430293e-03 * q - 3.223964580411365e-01) * q - 2.400758277161838) * q
             - 2.549732539343734) * q + 4.374664141464968) * q + 2.938163982698783
     den = (((7.784695709041462e-03 * q + 3.224671290700398e-01) * q + 2.445134137142996) * q
            + 3.754408661907416) * q + 1.0
     return num / den
+
+
+_acklam_lower_tail_compiled = njit(cache=True, inline="always")(_acklam_lower_tail)
+
+
+@njit(cache=True, inline="always")
+def _lower_tail(p):
+    """Φ⁻¹(p) for p < 0.02425."""
+    return _acklam_lower_tail_compiled(math.sqrt(-2.0 * math.log(p)))
 
 
 @njit(cache=True, inline="always")
@@ -210,7 +219,7 @@ def _normal(bits32, table):
 def _digitise(mean, std, key, top, table, out):
     n = mean.shape[0]
     for p in prange((n + 1) // 2):
-        r = _splitmix(key + uint64(p))
+        r = splitmix(key + uint64(p))
         i = 2 * p
         v = mean[i] + std[i] * _normal(np.int64(r >> uint64(32)), table)
         out[i] = min(max(round(v), 0.0), top)
@@ -230,12 +239,7 @@ def splitmix_numpy(x: NDArray[np.uint64]) -> NDArray[np.uint64]:
 
 
 def _lower_tail_numpy(p: NDArray[np.float64]) -> NDArray[np.float64]:
-    q = np.sqrt(-2.0 * np.log(p))
-    num = ((((-7.784894002430293e-03 * q - 3.223964580411365e-01) * q - 2.400758277161838) * q
-            - 2.549732539343734) * q + 4.374664141464968) * q + 2.938163982698783
-    den = (((7.784695709041462e-03 * q + 3.224671290700398e-01) * q + 2.445134137142996) * q
-           + 3.754408661907416) * q + 1.0
-    return num / den
+    return _acklam_lower_tail(np.sqrt(-2.0 * np.log(p)))
 
 
 def normal_numpy(bits32: NDArray[np.int64], table: NDArray[np.float64]) -> NDArray[np.float64]:

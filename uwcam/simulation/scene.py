@@ -75,6 +75,20 @@ class Plane:
         return t, np.broadcast_to(n, (*t.shape, 3)), sub
 
 
+def _nearest_positive_root(qa: NDArray, qb: NDArray, qc: NDArray) -> NDArray:
+    """The smaller root of qa·t² + qb·t + qc = 0 where it is real and positive, else inf (metres
+    along each ray): where a ray from the camera first meets a quadric surface."""
+    disc = qb * qb - 4 * qa * qc
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = np.where(disc >= 0, (-qb - np.sqrt(disc)) / (2 * qa), np.inf)
+    return np.where(t > 0, t, np.inf)
+
+
+def _hit_points(t: NDArray, rays: NDArray, centre: NDArray) -> NDArray:
+    """Points t·ray relative to ``centre`` (0 where a ray hits nothing), shape (..., 3), metres."""
+    return np.where(np.isfinite(t), t, 0.0)[..., None] * rays - centre
+
+
 @dataclass(frozen=True)
 class Sphere:
     centre: tuple[float, float, float]
@@ -83,12 +97,8 @@ class Sphere:
 
     def intersect(self, rays: NDArray) -> tuple[NDArray, NDArray, None]:
         c = np.asarray(self.centre)
-        b = rays @ c
-        disc = b * b - (c @ c - self.radius**2)
-        with np.errstate(invalid="ignore"):
-            t = np.where(disc >= 0, b - np.sqrt(disc), np.inf)
-        t = np.where(t > 0, t, np.inf)
-        normal = (np.where(np.isfinite(t), t, 0.0)[..., None] * rays - c) / self.radius
+        t = _nearest_positive_root(np.ones(rays.shape[:-1]), -2.0 * (rays @ c), c @ c - self.radius**2)
+        normal = _hit_points(t, rays, c) / self.radius
         return t, normal, None
 
 
@@ -134,14 +144,9 @@ class Cylinder:
         c, a = np.asarray(self.centre), np.asarray(self.axis)
         d_perp = rays - (rays @ a)[..., None] * a
         o_perp = -c - (-c @ a) * a
-        qa = np.einsum("...i,...i", d_perp, d_perp)
-        qb = 2 * d_perp @ o_perp
-        qc = o_perp @ o_perp - self.radius**2
-        disc = qb * qb - 4 * qa * qc
-        with np.errstate(invalid="ignore", divide="ignore"):
-            t = np.where(disc >= 0, (-qb - np.sqrt(disc)) / (2 * qa), np.inf)
-        t = np.where(t > 0, t, np.inf)
-        point = np.where(np.isfinite(t), t, 0.0)[..., None] * rays - c
+        t = _nearest_positive_root(np.einsum("...i,...i", d_perp, d_perp), 2 * d_perp @ o_perp,
+                                   o_perp @ o_perp - self.radius**2)
+        point = _hit_points(t, rays, c)
         along = point @ a
         t = np.where(np.abs(along) <= self.half_length, t, np.inf)
         normal = (point - along[..., None] * a) / self.radius
