@@ -102,6 +102,14 @@ def _fuse_row(pair, p_row, c, b, lo, hi, s_norm, out_range, out_var, out_reason)
         out_reason[j] = reason
 
 
+@njit(inline="always", cache=True, nogil=True, error_model="numpy")
+def _fuse_filled_row(i, buf, geo, c, b, bounds, out_range, out_var, out_reason):
+    """Row ``i`` of the outputs from its (N, W) buffer of packed (log signal, variance) pairs."""
+    p_row = np.empty(buf.shape[1], np.float32)
+    _lamp_dot_row(i, geo, p_row)
+    _fuse_row(buf.view(np.float32), p_row, c, b, bounds[0], bounds[1], geo[4], out_range[i], out_var[i], out_reason[i])
+
+
 @parallel
 @njit(parallel=True, cache=True, nogil=True, error_model="numpy")
 def fuse_lookup(raw, table, c, b, geo, bounds, out_range, out_var, out_reason):
@@ -114,9 +122,7 @@ def fuse_lookup(raw, table, c, b, geo, bounds, out_range, out_var, out_reason):
         for j in range(w):
             for k in range(n):
                 buf[k, j] = table[k, raw[i, j, k]]
-        p_row = np.empty(w, np.float32)
-        _lamp_dot_row(i, geo, p_row)
-        _fuse_row(buf.view(np.float32), p_row, c, b, bounds[0], bounds[1], geo[4], out_range[i], out_var[i], out_reason[i])
+        _fuse_filled_row(i, buf, geo, c, b, bounds, out_range, out_var, out_reason)
 
 
 @parallel
@@ -130,9 +136,7 @@ def fuse_arrays(pairs, c, b, geo, bounds, out_range, out_var, out_reason):
         for j in range(w):
             for k in range(n):
                 buf[k, j] = pairs[i, j, k]
-        p_row = np.empty(w, np.float32)
-        _lamp_dot_row(i, geo, p_row)
-        _fuse_row(buf.view(np.float32), p_row, c, b, bounds[0], bounds[1], geo[4], out_range[i], out_var[i], out_reason[i])
+        _fuse_filled_row(i, buf, geo, c, b, bounds, out_range, out_var, out_reason)
 
 
 LN2 = np.float32(0.6931471805599453)
