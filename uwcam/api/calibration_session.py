@@ -11,10 +11,12 @@ accepted or cancelled; a daemon that restarts resumes it at the first request.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import queue
 import threading
 import time
+from collections.abc import Iterator
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request
@@ -126,6 +128,16 @@ def _not_the_plate(d: Daemon, dictionary: str) -> tuple[tuple[int, ...], tuple[t
 
 def _refuse(exc: SessionError) -> HTTPException:
     return HTTPException(status_code=exc.status, detail=str(exc))
+
+
+@contextlib.contextmanager
+def _refusing(session: CalibrationSession) -> Iterator[None]:
+    """The session's lock held; a SessionError inside becomes the HTTP refusal with its reason."""
+    with session.lock:
+        try:
+            yield
+        except SessionError as exc:
+            raise _refuse(exc) from None
 
 
 def _rangefinder(d: Daemon) -> float | None:
@@ -253,12 +265,9 @@ def capture(body: CaptureRequest, request: Request, d: Daemon = Depends(get_daem
     session = _session(request)
     count = body.frames or session.frames_per_capture
     frames = _take_frames(d, count, timeout_s=5.0 + 2.0 * count)
-    with session.lock:
-        try:
-            cap = session.capture([f.data for f in frames], body.distance_m, body.held_back, _rangefinder(d),
-                                  [f.exposure_us for f in frames], [f.exposures()[0] for f in frames])
-        except SessionError as exc:
-            raise _refuse(exc) from None
+    with _refusing(session):
+        cap = session.capture([f.data for f in frames], body.distance_m, body.held_back, _rangefinder(d),
+                              [f.exposure_us for f in frames], [f.exposures()[0] for f in frames])
         try:
             save_session(session, _folder(request))
         except OSError as exc:  # kept in memory: the session goes on, but would not survive a restart
@@ -272,33 +281,24 @@ def capture(body: CaptureRequest, request: Request, d: Daemon = Depends(get_daem
 def fit(request: Request) -> dict:
     """Fit the captures not held back; validate on the held-back ones. JSON with residuals; plots under plots/."""
     session = _session(request)
-    with session.lock:
-        try:
-            return session.fit()
-        except SessionError as exc:
-            raise _refuse(exc) from None
+    with _refusing(session):
+        return session.fit()
 
 
 @router.get("/plots/{name}.png", responses={200: {"content": {"image/png": {}}}})
 def plot(name: str, request: Request) -> Response:
     """One of the fit's plots (PNG): fits, residuals, noise model, plate overlay."""
     session = _session(request)
-    with session.lock:
-        try:
-            return Response(session.plot(name), media_type="image/png")
-        except SessionError as exc:
-            raise _refuse(exc) from None
+    with _refusing(session):
+        return Response(session.plot(name), media_type="image/png")
 
 
 @router.get("/report.html", response_class=HTMLResponse)
 def report(request: Request) -> HTMLResponse:
     """The fit as one self-contained HTML page (tables and every plot), to download and keep."""
     session = _session(request)
-    with session.lock:
-        try:
-            page = session.report()
-        except SessionError as exc:
-            raise _refuse(exc) from None
+    with _refusing(session):
+        page = session.report()
     return HTMLResponse(page, headers={"Content-Disposition": f'attachment; filename="tank-calibration-{session.id}.html"'})
 
 
@@ -306,11 +306,8 @@ def report(request: Request) -> HTMLResponse:
 def accept(body: Accept, request: Request, d: Daemon = Depends(get_daemon)) -> dict:
     """Save the validated profile under ``name`` and make it active; the session ends."""
     session = _session(request)
-    with session.lock:
-        try:
-            profile = session.acceptable()
-        except SessionError as exc:
-            raise _refuse(exc) from None
+    with _refusing(session):
+        profile = session.acceptable()
         active = d.profiles[d.profile_name]
         if len(profile.channels) != len(active.channels):
             raise HTTPException(status_code=409, detail="the new profile's channels do not match the camera's")
