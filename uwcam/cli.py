@@ -88,6 +88,17 @@ def check_calibration_frames(paths: list, frames: list[np.ndarray], distances: l
                              "measured; image the lit target at each distance")
 
 
+def checked_output(path: str | Path, suffixes: tuple[str, ...], wrong_suffix: str, flag: str | None = None) -> Path:
+    """An output file's path, checked before any work is done: it ends in one of ``suffixes``
+    (else UserInputError ``wrong_suffix`` with ``{path}`` filled in) and its folder exists."""
+    p = Path(path)
+    if p.suffix.lower() not in suffixes:
+        raise UserInputError(wrong_suffix.format(path=p))
+    if not p.parent.exists():
+        raise UserInputError(f"output folder {p.parent}{f' of {flag}' if flag else ''} does not exist")
+    return p
+
+
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from uwcam.calibration import CalibrationInputs, calibrate_with_details, project_plate_box
     from pydantic import ValidationError
@@ -97,11 +108,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from uwcam.profile import MAX_DISTANCE_M, MAX_LAMP_OFFSET_M, check_intrinsics_fit, save_profile
     from uwcam.rig import load_rig, resolve_reflectance
 
-    out = Path(args.output)
-    if out.suffix.lower() not in (".yaml", ".yml"):
-        raise UserInputError(f"the profile {out} must be a .yaml file")
-    if not out.parent.exists():
-        raise UserInputError(f"output folder {out.parent} does not exist")
+    out = checked_output(args.output, (".yaml", ".yml"), "the profile {path} must be a .yaml file")
     distances = args.distance or []
     if len(distances) != len(args.images):
         raise UserInputError(
@@ -219,12 +226,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         target_description=description,
         image_names=[str(p) for p in args.images],
     )
-    report = Path(args.report) if args.report else None
+    report = checked_output(args.report, (".html", ".htm"), "--report {path} must be an .html file", "--report") if args.report else None
     if report is not None:
-        if report.suffix.lower() not in (".html", ".htm"):
-            raise UserInputError(f"--report {report} must be an .html file")
-        if not report.parent.exists():
-            raise UserInputError(f"output folder {report.parent} of --report does not exist")
         from uwcam.extras import require_extra
 
         require_extra("reports")  # before the fit, not after the user has waited for it
@@ -259,11 +262,7 @@ def cmd_response(args: argparse.Namespace) -> int:
     from uwcam.imageio import read_frame
     from uwcam.response import recover, save_response
 
-    out = Path(args.output)
-    if out.suffix.lower() not in (".yaml", ".yml"):
-        raise UserInputError(f"the response file {out} must be a .yaml file")
-    if not out.parent.exists():
-        raise UserInputError(f"output folder {out.parent} does not exist")
+    out = checked_output(args.output, (".yaml", ".yml"), "the response file {path} must be a .yaml file")
     exposures = parse_floats(args.exposure_ms, "--exposure-ms", len(args.images))
     if not all(np.isfinite(t) and t > 0 for t in exposures):
         raise UserInputError(f"--exposure-ms values must be positive milliseconds, got '{args.exposure_ms}'")
@@ -280,11 +279,7 @@ def cmd_rig_print(args: argparse.Namespace) -> int:
     from uwcam.rig import load_rig
     from uwcam.rig_artwork import write_artwork
 
-    out = Path(args.output)
-    if out.suffix.lower() != ".pdf":
-        raise UserInputError(f"the artwork {out} must be a .pdf file")
-    if not out.parent.exists():
-        raise UserInputError(f"output folder {out.parent} does not exist")
+    out = checked_output(args.output, (".pdf",), "the artwork {path} must be a .pdf file")
     rig = load_rig(resolve_rig_path(args.rig))
     write_artwork(rig, out)
     w, h = rig.plate.size_m
@@ -299,11 +294,7 @@ def cmd_range(args: argparse.Namespace) -> int:
 
     outputs = [(args.output, "-o")] + [(p, f) for p, f in ((args.variance, "--variance"), (args.reasons, "--reasons")) if p]
     for path, flag in outputs:
-        p = Path(path)
-        if p.suffix.lower() not in MAP_SUFFIXES:
-            raise UserInputError(f"{flag} {p} must end in .npy, .tif or .tiff")
-        if not p.parent.exists():
-            raise UserInputError(f"output folder {p.parent} of {flag} does not exist")
+        checked_output(path, MAP_SUFFIXES, flag + " {path} must end in .npy, .tif or .tiff", flag)
     profile = load_profile(args.profile)
     frame = read_frame(args.image)
     pair = None
