@@ -25,7 +25,7 @@ from uwcam.config import MavlinkConfig  # noqa: E402
 from uwcam.drivers.base import Frame  # noqa: E402
 from uwcam.optics.geometry import Intrinsics, pixel_rays  # noqa: E402
 from uwcam.outputs.mavlink import _Rays, measure  # noqa: E402
-from uwcam.pipeline import Published  # noqa: E402
+from uwcam.runtime.published import Published  # noqa: E402
 from uwcam.ranging import RangeResult  # noqa: E402
 
 

@@ -28,7 +28,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 from timing import best_time  # noqa: E402
 from uwcam.config import OrientationConfig  # noqa: E402
 from uwcam.optics.orientation import beam_pattern, block_means  # noqa: E402
-from uwcam.pipeline import OrientationEstimator  # noqa: E402
+from uwcam.runtime.stages.orientation import OrientationEstimator  # noqa: E402
 from uwcam.ranging import RangeEstimator, range_frame  # noqa: E402
 from uwcam.simulation.render import Lamp  # noqa: E402
 from uwcam.simulation.tank import calibrate_in_simulation  # noqa: E402

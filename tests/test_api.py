@@ -455,7 +455,7 @@ def test_lamp_comes_back_on_after_a_failed_switch():
 
 def test_marker_locates_the_patch_in_a_drawn_image():
     from uwcam.config import MarkerConfig, PatchConfig
-    from uwcam.pipeline import PatchTracker
+    from uwcam.runtime.stages.patch_tracker import PatchTracker
     from tests.synthetic import make_profile
 
     marker = cv2.aruco.generateImageMarker(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50), 7, 60)

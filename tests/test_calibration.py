@@ -176,7 +176,7 @@ def test_reflectance_corrector_recovers_a_surface_of_another_hue():
     from uwcam.config import ReflectanceConfig
     from uwcam.drivers.base import Frame, Health, HealthState
     from uwcam.drivers.rangefinder import RangeReading
-    from uwcam.pipeline import ReflectanceCorrector
+    from uwcam.runtime.stages.reflectance import ReflectanceCorrector
 
     distances = [1.0, 2.0]
     profile = calibrate(frames(distances), distances, inputs())

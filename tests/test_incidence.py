@@ -258,7 +258,7 @@ def test_absolute_scale_at_a_tilted_footprint_divides_by_the_range_map_normals_c
     because the footprint's cos γ comes from the range map's normal. Assuming the surface square
     to the beam would make it 1/cos 30° = 15 % too bright, and every angle found with it too steep."""
     from uwcam.drivers.base import Frame
-    from uwcam.pipeline import ReflectanceCorrector
+    from uwcam.runtime.stages.reflectance import ReflectanceCorrector
 
     profile, world, lamp, rf, footprint, now = tilted_footprint()
     water = world.water
@@ -307,7 +307,7 @@ def test_the_footprints_scale_and_reflectance_do_not_depend_on_the_frames_exposu
     shift ln m_k given, the surface's log constants and absolute scale are those of the frame at
     the calibration's exposure (both are kept at the calibration's exposure)."""
     from uwcam.drivers.base import Frame
-    from uwcam.pipeline import ReflectanceCorrector
+    from uwcam.runtime.stages.reflectance import ReflectanceCorrector
 
     profile, world, lamp, rf, footprint, now = tilted_footprint()
     dark = profile.array("dark_level")

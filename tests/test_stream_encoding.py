@@ -6,7 +6,7 @@ import numpy as np
 
 from uwcam.api import HEADER, encode_range, range_millimetres
 from uwcam.drivers.base import Frame
-from uwcam.pipeline import Published
+from uwcam.runtime.published import Published
 from uwcam.ranging import RangeResult
 
 

@@ -291,7 +291,7 @@ def test_marker_locates_the_patch_on_survey_frames(terrain):
     region says it is, frame after frame."""
     from uwcam.config import MarkerConfig, PatchConfig
     from uwcam.daemon import simulated_patch
-    from uwcam.pipeline import PatchTracker
+    from uwcam.runtime.stages.patch_tracker import PatchTracker
     from uwcam.simulation.scene import MARKER_CENTRE_M, MARKER_SIDE_M, PATCH_CENTRE_M, PATCH_SIZE_M
 
     rig = SimulatedRig(scene="survey", size=(1280, 720), water="jerlov-IA", lamp_offset=(0.3, -0.8, 0.0))

@@ -8,7 +8,7 @@ from fastapi import HTTPException, Request
 from starlette.requests import HTTPConnection
 
 from uwcam.daemon import Daemon
-from uwcam.pipeline import Published
+from uwcam.runtime.published import Published
 
 
 def get_daemon(conn: HTTPConnection) -> Daemon:

@@ -35,7 +35,7 @@ from prometheus_client.registry import Collector
 from uwcam.api.common import get_daemon
 from uwcam.daemon import Daemon
 from uwcam.optics.validity import Reason
-from uwcam.pipeline import Published
+from uwcam.runtime.published import Published
 
 router = APIRouter(tags=["metrics"])
 STATES = ("ok", "recovering", "lost", "stopped")

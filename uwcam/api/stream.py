@@ -23,7 +23,7 @@ from uwcam.api.backpressure import SCOPE_KEY, unsent_bytes
 from uwcam.api.common import Broadcaster
 from uwcam.api.snapshots import range_millimetres
 from uwcam.daemon import Daemon
-from uwcam.pipeline import Published
+from uwcam.runtime.published import Published
 
 router = APIRouter(prefix="/api/v1", tags=["stream"])
 HEADER = struct.Struct("<4sIqqHHB3xf")

@@ -45,7 +45,7 @@ from uwcam import __version__
 from uwcam.api.common import Broadcaster
 from uwcam.daemon import Daemon
 from uwcam.optics.validity import Reason
-from uwcam.pipeline import Published
+from uwcam.runtime.published import Published
 
 router = APIRouter(prefix="/api/v1", tags=["stream"])
 MAGIC = b"UWV1"

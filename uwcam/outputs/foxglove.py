@@ -23,7 +23,8 @@ from uwcam.fileio import UserInputError
 from uwcam.outputs.foxglove_gateway import FoxgloveGateway
 from uwcam.optics.geometry import pixel_rays
 from uwcam.outputs.recorder import to_depth
-from uwcam.pipeline import FramePipeline, Published
+from uwcam.pipeline import FramePipeline
+from uwcam.runtime.published import Published
 
 log = logging.getLogger(__name__)
 PREVIEW = "/uwcam/image/preview"

@@ -46,7 +46,7 @@ from uwcam.optics.geometry import Intrinsics, camera_range_from_path_length, pix
 from uwcam.optics.orientation import measurable_range_m
 from uwcam.optics.validity import Reason
 from uwcam.outputs.mavlink_links import LinkDown, open_transport
-from uwcam.pipeline import Published
+from uwcam.runtime.published import Published
 
 log = logging.getLogger(__name__)
 

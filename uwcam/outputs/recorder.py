@@ -30,7 +30,8 @@ from uwcam.api.view import Stretch
 from uwcam.config import MountingConfig, RecordingConfig
 from uwcam.drivers.base import Frame
 from uwcam.fileio import UserInputError
-from uwcam.pipeline import FramePipeline, Published
+from uwcam.pipeline import FramePipeline
+from uwcam.runtime.published import Published
 from uwcam.profile import CalibrationProfile
 
 log = logging.getLogger(__name__)

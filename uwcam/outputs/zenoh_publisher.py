@@ -29,7 +29,8 @@ from uwcam.extras import require_extra
 from uwcam.fileio import UserInputError
 from uwcam.outputs.foxglove import preview_rgb8
 from uwcam.outputs.mavlink import region_statistic
-from uwcam.pipeline import FramePipeline, Published
+from uwcam.pipeline import FramePipeline
+from uwcam.runtime.published import Published
 
 log = logging.getLogger(__name__)
 

@@ -1,0 +1,1 @@
+"""The running daemon: devices, the frame loop and its stages, state that survives a restart (docs/architecture.md)."""
