@@ -4,14 +4,9 @@ import numpy as np
 import pytest
 
 from tests.synthetic import RGB_ATTENUATION, plate_frame
-from uwcam.calibration import (
-    CalibrationInputs,
-    absolute_attenuation,
-    calibrate,
-    fit_attenuation_differences,
-    fit_noise_model,
-    project_plate_box,
-)
+from uwcam.calibration import CalibrationInputs, calibrate, project_plate_box
+from uwcam.calibration_lines import absolute_attenuation, fit_attenuation_differences
+from uwcam.calibration_noise import fit_noise_model
 from uwcam.fileio import UserInputError
 from uwcam.optics import Intrinsics, signal_variance, reflectance_ratio_from_range, surface_log_constant
 from uwcam.ranging import RangeEstimator

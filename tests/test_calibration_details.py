@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from tests.test_calibration import INTR, PLATE, frames, inputs
-from uwcam.calibration import backscatter_at_black_patch, calibrate_with_details, project_plate_box
+from uwcam.calibration import calibrate_with_details, project_plate_box
+from uwcam.calibration_black_patch import backscatter_at_black_patch
 
 
 def test_black_patch_floor_and_samples_are_those_of_the_measured_levels():

@@ -12,15 +12,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from uwcam.calibration import (
-    CalibrationInputs,
-    NoisePoint,
-    backscatter_at_black_patch,
-    calibrate_with_details,
-    fit_noise,
-    fit_noise_model,
-    variance_floor,
-)
+from uwcam.calibration import CalibrationInputs, calibrate_with_details
+from uwcam.calibration_black_patch import backscatter_at_black_patch
+from uwcam.calibration_noise import NoisePoint, fit_noise, fit_noise_model, variance_floor
 from uwcam.fileio import UserInputError
 
 RHO_P = np.array([0.5, 0.4, 0.3])
@@ -460,7 +454,7 @@ class EqualToAnything:
 
 def test_a_chi2_exactly_at_its_bound_does_not_scale_the_covariance(monkeypatch):
     """Scaled by χ² only when χ² *exceeds* its 5 % bound (docs/calibration.md)."""
-    from uwcam import calibration
+    from uwcam import calibration_lines as calibration
 
     d = np.array([1.0, 2.0, 3.0, 4.0])
     c = np.array([0.0, -0.3, -0.4])  # V of G and B against R

@@ -13,14 +13,9 @@ import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from uwcam.calibration import (
-    CalibrationInputs,
-    calibrate_with_details,
-    fit_attenuation_differences,
-    fit_noise,
-    noise_point,
-    project_plate_box,
-)
+from uwcam.calibration import CalibrationInputs, calibrate_with_details, project_plate_box
+from uwcam.calibration_lines import fit_attenuation_differences
+from uwcam.calibration_noise import fit_noise, noise_point
 from uwcam.cli import main
 from uwcam.optics.calibration_variance import calibration_path_variance
 from uwcam.optics.fusion import fused_path_length

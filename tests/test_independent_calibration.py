@@ -12,16 +12,8 @@ import math
 import numpy as np
 import pytest
 
-from uwcam.calibration import (
-    CalibrationInputs,
-    absolute_attenuation,
-    box_mask,
-    calibrate,
-    fit_attenuation_differences,
-    fit_lines,
-    project_plate_box,
-    spreading_log,
-)
+from uwcam.calibration import CalibrationInputs, box_mask, calibrate, project_plate_box
+from uwcam.calibration_lines import absolute_attenuation, fit_attenuation_differences, fit_lines, spreading_log
 from uwcam.fileio import UserInputError
 from uwcam.optics import Intrinsics
 
