@@ -1,0 +1,166 @@
+"""``uwcam run``, ``uwcam warmup`` and ``uwcam config check``: the daemon."""
+
+from __future__ import annotations
+
+import argparse
+
+from uwcam import __version__
+from uwcam.fileio import UserInputError
+
+
+def require_websocket_support() -> None:
+    """uvicorn serves WebSockets only with a WebSocket library beside it; without one it logs a
+    warning and answers every WebSocket route with 404, so the page would have no live view."""
+    import importlib
+
+    for name in ("websockets", "wsproto"):  # what uvicorn tries, in its order
+        try:
+            importlib.import_module(name)
+            return
+        except ImportError:
+            continue
+    raise UserInputError("the Python package 'websockets' is missing (the page's live view and /api/v1/stream "
+                         "need it): install it with '.venv/bin/pip install websockets', or run deploy/install.sh again")
+
+
+def _orderly_server_class() -> type:
+    import contextlib
+    import signal
+    import threading
+
+    import uvicorn
+
+    class OrderlyServer(uvicorn.Server):
+        """uvicorn's server, stopped by Ctrl-C or SIGTERM in order (the lifespan stops the loop,
+        switches the lamp off, releases the devices) and then done: uvicorn would raise the signal
+        again afterwards, which only adds a traceback and a failed exit status to a clean stop."""
+
+        @contextlib.contextmanager
+        def capture_signals(self):  # type: ignore[override]
+            if threading.current_thread() is not threading.main_thread():
+                yield
+                return
+            original = {sig: signal.signal(sig, self.handle_exit) for sig in (signal.SIGINT, signal.SIGTERM)}
+            try:
+                yield
+            finally:
+                for sig, handler in original.items():
+                    signal.signal(sig, handler)
+
+    return OrderlyServer
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    import gc
+    import logging
+    import os
+
+    require_websocket_support()
+
+    from uwcam.memory import limit_malloc_arenas
+
+    limit_malloc_arenas()  # before any thread allocates: see uwcam/memory.py
+
+    import socket
+
+    import uvicorn
+    from pydantic import ValidationError
+
+    from uwcam.api import create_app
+    from uwcam.config import SIMULATED_SETUPS, DaemonConfig, load_config
+    from uwcam.daemon import Daemon, check_devices
+    from uwcam.fileio import explain_validation_error
+
+    if args.config and args.simulate:
+        raise UserInputError("give either --config FILE or --simulate NAME, not both")
+    config = load_config(args.config) if args.config else SIMULATED_SETUPS[args.simulate or "vehicle"]()
+    overrides = {k: v for k, v in (("host", args.host), ("port", args.port)) if v is not None}
+    if overrides:
+        try:  # validated like the file: --port 80808 is a one-line error
+            config = DaemonConfig.model_validate({**config.model_dump(), "api": {**config.api.model_dump(), **overrides}})
+        except ValidationError as exc:
+            raise UserInputError(explain_validation_error(exc, "command line").replace("key 'api.", "option '--")) from None
+    check_devices(config)
+    from uwcam.api import required_token
+
+    required_token(config)  # before the socket is bound: no listening beyond loopback without a token
+    if args.record:
+        if os.path.exists(args.record):
+            raise UserInputError(f"{args.record} exists; give a new file name (recordings are never overwritten)")
+        if not args.record.endswith(".mcap"):
+            raise UserInputError(f"--record {args.record}: the file name must end in .mcap")
+        if not os.path.isdir(os.path.dirname(os.path.abspath(args.record))):
+            raise UserInputError(f"--record {args.record}: its folder does not exist; create it first")
+        config.recording.start_file = args.record
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    host, port = config.api.host, config.api.port
+    try:  # bound before anything starts, so a port in use is one line, not a startup traceback
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        sock = socket.create_server((host, port), family=family, reuse_port=False)
+    except OSError as exc:
+        raise UserInputError(f"cannot listen on {host}:{port}: {exc.strerror or exc}; choose another --port or --host") from None
+    daemon = Daemon(config)
+    try:
+        app = create_app(config, daemon)
+        daemon.start()  # devices and calibration: a configuration that cannot work fails here, in one line
+        where = args.config or ("embedded simulated tank" if args.simulate == "tank" else "embedded default (simulated rig)")
+        shown = f"[{host}]" if ":" in host else host  # IPv6 literal
+        root = f"http://{shown}:{sock.getsockname()[1]}"
+        print(f"uwcam {__version__}: {where}; operator page {root}/, API {root}/docs", flush=True)
+        # uvicorn handles SIGINT/SIGTERM: the lifespan then stops the loop, switches the lamp off
+        # and releases the devices.
+        # No per-message deflate: zlib on every multi-megabyte range map cost a third of the CPU
+        # (measured with py-spy) and float maps barely compress.
+        server = _orderly_server_class()(uvicorn.Config(app, log_level="warning", ws_per_message_deflate=False))
+        # Everything made so far (modules, the calibration, FastAPI's routes and models: ~125,000
+        # objects) lives as long as the process: out of the cyclic collector's sight, its full
+        # collections no longer stop every thread for ~50 ms (a 60 fps loop then skips frames).
+        gc.freeze()
+        server.run(sockets=[sock])
+    finally:
+        daemon.stop()
+        sock.close()
+    return 0
+
+
+def cmd_warmup(args: argparse.Namespace) -> int:
+    """Run the embedded default until its first range, then stop: numba compiles every kernel the
+    daemon's start needs into its on-disk cache, so the first ``uwcam run`` compiles nothing."""
+    import logging
+    import time
+
+    from uwcam.config import default_config
+    from uwcam.daemon import Daemon
+    from uwcam.optics import kernels
+
+    if not 1.0 <= args.timeout <= 86400.0:  # also refuses nan
+        raise UserInputError(f"--timeout must be 1 to 86400 seconds, got {args.timeout}")
+    if kernels.BACKEND != "numba":
+        print("nothing to compile: numba is not installed here (the numpy path is used)")
+        return 0
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    started = time.monotonic()
+    daemon = Daemon(default_config())
+    try:
+        daemon.start()
+        deadline = time.monotonic() + args.timeout
+        while daemon.pipeline.processed < 1:
+            if time.monotonic() > deadline:
+                raise UserInputError(f"no range within {args.timeout:g} s; try again with a longer --timeout")
+            time.sleep(0.05)
+    finally:
+        daemon.stop()
+    print(f"compiled uwcam's kernels in {time.monotonic() - started:.0f} s (kept in numba's cache)")
+    return 0
+
+
+def cmd_config_check(args: argparse.Namespace) -> int:
+    from uwcam.api import required_token
+    from uwcam.config import load_config
+    from uwcam.daemon import check_devices
+
+    config = load_config(args.file)
+    check_devices(config)
+    required_token(config)
+    print(f"{args.file}: valid (camera {config.camera.driver}, API {config.api.host}:{config.api.port})")
+    return 0

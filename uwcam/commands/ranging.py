@@ -1,0 +1,140 @@
+"""``uwcam range`` and ``uwcam simulate``: ranging frames from files, and making them."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from uwcam.fileio import UserInputError
+from uwcam.commands.arguments import (
+    checked_output,
+    parse_channels,
+    parse_floats,
+    parse_per_channel,
+    resolve_rig_path,
+)
+
+
+def cmd_range(args: argparse.Namespace) -> int:
+    from uwcam.imageio import MAP_SUFFIXES, read_frame, write_map
+    from uwcam.profile import load_profile
+    from uwcam.ranging import RangeEstimator, smooth_range_map
+
+    outputs = [(args.output, "-o")] + [(p, f) for p, f in ((args.variance, "--variance"), (args.reasons, "--reasons")) if p]
+    for path, flag in outputs:
+        checked_output(path, MAP_SUFFIXES, flag + " {path} must end in .npy, .tif or .tiff", flag)
+    profile = load_profile(args.profile)
+    frame = read_frame(args.image)
+    pair = None
+    if args.pair:
+        pair = tuple(s.strip() for s in args.pair.split(","))
+        if len(pair) != 2:
+            raise UserInputError(f"--pair needs two channel names separated by a comma, got '{args.pair}'")
+    surface = None
+    if args.surface_reflectance:
+        surface = parse_floats(args.surface_reflectance, "--surface-reflectance", len(profile.channels))
+    bounds = (0.0, np.inf)
+    if args.path_bounds:
+        bounds = tuple(parse_floats(args.path_bounds, "--path-bounds", 2))
+        if not 0 <= bounds[0] < bounds[1]:
+            raise UserInputError(f"--path-bounds must be MIN,MAX metres with 0 ≤ MIN < MAX, got '{args.path_bounds}'")
+    options = dict(pair=pair, surface_reflectance=surface, path_length_bounds=bounds)
+    if args.compensate_backscatter:
+        from uwcam.backscatter import BackscatterModel, compensated_range
+
+        open_water = read_frame(args.open_water) if args.open_water else None
+        model = BackscatterModel.from_profile(profile, open_water, frame.shape[:2])
+        result = compensated_range(profile, frame, model, **options)  # type: ignore[arg-type]
+    else:
+        if args.open_water:
+            raise UserInputError("--open-water is used by --compensate-backscatter; add that flag")
+        result = RangeEstimator(profile, **options)(frame)  # type: ignore[arg-type]
+    if args.smooth:
+        result = smooth_range_map(result, args.smooth)
+    write_map(args.output, result.range)
+    if args.variance:
+        write_map(args.variance, result.variance)
+    if args.reasons:
+        write_map(args.reasons, result.reasons)
+    valid = np.isfinite(result.range)
+    summary = f"{valid.mean():.1%} of pixels valid"
+    if valid.any():
+        summary += f", range {np.nanmin(result.range):.3f}–{np.nanmax(result.range):.3f} m"
+    print(f"wrote {args.output}: {summary}")
+    return 0
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from uwcam.imageio import IMAGE_SUFFIXES, write_frame
+    from uwcam.rig import load_rig
+    from uwcam.simulation import SCENES, WATER_PRESETS, Ambient, CameraModel, Channels, Lamp, SimulatedWorld, water_preset
+
+    if args.list:
+        print("scenes:")
+        for name, text in SCENES.items():
+            print(f"  {name:14s} {text}")
+        print("water presets:")
+        for name, text in WATER_PRESETS.items():
+            print(f"  {name:14s} {text}")
+        return 0
+    if args.scene is None or args.range is None or args.output is None:
+        raise UserInputError("simulate needs --scene NAME, --range METRES and -o FRAME (or --list to see scenes and water)")
+    out = Path(args.output)
+    if out.suffix.lower() not in IMAGE_SUFFIXES:
+        raise UserInputError(f"the frame {out} must end in {', '.join(IMAGE_SUFFIXES)}")
+    for path in (out, Path(args.truth) if args.truth else None):
+        if path is not None and not path.parent.exists():
+            raise UserInputError(f"output folder {path.parent} does not exist")
+    if args.truth and Path(args.truth).suffix.lower() != ".npy":
+        raise UserInputError(f"--truth {args.truth} must be a .npy file")
+    if not (np.isfinite(args.range) and args.range > 0):
+        raise UserInputError(f"--range must be a positive number of metres, got {args.range}")
+    try:
+        width, height = (int(v) for v in args.size.lower().split("x"))
+    except ValueError:
+        raise UserInputError(f"--size must be WIDTHxHEIGHT in pixels, e.g. 640x480, got '{args.size}'") from None
+    names, wavelengths = parse_channels(args.channels or "R:675,G:575,B:475", len((args.channels or "R,G,B").split(",")))
+    if any(w is None for w in wavelengths):
+        raise UserInputError("simulated channels need centre wavelengths: --channels NAME:NM,... (e.g. R:675,G:575,B:475)")
+    n = len(names)
+    channels = Channels(tuple(names), tuple(float(w) for w in wavelengths))  # type: ignore[arg-type]
+    water = water_preset(args.water, list(channels.wavelengths_nm)).with_overrides(
+        forward_blur=args.forward_blur,
+        scatter_attenuation=parse_per_channel(args.scatter_attenuation, "--scatter-attenuation", n),
+        backscatter=parse_per_channel(args.backscatter, "--backscatter", n),
+        attenuation=parse_per_channel(args.attenuation, "--attenuation", n),
+    )
+    lamp = Lamp(position=tuple(parse_floats(args.lamp_offset, "--lamp-offset", 3)) if args.lamp_offset else (0.0, 0.0, 0.0),
+                on=not args.lamp_off)
+    ambient = None
+    if args.ambient:
+        ambient = Ambient(tuple(parse_per_channel(args.ambient, "--ambient", n)))  # type: ignore[arg-type]
+    rig = load_rig(resolve_rig_path(args.rig)) if args.rig else None
+    if args.slabs < 1:
+        raise UserInputError(f"--slabs must be at least 1, got {args.slabs}")
+    world = SimulatedWorld(
+        scene=args.scene, distance=args.range, size=(width, height), fov_deg=args.fov, channels=channels, water=water,
+        lamp=lamp, camera=CameraModel(bits=args.bits, peak_code=args.peak, response=args.response,
+                                                  jpeg_quality=args.jpeg_quality), ambient=ambient, slabs=args.slabs,
+        gate_width=args.gate_width if args.gated else None, rig=rig, seed=args.seed, material=args.material,
+        fixed_exposure=args.exposure,
+    )
+    if args.exposure is not None and not args.exposure > 0:
+        raise UserInputError(f"--exposure must be positive, got {args.exposure}")
+    if args.exposure is None and args.lamp_off:
+        raise UserInputError("a lamp-off frame needs the lamp-on frame's --exposure (printed when you simulate it)")
+    frame = world.noise_free_frame() if args.noise_free else world.frame(0, lamp_on=not args.lamp_off)
+    if args.noise_free and out.suffix.lower() == ".png":
+        raise UserInputError("a --noise-free frame is float32: write it as .npy or .tif")
+    write_frame(out, frame)
+    if args.truth:
+        from uwcam.imageio import write_map
+
+        write_map(args.truth, world.camera_range.astype(np.float32))
+    intr = world.intrinsics
+    print(f"wrote {out}: {args.scene} at {args.range:g} m in {water.name}, {width}x{height}x{n} {frame.dtype}")
+    print(f"intrinsics {intr.fx:.6g},{intr.fy:.6g},{intr.cx:.6g},{intr.cy:.6g}")
+    print(f"dark level {world.camera.dark_level_dn:.6g} DN; saturation {world.camera.max_code} DN; exposure {world.exposure:.6g}")
+    return 0
