@@ -12,7 +12,8 @@ from mcap.reader import make_reader
 from tests.test_recording import recording_config, running
 from tests.waiting import wait_for
 from uwcam import recording as rec
-from uwcam.outputs.recorder import BUDGET, DiskBudget
+from uwcam.recording_disk import DiskBudget
+from uwcam.recording_records import BUDGET
 from uwcam.reprocess import ranged_frame_count, reprocess
 
 RAW_FRAME_BYTES = 160 * 120 * 3 * 2  # the test rig's 16-bit RGB frames

@@ -30,7 +30,7 @@ from uwcam import recording as rec
 from uwcam.chunk_check import CorruptChunk, find_corrupt_chunks
 from uwcam.extras import require_extra
 from uwcam.fileio import UserInputError
-from uwcam.outputs.recorder import to_depth
+from uwcam.recording_records import to_depth
 from uwcam.profile import CalibrationProfile, load_profile, profile_to_yaml
 from uwcam.ranging import RangeEstimator, range_frame
 

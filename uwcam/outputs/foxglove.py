@@ -22,7 +22,7 @@ from uwcam.config import FoxgloveConfig
 from uwcam.fileio import UserInputError
 from uwcam.outputs.foxglove_gateway import FoxgloveGateway
 from uwcam.optics.geometry import pixel_rays
-from uwcam.outputs.recorder import to_depth
+from uwcam.recording_records import to_depth
 from uwcam.pipeline import FramePipeline
 from uwcam.runtime.published import Published
 

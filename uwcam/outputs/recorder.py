@@ -13,11 +13,9 @@ so any MCAP reader reads it, and :meth:`Recorder.status` says why it stopped.
 from __future__ import annotations
 
 import collections
-import datetime as dt
 import errno
 import logging
 import os
-import shutil
 import threading
 import time
 from collections.abc import Callable
@@ -33,6 +31,8 @@ from uwcam.fileio import UserInputError
 from uwcam.pipeline import FramePipeline
 from uwcam.runtime.published import Published
 from uwcam.profile import CalibrationProfile
+from uwcam.recording_disk import DiskBudget, disk_free_bytes, time_name, unique_path
+from uwcam.recording_records import BUDGET, frame_metadata, ranging_record, summary_of, to_depth
 
 log = logging.getLogger(__name__)
 
@@ -40,7 +40,6 @@ SUMMARY_BYTES = 1000
 """About what a frame's metadata and ranging records take (JSON)."""
 SUMMARIES_PER_FRAME = 64
 """The queue holds at most this many items per raw frame it may hold (``queue_frames``)."""
-BUDGET = "decimated to fit recording.budget_mb_s"
 
 WRITER_NICENESS = 10
 """How much less CPU priority the writer thread has than the frame loop (Linux nice levels)."""
@@ -69,60 +68,6 @@ def item_bytes(item: tuple) -> int:
     published = item[1]
     r = published.result
     return published.frame.data.nbytes + r.range.nbytes + r.variance.nbytes + r.reasons.nbytes
-
-
-class DiskBudget:
-    """A token bucket in bytes on the frames' capture clock: ``rate`` bytes a second accrue, at
-    most ``burst_s`` seconds' worth; each write spends what it costs on disk, estimated from the
-    payload by the compression measured so far. A raw frame that would overdraw it is decimated.
-    Tokens accrue with capture time, not the writer's clock, so a writer that falls behind does
-    not decimate more (the queue's own limits handle that, counted apart)."""
-
-    def __init__(self, rate_bytes_s: float, burst_s: float = 2.0) -> None:
-        self.rate = rate_bytes_s
-        self.capacity = rate_bytes_s * burst_s
-        self.tokens = self.capacity
-        self.last_ns: int | None = None
-
-    def accrue(self, t_ns: int) -> None:
-        if self.last_ns is not None and t_ns > self.last_ns:
-            self.tokens = min(self.capacity, self.tokens + self.rate * (t_ns - self.last_ns) / 1e9)
-        self.last_ns = t_ns if self.last_ns is None else max(self.last_ns, t_ns)
-
-    def affords(self, cost_bytes: float) -> bool:
-        return self.tokens >= cost_bytes
-
-    def spend(self, cost_bytes: float) -> None:
-        self.tokens -= cost_bytes
-
-
-def disk_free_bytes(path: str) -> int | None:
-    """Free bytes (to an unprivileged user) of the file system holding ``path`` or its nearest existing parent."""
-    path = os.path.abspath(path)
-    while not os.path.exists(path):
-        parent = os.path.dirname(path)
-        if parent == path:
-            return None
-        path = parent
-    try:
-        return shutil.disk_usage(path).free
-    except OSError:
-        return None
-
-
-def time_name(now: float | None = None) -> str:
-    """File name of a recording started at ``now``: uwcam-YYYYmmddTHHMMSSZ.mcap (UTC)."""
-    t = dt.datetime.fromtimestamp(time.time() if now is None else now, dt.timezone.utc)
-    return f"uwcam-{t:%Y%m%dT%H%M%SZ}.mcap"
-
-
-def _unique(path: str) -> str:
-    stem, ext = os.path.splitext(path)
-    n = 2
-    while os.path.exists(path):
-        path = f"{stem}-{n}{ext}"
-        n += 1
-    return path
 
 
 class Recorder:
@@ -271,7 +216,7 @@ class Recorder:
         if path is None:
             os.makedirs(self.config.folder, exist_ok=True)
             repair_folder(self.config.folder)
-            path = _unique(os.path.join(self.config.folder, time_name()))
+            path = unique_path(os.path.join(self.config.folder, time_name()))
         elif os.path.exists(path):
             raise UserInputError(f"{path} exists; give a new file name (recordings are never overwritten)")
         elif not path.endswith(".mcap"):
@@ -483,9 +428,9 @@ class Recorder:
         self._part += 1
         stem, ext = os.path.splitext(self._base)
         if os.path.basename(self._base).startswith("uwcam-") and os.path.dirname(self._base) == self.config.folder:
-            path = _unique(os.path.join(self.config.folder, time_name()))
+            path = unique_path(os.path.join(self.config.folder, time_name()))
         else:
-            path = _unique(f"{stem}-{self._part:03d}{ext}")
+            path = unique_path(f"{stem}-{self._part:03d}{ext}")
         self._open(path)
         with self._lock:
             self._files.append(path)
@@ -587,47 +532,3 @@ def repair_folder(folder: str) -> list[str]:
     return repaired
 
 
-def summary_of(item: tuple, why: str) -> dict:
-    """A queued raw item reduced to what is kept of a frame without its raw image: its metadata
-    (``raw_left_out``: ``why``), its ranging record, and its preview if one was due (only when
-    decimated: a recorder behind sheds the pixels of previews too)."""
-    if item[0] == "ranged":
-        _, published, profile, processing, preview = item
-        frame, ranging = published.frame, ranging_record(published, profile, processing)
-        metadata = frame_metadata(frame, "ranged", published.number, why)
-    else:
-        _, frame, ranged, preview = item
-        ranging, metadata = None, frame_metadata(frame, ranged, None, why)
-    return {"t": int(frame.wall_time * 1e9), "metadata": metadata, "ranging": ranging,
-            "preview": frame.data if preview and why == BUDGET else None}
-
-
-def frame_metadata(frame: Frame, ranged: str, number: int | None, raw_left_out: str | None = None) -> dict:
-    """A frame's /uwcam/image/metadata record; ``raw_left_out``: why its raw image is not in the
-    file (None: it is), ``raw_kept`` the same as a flag."""
-    exposure, gain = frame.exposures()  # per channel: one value each, alike where the camera has one
-    return {"sequence": frame.sequence, "device_timestamp_ns": frame.device_timestamp_ns,
-            "host_monotonic_ns": frame.host_monotonic_ns, "wall_time": frame.wall_time,
-            "exposure_us": None if exposure is None else list(exposure), "gain_db": None if gain is None else list(gain),
-            "lamp_on": frame.lamp_on, "channel_names": list(frame.channel_names), "bit_depth": frame.bit_depth,
-            "dtype": frame.data.dtype.name, "ranged": ranged, "number": number, "raw_kept": raw_left_out is None,
-            "raw_left_out": raw_left_out}
-
-
-def ranging_record(p: Published, profile: CalibrationProfile, processing) -> dict:
-    """What a frame was ranged with: enough to range its raw frame again the same way."""
-    return {"number": p.number, "sequence": p.frame.sequence, "profile": profile.name,
-            "channel_names": profile.channel_names,
-            "attenuation_differences": list(p.attenuation_differences), "log_constants": list(p.log_constants),
-            "ambient_subtracted": p.ambient is not None,
-            "processing": {"pair": processing.pair, "smoothing": processing.smoothing,
-                           "smoothing_stage": processing.smoothing_stage,
-                           "path_length_bounds": list(processing.path_length_bounds),
-                           "vehicle_mask": [list(box) for box in processing.vehicle_mask]},
-            "depth": "metres along the optical axis (range along the pixel ray times u_z)"}
-
-
-def to_depth(range_m: np.ndarray, variance: np.ndarray, uz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Range along each pixel's ray → depth along the optical axis (REP 118), and its variance (m²)."""
-    depth = (range_m * uz).astype(np.float32)
-    return depth, (variance * (uz * uz)).astype(np.float32)
