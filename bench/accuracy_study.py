@@ -30,7 +30,8 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 from uwcam.backscatter import BackscatterModel, compensated_range  # noqa: E402
-from uwcam.ranging import RangeEstimator, smooth_range_map  # noqa: E402
+from uwcam.range_smoothing import smooth_range_map  # noqa: E402
+from uwcam.ranging import RangeEstimator  # noqa: E402
 from uwcam.simulation import CameraModel, Lamp, SimulatedWorld, water_preset  # noqa: E402
 from uwcam.simulation.tank import calibrate_in_simulation  # noqa: E402
 

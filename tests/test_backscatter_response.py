@@ -12,7 +12,8 @@ import numpy as np
 
 from uwcam.backscatter import pixel_response
 from uwcam.backscatter_loop import BackscatterCompensator
-from uwcam.ranging import RangeEstimator, smooth_range_map
+from uwcam.range_smoothing import smooth_range_map
+from uwcam.ranging import RangeEstimator
 from uwcam.simulation import CameraModel, Lamp, SimulatedWorld, water_preset
 from uwcam.simulation.tank import calibrate_in_simulation
 

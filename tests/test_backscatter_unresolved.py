@@ -9,7 +9,7 @@ import pytest
 from uwcam import backscatter_loop
 from uwcam.backscatter_loop import MAX_RELATIVE_SD, drop_unresolved
 from uwcam.optics.validity import Reason
-from uwcam.ranging import RangeResult
+from uwcam.range_result import RangeResult
 
 
 def sample(seed: int = 3, shape=(37, 53)) -> RangeResult:

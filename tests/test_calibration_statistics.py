@@ -289,7 +289,8 @@ def covariance_profile(lamp=(0.3, 0.0, 0.0), shape=(120, 160)):
 ])
 def test_ranging_adds_the_calibration_variance_and_smoothing_keeps_it(lamp, near, far, intrinsics):
     from uwcam.optics import Intrinsics
-    from uwcam.ranging import RangeEstimator, smooth_range_map
+    from uwcam.range_smoothing import smooth_range_map
+    from uwcam.ranging import RangeEstimator
 
     shape = (120, 160)
     base, with_cov, intr = covariance_profile(lamp=lamp, shape=shape)

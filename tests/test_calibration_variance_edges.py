@@ -154,7 +154,7 @@ def test_a_share_beyond_float32_stays_the_largest_float32_not_its_neighbours(mon
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32])
 @pytest.mark.parametrize("shape,size", [((64, 96, 3), (12, 8)), ((64, 96), (12, 8)), ((60, 90, 3), (11, 7)), ((32, 32, 3), (16, 16))])
 def test_block_means_are_the_mean_of_each_block(dtype, shape, size):
-    from uwcam.ranging import block_means
+    from uwcam.range_smoothing import block_means
 
     rng = np.random.default_rng(5)
     top = 250 if dtype == np.uint8 else 60000

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from tests.test_exposure import DARK, profile_with, scene
-from uwcam.ranging import RangeEstimator, block_means
+from uwcam.range_smoothing import block_means
+from uwcam.ranging import RangeEstimator
 
 
 def halvings(image: np.ndarray, times: int) -> np.ndarray:

@@ -1,7 +1,7 @@
 """3×3 smoothing of range maps: values, variances and invalid pixels against a naive reference.
 
 The reference below is a plain double loop over windows, written apart from
-``uwcam.ranging.smooth_range_map``: the mean of the valid neighbours, and the variance of that
+``uwcam.range_smoothing.smooth_range_map``: the mean of the valid neighbours, and the variance of that
 mean for independent neighbours, Var(Σ r_k / n) = Σ σ_k² / n² (σ² / n when all are equal).
 """
 
@@ -12,7 +12,8 @@ import pytest
 
 from uwcam.fileio import UserInputError
 from uwcam.optics.validity import Reason
-from uwcam.ranging import RangeResult, smooth_range_map
+from uwcam.range_result import RangeResult
+from uwcam.range_smoothing import smooth_range_map
 
 
 def naive(range_map: np.ndarray, variance: np.ndarray, kind: str) -> tuple[np.ndarray, np.ndarray]:
@@ -153,7 +154,7 @@ def naive_frame(raw: np.ndarray, kind: str, saturation: float) -> tuple[np.ndarr
 
 @pytest.mark.parametrize("kind", ["mean", "median"])
 def test_image_smoothing_leaves_saturated_values_out_and_keeps_them_saturated(kind):
-    from uwcam.ranging import smooth_frame
+    from uwcam.range_smoothing import smooth_frame
 
     rng = np.random.default_rng(3)
     raw = rng.integers(100, 4000, (7, 9, 3)).astype(np.uint16)

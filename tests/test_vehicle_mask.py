@@ -17,7 +17,8 @@ from tests.waiting import wait_for
 from uwcam.config import ProcessingConfig
 from uwcam.daemon import Daemon
 from uwcam.optics.validity import Reason
-from uwcam.ranging import RangeResult, mask_vehicle
+from uwcam.range_result import RangeResult
+from uwcam.ranging import mask_vehicle
 
 
 def test_mask_marks_its_boxes_clipped_to_the_image_and_nothing_else():

@@ -22,7 +22,7 @@ from uwcam.drivers.base import Frame
 from uwcam.fileio import UserInputError
 from uwcam.outputs.zenoh_publisher import QUEUE_FRAMES, ByteBucket, ByteRates, area_mean, next_preview_width, range_summary
 from uwcam.runtime.published import Published
-from uwcam.ranging import RangeResult
+from uwcam.range_result import RangeResult
 from tests.ports import free_port
 
 PREFIX = "uwcam/test-rov"

@@ -35,7 +35,8 @@ from numpy.typing import NDArray
 from uwcam.fileio import UserInputError
 from uwcam.optics.geometry import pixel_rays
 from uwcam.profile import CalibrationProfile
-from uwcam.ranging import RangeEstimator, RangeResult
+from uwcam.range_result import RangeResult
+from uwcam.ranging import RangeEstimator
 from uwcam.jit import HAVE_NUMBA, njit
 
 

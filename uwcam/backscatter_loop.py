@@ -23,7 +23,9 @@ from uwcam.jit import HAVE_NUMBA, njit
 from uwcam.optics.geometry import pixel_rays
 from uwcam.optics.validity import Reason
 from uwcam.profile import CalibrationProfile
-from uwcam.ranging import RangeEstimator, RangeResult, block_means
+from uwcam.range_result import RangeResult
+from uwcam.range_smoothing import block_means
+from uwcam.ranging import RangeEstimator
 
 BLOCK = 8
 """Side of the blocks (pixels) the backscatter is evaluated on."""

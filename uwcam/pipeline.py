@@ -27,7 +27,8 @@ from uwcam.drivers.supervisor import SupervisedCamera
 from uwcam.lamp_control import LampCommander
 from uwcam.memory import release_compiler_pages, release_free_memory
 from uwcam.profile import CalibrationProfile, check_intrinsics_fit
-from uwcam.ranging import RangeEstimator, RangeResult, range_frame
+from uwcam.range_result import RangeResult
+from uwcam.ranging import RangeEstimator, range_frame
 from uwcam.runtime.published import Published
 from uwcam.runtime.stages.orientation import OrientationEstimator
 from uwcam.runtime.stages.patch_tracker import PatchTracker

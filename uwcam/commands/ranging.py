@@ -20,7 +20,8 @@ from uwcam.commands.arguments import (
 def cmd_range(args: argparse.Namespace) -> int:
     from uwcam.imageio import MAP_SUFFIXES, read_frame, write_map
     from uwcam.profile import load_profile
-    from uwcam.ranging import RangeEstimator, smooth_range_map
+    from uwcam.range_smoothing import smooth_range_map
+    from uwcam.ranging import RangeEstimator
 
     outputs = [(args.output, "-o")] + [(p, f) for p, f in ((args.variance, "--variance"), (args.reasons, "--reasons")) if p]
     for path, flag in outputs:

@@ -9,7 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from uwcam.drivers.base import Frame
-from uwcam.ranging import RangeResult
+from uwcam.range_result import RangeResult
 
 
 @dataclass(frozen=True)

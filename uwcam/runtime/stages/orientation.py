@@ -14,7 +14,7 @@ from uwcam.config import OrientationConfig
 from uwcam.optics.geometry import Intrinsics, pixel_rays
 from uwcam.optics.orientation import beam_pattern, block_irradiance, block_means, incidence_from_blocks
 from uwcam.profile import CalibrationProfile
-from uwcam.ranging import RangeResult
+from uwcam.range_result import RangeResult
 from uwcam.runtime.stages.reflectance import ReflectanceCorrector
 
 
