@@ -24,7 +24,7 @@ from timing import best_time  # noqa: E402
 from uwcam.config import MavlinkConfig  # noqa: E402
 from uwcam.drivers.base import Frame  # noqa: E402
 from uwcam.optics.geometry import Intrinsics, pixel_rays  # noqa: E402
-from uwcam.outputs.mavlink import _Rays, measure  # noqa: E402
+from uwcam.outputs.mavlink_measure import PixelRays, measure  # noqa: E402
 from uwcam.runtime.published import Published  # noqa: E402
 from uwcam.range_result import RangeResult  # noqa: E402
 
@@ -65,7 +65,7 @@ def main() -> None:
         "minimum + 72 obstacle sectors": MavlinkConfig(statistic="minimum", orientation="NONE", obstacle_distance=True),
     }
     for name, config in cases.items():
-        rays = _Rays()
+        rays = PixelRays()
         measure(published, config, profile, (0.0, 100.0), rays)  # rays computed once, as in the output
         best, median = best_time(lambda: measure(published, config, profile, (0.0, 100.0), rays), args.repeat)
         print(f"{name:36s} {best * 1e3:8.2f} ms (median {median * 1e3:.2f})  {best / copy_s:7.1f}× memcopy  "

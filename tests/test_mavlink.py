@@ -260,7 +260,7 @@ def test_no_distance_when_no_pixel_is_valid_and_sectors_unknown():
 
 def test_sectors_that_saw_only_water_report_no_obstacle():
     from uwcam.optics.validity import Reason
-    from uwcam.outputs.mavlink import sector_distances
+    from uwcam.outputs.mavlink_measure import sector_distances
 
     horizontal = np.full((16, 72), np.nan)
     reasons = np.full((16, 72), Reason.BELOW_NOISE_FLOOR, dtype=np.uint8)

@@ -28,7 +28,7 @@ from uwcam.config import ZenohConfig
 from uwcam.extras import require_extra
 from uwcam.fileio import UserInputError
 from uwcam.outputs.foxglove import preview_rgb8
-from uwcam.outputs.mavlink import region_statistic
+from uwcam.outputs.mavlink_measure import region_statistic
 from uwcam.pipeline import FramePipeline
 from uwcam.runtime.published import Published
 
