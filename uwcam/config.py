@@ -2,6 +2,10 @@
 
 Without a file, ``uwcam run`` uses :func:`default_config`: a simulated camera, lamp and Ping1D
 on one simulated vehicle surveying a varied seabed, with a calibration patch in view.
+
+One module on purpose, although it is over 500 lines: it is the whole schema of the YAML a user
+writes, section by section, so that every key, its bounds and its default read in one place
+(docs/deployment.md shows the file these models validate).
 """
 
 from __future__ import annotations
