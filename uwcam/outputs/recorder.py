@@ -97,16 +97,23 @@ class DiskBudget:
 
 def disk_free_bytes(path: str) -> int | None:
     """Free bytes (to an unprivileged user) of the file system holding ``path`` or its nearest existing parent."""
+    return disk_space_bytes(path)[0]
+
+
+def disk_space_bytes(path: str) -> tuple[int | None, int | None]:
+    """(free to an unprivileged user, total size) in bytes of the file system holding ``path`` or
+    its nearest existing parent; (None, None) when it cannot be read."""
     path = os.path.abspath(path)
     while not os.path.exists(path):
         parent = os.path.dirname(path)
         if parent == path:
-            return None
+            return None, None
         path = parent
     try:
-        return shutil.disk_usage(path).free
+        usage = shutil.disk_usage(path)
     except OSError:
-        return None
+        return None, None
+    return usage.free, usage.total
 
 
 def time_name(now: float | None = None) -> str:
@@ -367,13 +374,13 @@ class Recorder:
     def _disk_outlook(self, size: int, recording: bool) -> dict:
         """Free disk where recordings go, and the hours of recording it holds at the budget (or,
         without one, at the rate measured while recording)."""
-        free = disk_free_bytes(self._files[-1] if self._files else self.config.folder)
+        free, total = disk_space_bytes(self._files[-1] if self._files else self.config.folder)
         rate = self.config.budget_mb_s * 1e6 if self.config.budget_mb_s else None
         if rate is None and recording and self._started_wall:
             elapsed = time.time() - self._started_wall
             rate = size / elapsed if elapsed > 5 and size > 0 else None
         hours = None if free is None or not rate else round(free / rate / 3600, 2)
-        return {"disk_free_bytes": free, "hours_left": hours}
+        return {"disk_free_bytes": free, "disk_total_bytes": total, "hours_left": hours}
 
     # ---------------------------------------------------------------------- writer thread
     def _open(self, path: str) -> None:

@@ -32,8 +32,8 @@ from uwcam.pipeline import FramePipeline, Published
 
 log = logging.getLogger(__name__)
 
-STATUS, SUMMARY, PREVIEW_RANGE, PREVIEW_COLOUR, HEALTH = (
-    "status", "range/summary", "range/preview/range", "range/preview/colour", "health")
+STATUS, SUMMARY, PREVIEW_RANGE, PREVIEW_COLOUR, HEALTH, ALERTS = (
+    "status", "range/summary", "range/preview/range", "range/preview/colour", "health", "alerts")
 JSON, PNG, JPEG = "application/json", "image/png", "image/jpeg"
 """Zenoh encodings (MIME types) of the payloads."""
 DEVICES = ("camera", "lamp", "rangefinder")
@@ -133,6 +133,12 @@ def preview_images(published: Published, width: int, quality: int) -> tuple[byte
     return rng, colour
 
 
+def alerts_document(event, active: list) -> bytes:
+    """The ``alerts`` payload: the event (None in the first one) and every alert active after it."""
+    return json.dumps({"event": None if event is None else event.as_dict(),
+                       "active": [a.as_dict() for a in active]}).encode()
+
+
 class ByteRates:
     """Bytes published per key over the last ``window_s`` seconds (not thread-safe: one owner)."""
 
@@ -200,6 +206,9 @@ class ZenohOutput:
         self._lock = threading.Lock()  # guards the queue, the latest values and the counters
         self._ready = threading.Condition(self._lock)
         self._queue: deque[Published] = deque(maxlen=QUEUE_FRAMES)
+        # Alert documents waiting for the thread: every event is sent (they are rare and small),
+        # the first one saying that none is active, so that a late ``get`` always has an answer.
+        self._alerts: deque[bytes] = deque([alerts_document(None, [])])
         self._latest: dict[str, tuple[bytes, str]] = {}  # full key → (payload, encoding)
         self._stop = False
         self._thread: threading.Thread | None = None
@@ -241,6 +250,13 @@ class ZenohOutput:
             if len(self._queue) == self._queue.maxlen:
                 self.dropped += 1
             self._queue.append(published)
+            self._ready.notify()
+
+    def offer_alerts(self, event, active: list) -> None:
+        """An alert raised or cleared (:class:`uwcam.alerts.AlertEvent`) and those active after
+        it: queued for this output's thread to publish on ``alerts``."""
+        with self._lock:
+            self._alerts.append(alerts_document(event, active))
             self._ready.notify()
 
     def _on_query(self, query) -> None:
@@ -299,13 +315,17 @@ class ZenohOutput:
         while True:
             with self._lock:
                 deadline = min(next_status, next_preview if newest is not None else math.inf)
-                self._ready.wait_for(lambda: self._stop or self._queue,
+                self._ready.wait_for(lambda: self._stop or self._queue or self._alerts,
                                      timeout=max(0.0, deadline - time.monotonic()))
                 if self._stop:
                     return
                 frames = list(self._queue)
                 self._queue.clear()
+                alerts = list(self._alerts)
+                self._alerts.clear()
             try:
+                for doc in alerts:
+                    self._put(ALERTS, doc, JSON, time.monotonic())
                 for p in frames:
                     self._put(SUMMARY, json.dumps(range_summary(p)).encode(), JSON, time.monotonic())
                     with self._lock:
