@@ -26,7 +26,7 @@ from uwcam.ranging import RangeResult
 
 PREFIX = "uwcam/test-rov"
 SEABED_M = 2.0  # the simulated seabed-patch scene of small_config is a plane at this distance
-KEYS = {"status": "application/json", "range/summary": "application/json",
+KEYS = {"status": "application/json", "alerts": "application/json", "range/summary": "application/json",
         "range/preview/range": "image/png", "range/preview/colour": "image/jpeg",
         "health/camera": "application/json", "health/lamp": "application/json",
         "health/rangefinder": "application/json"}
