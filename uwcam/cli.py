@@ -553,6 +553,40 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_monitor(args: argparse.Namespace) -> int:
+    """The topside fleet view (uwcam.monitor): subscribe to every vehicle on Zenoh, serve the page."""
+    import math
+    import re
+    import socket
+
+    from uwcam.config import _KEY_SEGMENT, _ZENOH_ENDPOINT
+
+    for option, endpoints in (("--connect", args.connect), ("--listen", args.listen)):
+        for endpoint in endpoints:
+            if not _ZENOH_ENDPOINT.match(endpoint):
+                raise UserInputError(f"{option} {endpoint}: not a Zenoh endpoint; e.g. tcp/192.168.2.2:7447")
+    if not (math.isfinite(args.stale_s) and 0 < args.stale_s <= 3600):
+        raise UserInputError(f"--stale-s {args.stale_s}: give seconds between 0 and 3600, e.g. 5")
+    if not 0 <= args.port <= 65535:
+        raise UserInputError(f"--port {args.port}: give a port 0–65535")
+    if not all(_KEY_SEGMENT.match(part) for part in args.root.split("/")) or re.search(r"[*$?#]", args.root):
+        raise UserInputError(f"--root {args.root}: give the vehicles' key root without wildcards, e.g. uwcam")
+    if not args.connect and not args.scouting:
+        raise UserInputError("nothing to listen to: give --connect ENDPOINT... or leave scouting on")
+    try:  # a port in use is one line, before Zenoh starts
+        with socket.create_server((args.host, args.port), family=socket.AF_INET6 if ":" in args.host else socket.AF_INET):
+            pass
+    except OSError as exc:
+        raise UserInputError(f"cannot listen on {args.host}:{args.port}: {exc.strerror or exc}; choose another --port") from None
+    from uwcam.monitor import run_monitor
+    from uwcam.outputs.zenoh_publisher import require_zenoh
+
+    require_zenoh()
+    print(f"uwcam monitor: fleet page http://{args.host}:{args.port}/ (vehicles under {args.root}/)", flush=True)
+    run_monitor(args.connect, args.listen, args.scouting, args.host, args.port, args.stale_s, args.root)
+    return 0
+
+
 def cmd_warmup(args: argparse.Namespace) -> int:
     """Run the embedded default until its first range, then stop: numba compiles every kernel the
     daemon's start needs into its on-disk cache, so the first ``uwcam run`` compiles nothing."""
@@ -739,6 +773,20 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--port", type=int, help="API port (default 8080)")
     run.add_argument("--record", metavar="FILE.mcap", help="record the dive into this MCAP file from start to stop")
     run.set_defaults(func=cmd_run)
+
+    mon = sub.add_parser("monitor", help="topside fleet view: every vehicle publishing on Zenoh, on one page")
+    mon.add_argument("--connect", nargs="+", default=[], metavar="ENDPOINT",
+                     help="Zenoh endpoints of the vehicles (or of a router), e.g. tcp/192.168.2.2:7447")
+    mon.add_argument("--listen", nargs="+", default=[], metavar="ENDPOINT",
+                     help="Zenoh endpoints to listen on, for vehicles that connect to the monitor")
+    mon.add_argument("--no-scouting", dest="scouting", action="store_false",
+                     help="do not look for vehicles on the LAN by multicast (only --connect and --listen)")
+    mon.add_argument("--host", default="127.0.0.1", help="address of the fleet page (default 127.0.0.1)")
+    mon.add_argument("--port", type=int, default=8090, help="port of the fleet page (default 8090)")
+    mon.add_argument("--stale-s", type=float, default=5.0, metavar="S",
+                     help="a vehicle unheard for S seconds is shown stale (default 5)")
+    mon.add_argument("--root", default="uwcam", help="key root the vehicles publish under (default uwcam)")
+    mon.set_defaults(func=cmd_monitor)
 
     warm = sub.add_parser("warmup", help="compile the ranging and simulation kernels now (deploy/install.sh runs it), "
                                          "so the first start compiles nothing")

@@ -333,6 +333,9 @@ class ZenohConfig(Strict):
     """Width of the previews in pixels at most (smaller when the budget does not allow)."""
     preview_quality: Annotated[Whole, Field(ge=10, le=100)] = 70
     """JPEG quality of the colour preview."""
+    page_url: Annotated[str, Field(pattern=r"^https?://[^\s]+$", max_length=500)] | None = None
+    """Where this vehicle's own page is reachable from topside (e.g. http://192.168.2.2:8080/):
+    published in ``status`` so that the fleet view (``uwcam monitor``) links to it; None: no link."""
 
     @field_validator("key_prefix")
     @classmethod

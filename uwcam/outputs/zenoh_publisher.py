@@ -294,7 +294,8 @@ class ZenohOutput:
         with self._lock:
             rates = dict(self._rates_now)
             total = sum(rates.values())
-            return {"key_prefix": self.prefix, "mode": self.config.mode, "summaries": self.summaries,
+            return {"key_prefix": self.prefix, "mode": self.config.mode, "page_url": self.config.page_url,
+                    "summaries": self.summaries,
                     "previews": self.previews, "frames_dropped": self.dropped, "queries": self.queries,
                     "preview_width": self.preview_width, "preview_interval_s": round(self.preview_interval_s, 3),
                     "bytes_per_s": {k: round(v, 1) for k, v in sorted(rates.items())},
