@@ -581,7 +581,7 @@ def cmd_monitor(args: argparse.Namespace) -> int:
     from uwcam.monitor import run_monitor
     from uwcam.outputs.zenoh_publisher import require_zenoh
 
-    require_zenoh()
+    require_zenoh("uwcam monitor listens on Zenoh", "")
     print(f"uwcam monitor: fleet page http://{args.host}:{args.port}/ (vehicles under {args.root}/)", flush=True)
     run_monitor(args.connect, args.listen, args.scouting, args.host, args.port, args.stale_s, args.root)
     return 0

@@ -22,7 +22,6 @@ from importlib import resources
 from fastapi import FastAPI, HTTPException
 from fastapi.responses import HTMLResponse, Response
 
-from uwcam.fileio import UserInputError
 
 TOPICS = ("status", "range/summary", "range/preview/colour", "range/preview/range", "alerts")
 DEVICES = ("camera", "lamp", "rangefinder")
@@ -154,20 +153,9 @@ class ZenohListener:
         self._subscriber = None
 
     def start(self) -> None:
-        from uwcam.outputs.zenoh_publisher import require_zenoh
+        from uwcam.outputs.zenoh_publisher import open_session
 
-        zenoh = require_zenoh()
-        conf = zenoh.Config()
-        conf.insert_json5("mode", '"peer"')
-        if self.connect:
-            conf.insert_json5("connect/endpoints", json.dumps(self.connect))
-        if self.listen:
-            conf.insert_json5("listen/endpoints", json.dumps(self.listen))
-        conf.insert_json5("scouting/multicast/enabled", json.dumps(self.scouting))
-        try:
-            self._session = zenoh.open(conf)
-        except Exception as exc:  # zenoh's own ZError: a taken port, a malformed endpoint
-            raise UserInputError(f"cannot open the Zenoh session ({exc}); check --connect and --listen") from None
+        self._session = open_session("peer", self.listen, self.connect, self.scouting, "check --connect and --listen")
         selector = f"{self.fleet.root}/**"
         self._subscriber = self._session.declare_subscriber(selector, self._on_sample)
         threading.Thread(target=self._query, args=(selector,), name="monitor-query", daemon=True).start()

@@ -59,14 +59,31 @@ RATE_WINDOW_S = 5.0
 """Bytes per second per key are measured over this last stretch of time."""
 
 
-def require_zenoh():
+def require_zenoh(needed_by: str = "zenoh: is configured", otherwise: str = " (or remove the zenoh: section)"):
     """The zenoh module; UserInputError saying what to install when it is missing."""
     try:
         import zenoh
     except ImportError:
-        raise UserInputError("zenoh: is configured but the Zenoh library is missing; "
-                             "pip install 'uwcam[zenoh]' (or remove the zenoh: section)") from None
+        raise UserInputError(f"{needed_by} but the Zenoh library is missing; "
+                             f"pip install 'uwcam[zenoh]'{otherwise}") from None
     return zenoh
+
+
+def open_session(mode: str, listen: list[str], connect: list[str], scouting: bool, hint: str):
+    """A Zenoh session in ``mode`` (peer or client) on these endpoints; UserInputError ending with
+    ``hint`` (what to check) when Zenoh refuses it."""
+    zenoh = require_zenoh()
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode))
+    if listen:
+        conf.insert_json5("listen/endpoints", json.dumps(listen))
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(connect))
+    conf.insert_json5("scouting/multicast/enabled", json.dumps(scouting))
+    try:
+        return zenoh.open(conf)
+    except Exception as exc:  # zenoh raises its own ZError for a taken port or an unreachable router
+        raise UserInputError(f"cannot open the Zenoh session ({exc}); {hint}") from None
 
 
 def default_key_prefix() -> str:
@@ -227,18 +244,9 @@ class ZenohOutput:
         self.error: str | None = None
 
     def start(self) -> None:
-        zenoh = self._zenoh = require_zenoh()
-        conf = zenoh.Config()
-        conf.insert_json5("mode", json.dumps(self.config.mode))
-        if self.config.listen:
-            conf.insert_json5("listen/endpoints", json.dumps(self.config.listen))
-        if self.config.connect:
-            conf.insert_json5("connect/endpoints", json.dumps(self.config.connect))
-        conf.insert_json5("scouting/multicast/enabled", json.dumps(self.config.scouting))
-        try:
-            self._session = zenoh.open(conf)
-        except Exception as exc:  # zenoh raises its own ZError for a taken port or an unreachable router
-            raise UserInputError(f"cannot open the Zenoh session ({exc}); check zenoh.listen and zenoh.connect") from None
+        self._zenoh = require_zenoh()
+        self._session = open_session(self.config.mode, self.config.listen, self.config.connect, self.config.scouting,
+                                     "check zenoh.listen and zenoh.connect")
         self._queryable = self._session.declare_queryable(f"{self.prefix}/**", self._on_query, complete=True)
         self._thread = threading.Thread(target=self._run, name="zenoh-output", daemon=True)
         self._thread.start()
