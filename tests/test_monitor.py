@@ -72,6 +72,7 @@ def test_monitor_options_are_checked(argv, message, capsys):
 
 
 NAMES = ("rov-a", "rov-b", "rov-c")
+BUDGET_KBIT_S = 48.0
 DISTANCES_M = {"rov-a": 1.8, "rov-b": 2.0, "rov-c": 2.4}
 
 
@@ -81,7 +82,8 @@ def vehicle_config(name: str, endpoint: str):
     return cfg.model_copy(update={
         "camera": CameraConfig(driver="sim", options={"fps": 4.0, "serial_number": f"SIM-{name}"}, watchdog_s=2.0),
         "simulation": {**cfg.simulation, "distance": DISTANCES_M[name]},
-        "zenoh": ZenohConfig(listen=[endpoint], scouting=False, key_prefix=f"uwcam/{name}", preview_rate_hz=0.5,
+        "zenoh": ZenohConfig(listen=[endpoint], scouting=False, key_prefix=f"uwcam/{name}", budget_kbit_s=BUDGET_KBIT_S,
+                             preview_rate_hz=0.5,
                              preview_width=48, page_url=f"http://127.0.0.1:9/{name}/" if name == "rov-a" else None),
         "alerts": AlertsConfig(range=RangeAlertConfig(below_m=1.5, for_s=0.5), clear_s=0.5),
     })
@@ -154,6 +156,10 @@ def test_three_vehicles_on_one_fleet_page_stale_and_back_with_alerts(browser):  
                     assert float(shown[name]["fps"]) > 0 and "camera ok" in shown[name]["devices"]
                     assert shown[name]["calibration"].startswith("simulated tank calibration")
                 assert shown["rov-a"]["link"] and not shown["rov-b"]["link"]
+                for name, d in daemons.items():  # each vehicle within its link's budget, previews included
+                    z = d.status()["zenoh"]
+                    assert not z["over_budget"] and z["previews"] > 0, (name, z)
+                    assert sum(z["bytes_per_s"].values()) * 8 / 1000 <= BUDGET_KBIT_S, (name, z["bytes_per_s"])
                 assert page.locator('tr[data-name="rov-a"] td.name a').get_attribute("href") == "http://127.0.0.1:9/rov-a/"
                 # live: the figures move on (the last-seen age stays short while frames keep coming)
                 assert wait_for(lambda: float(rows(page)["rov-b"]["last-seen"].split()[0]) < 2.0, 10.0, 0.3)
