@@ -310,6 +310,7 @@ class Daemon:
             if cfg.mavlink is not None:
                 self.mavlink = MavlinkOutput(cfg.mavlink, self.pipeline)
                 self.mavlink.start()
+            self._start_alerts()
         except BaseException:
             self.stop()
             raise
@@ -424,6 +425,9 @@ class Daemon:
 
             self.zenoh = ZenohOutput(self.pipeline, self.config.zenoh, status=self.status)
             self.zenoh.start()
+
+    def _start_alerts(self) -> None:
+        """The alert monitor, last: every output its events go to is running by then."""
         if self.config.alerts.enabled:
             from uwcam.outputs.alert_monitor import AlertMonitor
 
@@ -431,9 +435,8 @@ class Daemon:
             self.alerts.start()
 
     def _send_alert(self, event, active) -> None:
-        """An alert raised or cleared, to Zenoh ``alerts`` and MAVLink STATUSTEXT where configured
-        (looked up now: MAVLink starts after the outputs). In the alert monitor's thread; both
-        only queue it for their own threads."""
+        """An alert raised or cleared, to Zenoh ``alerts`` and MAVLink STATUSTEXT where configured.
+        In the alert monitor's thread; both only queue it for their own threads."""
         if self.zenoh is not None:
             self.zenoh.offer_alerts(event, active)
         if self.mavlink is not None:
@@ -441,12 +444,12 @@ class Daemon:
 
     def stop(self) -> None:
         """Stop the outputs and the loop, switch the lamp off, release every device. Safe to call twice."""
+        if self.alerts is not None:
+            self.alerts.close()  # first: its events go to the outputs stopped below
+            self.alerts = None
         if self.mavlink is not None:
             self.mavlink.stop()
             self.mavlink = None
-        if self.alerts is not None:
-            self.alerts.close()  # first: its events go to the outputs closed below
-            self.alerts = None
         if self.pipeline is not None:
             self.pipeline.stop()
         for output in (self.recorder, self.foxglove, self.zenoh):

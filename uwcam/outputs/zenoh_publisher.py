@@ -40,6 +40,8 @@ DEVICES = ("camera", "lamp", "rangefinder")
 """Devices of /api/v1/status whose health goes to ``health/<device>``."""
 STATUS_PERIOD_S = 1.0
 QUEUE_FRAMES = 8
+ALERTS_QUEUE = 64
+"""Alert documents waiting for the thread at most (events are rare; this only bounds a stuck thread)."""
 """Published frames waiting for their summary; beyond this the oldest is dropped and counted."""
 SUMMARY_WIDTH = 320
 """Summaries are computed on the range map subsampled to at most this many pixels across: the
@@ -225,7 +227,7 @@ class ZenohOutput:
         self._queue: deque[Published] = deque(maxlen=QUEUE_FRAMES)
         # Alert documents waiting for the thread: every event is sent (they are rare and small),
         # the first one saying that none is active, so that a late ``get`` always has an answer.
-        self._alerts: deque[bytes] = deque([alerts_document(None, [])])
+        self._alerts: deque[bytes] = deque([alerts_document(None, [])], maxlen=ALERTS_QUEUE)
         self._latest: dict[str, tuple[bytes, str]] = {}  # full key → (payload, encoding)
         self._stop = False
         self._thread: threading.Thread | None = None
