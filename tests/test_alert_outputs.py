@@ -62,7 +62,7 @@ def test_alerts_are_raised_and_cleared_once_on_every_output(mavutil):
     mav_port, endpoint = free_udp_port(), f"tcp/127.0.0.1:{free_port()}"
     texts = StatusTexts(mavutil, mav_port)
     config = small_config().model_copy(update={
-        "alerts": AlertsConfig(range=RangeAlertConfig(below_m=BELOW_M, for_s=1.0), device=DeviceAlertConfig(for_s=1.0),
+        "alerts": AlertsConfig(range=RangeAlertConfig(below_m=BELOW_M, for_s=1.0), device=DeviceAlertConfig(for_s=2.0),
                                disk_free_below_percent=100.0, clear_s=0.5),
         "zenoh": ZenohConfig(listen=[endpoint], scouting=False, key_prefix=PREFIX, preview_rate_hz=0.5, preview_width=32),
         "mavlink": MavlinkConfig(connection=f"udpout:127.0.0.1:{mav_port}", rate_hz=2.0),

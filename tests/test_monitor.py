@@ -104,7 +104,7 @@ def monitor_process(endpoints: list[str], port: int):
                 return False
 
         assert wait_for(up, 60.0, 0.2), proc.stdout.read() if proc.poll() is not None else "monitor did not answer"
-        yield url
+        yield url, proc
     finally:
         proc.terminate()
         try:
@@ -140,7 +140,7 @@ def test_three_vehicles_on_one_fleet_page_stale_and_back_with_alerts(browser):  
         for name in NAMES:
             daemons[name] = Daemon(vehicle_config(name, endpoints[name]))
             daemons[name].start()
-        with monitor_process(list(endpoints.values()), free_port()) as url:
+        with monitor_process(list(endpoints.values()), free_port()) as (url, proc):
             page = open_page(browser, url + "/", url)
             try:
                 def all_live() -> bool:
@@ -182,7 +182,13 @@ def test_three_vehicles_on_one_fleet_page_stale_and_back_with_alerts(browser):  
                 daemons["rov-c"] = Daemon(vehicle_config("rov-c", endpoints["rov-c"]))
                 daemons["rov-c"].start()
                 assert wait_for(lambda: not rows(page)["rov-c"]["stale"], 60.0, 0.3), rows(page)
-                assert page.errors == []
+
+                # The monitor itself gone: the page no longer shows anything as live.
+                proc.terminate()
+                proc.wait(timeout=20)
+                assert wait_for(lambda: all(v["stale"] for v in rows(page).values()), 15.0, 0.3), rows(page)
+                assert page.locator("#connection").inner_text() == "the monitor does not answer"
+                assert [e for e in page.errors if "Failed to load resource" not in e and "Failed to fetch" not in e] == []
             finally:
                 page.close()
     finally:

@@ -80,7 +80,9 @@ async function poll() {
     $("empty").hidden = fleet.vehicles.length > 0;
     $("connection").textContent = `${fleet.vehicles.filter((v) => !v.stale).length} of ${fleet.vehicles.length} live`;
   } catch (error) {
+    // Nothing confirmed any more: every row is shown stale rather than as it last was.
     $("connection").textContent = "the monitor does not answer";
+    for (const row of $("fleet").querySelector("tbody").rows) row.className = "stale";
   }
   setTimeout(poll, POLL_MS);
 }
