@@ -194,3 +194,31 @@ def test_three_vehicles_on_one_fleet_page_stale_and_back_with_alerts(browser):  
     finally:
         for d in daemons.values():
             d.stop()
+
+
+@pytest.mark.slow
+def test_a_vehicle_behind_nat_connects_to_a_listening_monitor():
+    """The other direction (docs/deployment.md): the monitor listens, the vehicle connects to it."""
+    from uwcam.monitor import ZenohListener
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    fleet = Fleet(stale_s=5.0)
+    listener = ZenohListener(fleet, connect=[], listen=[endpoint], scouting=False)
+    listener.start()
+    cfg = vehicle_config("rov-a", f"tcp/127.0.0.1:{free_port()}")
+    cfg = cfg.model_copy(update={"zenoh": cfg.zenoh.model_copy(update={"listen": [], "connect": [endpoint]})})
+    d = Daemon(cfg)
+    try:
+        d.start()
+
+        def heard():
+            vehicles = fleet.snapshot(time.monotonic(), time.time())
+            return len(vehicles) == 1 and vehicles[0]["centre_m"] is not None and vehicles[0]["fps"] is not None
+
+        assert wait_for(heard, 60.0, 0.2), fleet.snapshot(time.monotonic(), time.time())
+        (rov,) = fleet.snapshot(time.monotonic(), time.time())
+        assert rov["name"] == "rov-a" and rov["centre_m"] == pytest.approx(DISTANCES_M["rov-a"], rel=0.06)
+        assert not rov["stale"] and rov["devices"]["camera"] == "ok"
+    finally:
+        d.stop()
+        listener.close()

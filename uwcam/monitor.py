@@ -25,6 +25,8 @@ from fastapi.responses import HTMLResponse, Response
 
 TOPICS = ("status", "range/summary", "range/preview/colour", "range/preview/range", "alerts")
 DEVICES = ("camera", "lamp", "rangefinder")
+QUERY_TIMEOUT_S = 3.0
+"""The start's query for every vehicle's latest values waits this long for answers."""
 WEB = resources.files("uwcam") / "web"
 CSP = "default-src 'self'; img-src 'self' blob: data:; style-src 'self'; connect-src 'self'; frame-ancestors 'self'"
 
@@ -151,6 +153,7 @@ class ZenohListener:
         self.fleet, self.connect, self.listen, self.scouting = fleet, connect, listen, scouting
         self._session = None
         self._subscriber = None
+        self._query_thread: threading.Thread | None = None
 
     def start(self) -> None:
         from uwcam.outputs.zenoh_publisher import open_session
@@ -158,20 +161,24 @@ class ZenohListener:
         self._session = open_session("peer", self.listen, self.connect, self.scouting, "check --connect and --listen")
         selector = f"{self.fleet.root}/**"
         self._subscriber = self._session.declare_subscriber(selector, self._on_sample)
-        threading.Thread(target=self._query, args=(selector,), name="monitor-query", daemon=True).start()
+        self._query_thread = threading.Thread(target=self._query, args=(selector,), name="monitor-query", daemon=True)
+        self._query_thread.start()
 
     def _on_sample(self, sample) -> None:  # Zenoh's thread
         self.fleet.receive(str(sample.key_expr), sample.payload.to_bytes(), time.monotonic())
 
     def _query(self, selector: str) -> None:
         try:
-            for reply in self._session.get(selector, timeout=5.0):
+            for reply in self._session.get(selector, timeout=QUERY_TIMEOUT_S):
                 if reply.ok is not None:
                     self.fleet.receive(str(reply.ok.key_expr), reply.ok.payload.to_bytes(), time.monotonic())
         except Exception:  # the session closed while asking: nothing to fill
             pass
 
     def close(self) -> None:
+        if self._query_thread is not None:
+            self._query_thread.join(timeout=QUERY_TIMEOUT_S + 2.0)
+            self._query_thread = None
         if self._subscriber is not None:
             self._subscriber.undeclare()
             self._subscriber = None
