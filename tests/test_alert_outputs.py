@@ -138,3 +138,32 @@ def test_alerts_are_raised_and_cleared_once_on_every_output(mavutil):
 
     assert 'uwcam_alert_active{alert="disk",severity="warning"} 1.0' in metrics
     assert 'alert="range"' not in metrics
+
+
+@pytest.mark.slow
+def test_calibration_rules_read_a_running_daemons_profile_and_patch_tracking():
+    """The calibration rules on a real status: the profile's provenance date, and the patch
+    tracker's drift against the profile's σ. Limits set so low that both must hold (any age,
+    any drift), which shows the figures reach the rules."""
+    from uwcam.config import CalibrationAlertConfig
+    from uwcam.daemon import Daemon
+
+    config = small_config().model_copy(update={"alerts": AlertsConfig(
+        calibration=CalibrationAlertConfig(max_age_days=1e-9, drift_sigmas=1e-6, drift_for_s=0.0))})
+    d = Daemon(config)
+    try:
+        d.start()
+        assert wait_for(lambda: {"calibration_age", "attenuation_drift"} <= {
+            a["key"] for a in d.alerts.snapshot()["active"]}, 30.0), d.alerts.snapshot()
+        status = d.status()
+        snapshot = d.alerts.snapshot()
+    finally:
+        d.stop()
+    events = {e["key"]: e for e in snapshot["active"]}
+    age = events["calibration_age"]
+    assert age["values"]["name"] == status["calibration"]["name"] and age["values"]["age_days"] >= 0
+    assert age["values"]["created"] == status["calibration"]["created"] and age["severity"] == "notice"
+    drift = events["attenuation_drift"]["values"]
+    tracking = status["calibration"]["tracking"]
+    assert drift["channel"] in ("G", "B") and tracking["drift_std"][drift["channel"]] > 0  # R is the reference: no σ
+    assert drift["std_per_m"] == pytest.approx(tracking["drift_std"][drift["channel"]], rel=1e-3)
