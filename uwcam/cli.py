@@ -11,6 +11,7 @@ from uwcam.drivers.base import ConfigurationError
 from uwcam.fileio import UserInputError
 from uwcam.commands.calibrate import cmd_calibrate, cmd_response, cmd_rig_print
 from uwcam.commands.daemon import cmd_config_check, cmd_run, cmd_warmup
+from uwcam.commands.monitor import cmd_monitor
 from uwcam.commands.ranging import cmd_range, cmd_simulate
 from uwcam.commands.recordings import cmd_repair, cmd_reprocess
 
@@ -123,6 +124,20 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--port", type=int, help="API port (default 8080)")
     run.add_argument("--record", metavar="FILE.mcap", help="record the dive into this MCAP file from start to stop")
     run.set_defaults(func=cmd_run)
+
+    mon = sub.add_parser("monitor", help="topside fleet view: every vehicle publishing on Zenoh, on one page")
+    mon.add_argument("--connect", nargs="+", default=[], metavar="ENDPOINT",
+                     help="Zenoh endpoints of the vehicles (or of a router), e.g. tcp/192.168.2.2:7447")
+    mon.add_argument("--listen", nargs="+", default=[], metavar="ENDPOINT",
+                     help="Zenoh endpoints to listen on, for vehicles that connect to the monitor")
+    mon.add_argument("--no-scouting", dest="scouting", action="store_false",
+                     help="do not look for vehicles on the LAN by multicast (only --connect and --listen)")
+    mon.add_argument("--host", default="127.0.0.1", help="address of the fleet page (default 127.0.0.1)")
+    mon.add_argument("--port", type=int, default=8090, help="port of the fleet page (default 8090)")
+    mon.add_argument("--stale-s", type=float, default=5.0, metavar="S",
+                     help="a vehicle unheard for S seconds is shown stale (default 5)")
+    mon.add_argument("--root", default="uwcam", help="key root the vehicles publish under (default uwcam)")
+    mon.set_defaults(func=cmd_monitor)
 
     warm = sub.add_parser("warmup", help="compile the ranging and simulation kernels now (deploy/install.sh runs it), "
                                          "so the first start compiles nothing")

@@ -337,6 +337,9 @@ class ZenohConfig(Strict):
     """Width of the previews in pixels at most (smaller when the budget does not allow)."""
     preview_quality: Annotated[Whole, Field(ge=10, le=100)] = 70
     """JPEG quality of the colour preview."""
+    page_url: Annotated[str, Field(pattern=r"^https?://[^\s]+$", max_length=500)] | None = None
+    """Where this vehicle's own page is reachable from topside (e.g. http://192.168.2.2:8080/):
+    published in ``status`` so that the fleet view (``uwcam monitor``) links to it; None: no link."""
 
     @field_validator("key_prefix")
     @classmethod
@@ -345,6 +348,63 @@ class ZenohConfig(Strict):
             raise ValueError(f"key_prefix '{v}' must be words of letters, digits and _.~+- separated by single "
                              "slashes, without wildcards (* $ ? #) or a leading/trailing slash, e.g. uwcam/rov1")
         return v
+
+
+class RangeAlertConfig(Strict):
+    """Collision warning: the minimum range (m, the smallest median over small tiles of the range
+    map, as the Zenoh range summary gives it) below ``below_m`` for ``for_s`` seconds."""
+
+    below_m: Annotated[Real, Field(gt=0, le=1000)]
+    """Metres of camera range along the ray."""
+    for_s: Annotated[Real, Field(ge=0, le=3600)] = 1.0
+
+
+class DeviceAlertConfig(Strict):
+    """A device (camera, lamp, rangefinder) lost or recovering for more than ``for_s`` seconds."""
+
+    for_s: Annotated[Real, Field(ge=0, le=86400)] = 10.0
+
+
+class CalibrationAlertConfig(Strict):
+    """The calibration in use is old, or the attenuation the calibration patch tracks has drifted
+    beyond the calibration's own uncertainty."""
+
+    max_age_days: Annotated[Real, Field(gt=0, le=36500)] | None = 90.0
+    """Days since the profile was made (its provenance); None: no age alert."""
+    drift_sigmas: Annotated[Real, Field(gt=0, le=1000)] | None = 3.0
+    """Alert when a channel's tracked attenuation difference is more than this many of the
+    profile's standard uncertainties (attenuation_difference_std) from the calibrated one, for
+    ``drift_for_s``; channels without an uncertainty are not judged. None: no drift alert."""
+    drift_for_s: Annotated[Real, Field(ge=0, le=86400)] = 30.0
+
+
+class FramesDroppedAlertConfig(Strict):
+    """More than ``above_percent`` of the frames the camera delivered over the last ``window_s``
+    seconds were dropped (camera queue full, or skipped for a newer frame)."""
+
+    above_percent: Annotated[Real, Field(ge=0, lt=100)]
+    window_s: Annotated[Real, Field(ge=2, le=3600)] = 30.0
+
+
+class AlertsConfig(Strict):
+    """Alerts: each raised once when its condition has held long enough, cleared once when it has
+    ended for ``clear_s``; shown on the page, at GET /api/v1/alerts, on Zenoh ``alerts`` and as
+    MAVLink STATUSTEXT (docs/api.md, "Alerts"). A rule set to null is off."""
+
+    enabled: Flag = True
+    range: RangeAlertConfig | None = None
+    """Off by default: the distance that means danger depends on the vehicle."""
+    device: DeviceAlertConfig | None = DeviceAlertConfig()
+    calibration: CalibrationAlertConfig | None = None
+    """Off by default: how long a calibration stays good depends on the water and the crew."""
+    disk_free_below_percent: Annotated[Real, Field(gt=0, le=100)] | None = 5.0
+    """Free space on the disk recordings go to below this share of its size."""
+    frames_dropped: FramesDroppedAlertConfig | None = None
+    """Off by default: on a busy computer skipping frames for newer ones is normal."""
+    clear_s: Annotated[Real, Field(ge=0, le=3600)] = 2.0
+    """An alert clears once its condition has been false this long (no flapping at a threshold)."""
+    history: Annotated[Whole, Field(ge=1, le=10000)] = 100
+    """Raised and cleared events kept for GET /api/v1/alerts."""
 
 
 # MAV_SENSOR_ORIENTATION names (MAVLink common.xml) the MAVLink output accepts, by value. CUSTOM
@@ -469,6 +529,8 @@ class DaemonConfig(Strict):
     foxglove: FoxgloveConfig = FoxgloveConfig()
     zenoh: ZenohConfig | None = None
     """Publish for remote monitoring on Zenoh (needs ``pip install 'uwcam[zenoh]'``); None: off."""
+    alerts: AlertsConfig = AlertsConfig()
+    """Alert rules (collision warning, devices down, calibration age and drift, disk, dropped frames)."""
 
     @field_validator("simulation")
     @classmethod

@@ -212,6 +212,7 @@ class Daemon:
         self.recorder = None
         self.foxglove = None
         self.zenoh = None
+        self.alerts = None
         self.mavlink: MavlinkOutput | None = None
         self.profile_name = ""
         self.profiles: dict[str, CalibrationProfile] = {}
@@ -309,6 +310,7 @@ class Daemon:
             if cfg.mavlink is not None:
                 self.mavlink = MavlinkOutput(cfg.mavlink, self.pipeline)
                 self.mavlink.start()
+            self._start_alerts()
         except BaseException:
             self.stop()
             raise
@@ -424,8 +426,27 @@ class Daemon:
             self.zenoh = ZenohOutput(self.pipeline, self.config.zenoh, status=self.status)
             self.zenoh.start()
 
+    def _start_alerts(self) -> None:
+        """The alert monitor, last: every output its events go to is running by then."""
+        if self.config.alerts.enabled:
+            from uwcam.outputs.alert_monitor import AlertMonitor
+
+            self.alerts = AlertMonitor(self.pipeline, self.config.alerts, status=self.status, sinks=[self._send_alert])
+            self.alerts.start()
+
+    def _send_alert(self, event, active) -> None:
+        """An alert raised or cleared, to Zenoh ``alerts`` and MAVLink STATUSTEXT where configured.
+        In the alert monitor's thread; both only queue it for their own threads."""
+        if self.zenoh is not None:
+            self.zenoh.offer_alerts(event, active)
+        if self.mavlink is not None:
+            self.mavlink.offer_statustext(event.severity if event.state == "raised" else "info", f"uwcam: {event.message}")
+
     def stop(self) -> None:
         """Stop the outputs and the loop, switch the lamp off, release every device. Safe to call twice."""
+        if self.alerts is not None:
+            self.alerts.close()  # first: its events go to the outputs stopped below
+            self.alerts = None
         if self.mavlink is not None:
             self.mavlink.stop()
             self.mavlink = None
@@ -535,5 +556,6 @@ class Daemon:
             "recording": self.recorder.status() if self.recorder else None,
             "foxglove": self.foxglove.status() if self.foxglove else None,
             "zenoh": self.zenoh.status() if self.zenoh is not None else None,
+            "alerts": self.alerts.status() if self.alerts is not None else None,
             "mavlink": self.mavlink.status() if self.mavlink is not None else None,
         }

@@ -38,16 +38,23 @@ class DiskBudget:
 
 def disk_free_bytes(path: str) -> int | None:
     """Free bytes (to an unprivileged user) of the file system holding ``path`` or its nearest existing parent."""
+    return disk_space_bytes(path)[0]
+
+
+def disk_space_bytes(path: str) -> tuple[int | None, int | None]:
+    """(free to an unprivileged user, total size) in bytes of the file system holding ``path`` or
+    its nearest existing parent; (None, None) when it cannot be read."""
     path = os.path.abspath(path)
     while not os.path.exists(path):
         parent = os.path.dirname(path)
         if parent == path:
-            return None
+            return None, None
         path = parent
     try:
-        return shutil.disk_usage(path).free
+        usage = shutil.disk_usage(path)
     except OSError:
-        return None
+        return None, None
+    return usage.free, usage.total
 
 
 def time_name(now: float | None = None) -> str:

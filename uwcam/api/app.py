@@ -24,8 +24,8 @@ from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from uwcam import __version__
-from uwcam.api import (backscatter, calibration_session, lamp, metrics, profiles, recordings, session, settings,
-                       simulation, snapshots, status, stream, view, web)
+from uwcam.api import (alerts, backscatter, calibration_session, lamp, metrics, profiles, recordings, session,
+                       settings, simulation, snapshots, status, stream, view, web)
 from uwcam.api.backpressure import ConnectionSocket
 from uwcam.api.common import Broadcaster
 from uwcam.api.limits import BodyLimit
@@ -52,7 +52,7 @@ def openapi_with_bearer(app: FastAPI) -> dict:
     return app.openapi_schema
 
 
-ROUTERS = (status.router, snapshots.router, settings.router, profiles.router, lamp.router, backscatter.router, session.router,
+ROUTERS = (status.router, alerts.router, snapshots.router, settings.router, profiles.router, lamp.router, backscatter.router, session.router,
            stream.router, view.router, metrics.router, recordings.router, calibration_session.router, simulation.router, web.router)
 
 

@@ -99,6 +99,13 @@ class DaemonCollector(Collector):
             for channel, value in tracking["drift"].items():
                 drift.add_metric([channel], value)
             yield drift
+            std = GaugeMetricFamily("uwcam_calibration_attenuation_difference_std_per_meter",
+                                    "The calibration's standard uncertainty of each attenuation difference, 1/m "
+                                    "(0: not known); a drift beyond a few of these is a change of the water.",
+                                    labels=["channel"])
+            for channel, value in (tracking.get("drift_std") or {}).items():
+                std.add_metric([channel], value)
+            yield std
             yield CounterMetricFamily("uwcam_patch_frames_accepted", "Frames whose patch updated the tracking.",
                                       value=tracking["accepted"])
             yield CounterMetricFamily("uwcam_patch_frames_rejected", "Frames whose patch was rejected (saturated, "
@@ -116,8 +123,10 @@ class DaemonCollector(Collector):
                 reasons.add_metric([reason.name.lower()], counts[reason] / total)
             yield reasons
             yield from exposure_metrics(published)
+            yield from range_metrics(published)
 
         yield from calibration_metrics(s["calibration"]["created"])
+        yield from alert_metrics(s.get("alerts"))
         if s["recording"] is not None:
             yield from recorder_metrics(s["recording"])
         yield GaugeMetricFamily("uwcam_websocket_clients", "WebSocket stream clients connected now.",
@@ -139,6 +148,31 @@ class DaemonCollector(Collector):
                                       value=mav["send_errors"])
             yield GaugeMetricFamily("uwcam_mavlink_sending", "1 while distances are being sent to the autopilot.",
                                     value=float(mav["sending"]))
+
+
+def range_metrics(published: Published) -> Iterator[Metric]:
+    """Centre and minimum range of the newest processed frame, as the Zenoh range summary gives them
+    (docs/api.md, "Zenoh"); absent when the frame has too few valid pixels for them."""
+    from uwcam.outputs.zenoh_publisher import range_summary
+
+    summary = range_summary(published)
+    if summary["centre_m"] is not None:
+        yield GaugeMetricFamily("uwcam_range_centre_meters", "Median range of the central fifth of the newest "
+                                "range map, m.", value=summary["centre_m"])
+    if summary["minimum_m"] is not None:
+        yield GaugeMetricFamily("uwcam_range_minimum_meters", "Smallest median range over small tiles of the "
+                                "newest range map (the collision warning's figure), m.", value=summary["minimum_m"])
+
+
+def alert_metrics(alerts: dict | None) -> Iterator[Metric]:
+    """1 per alert uwcam itself holds raised (its own rules, uwcam.alerts)."""
+    if alerts is None:
+        return
+    family = GaugeMetricFamily("uwcam_alert_active", "1 for each alert raised by uwcam's own rules and not cleared.",
+                               labels=["alert", "severity"])
+    for alert in alerts["active"]:
+        family.add_metric([alert["key"], alert["severity"]], 1.0)
+    yield family
 
 
 def exposure_metrics(published: Published) -> Iterator[Metric]:
@@ -191,6 +225,9 @@ def recorder_metrics(recording: dict) -> Iterator[Metric]:
     free = recording["disk_free_bytes"]
     if free is not None:
         yield GaugeMetricFamily("uwcam_recording_disk_free_bytes", "Free bytes on the disk recordings go to.", value=free)
+    if recording.get("disk_total_bytes"):
+        yield GaugeMetricFamily("uwcam_recording_disk_size_bytes", "Size of the disk recordings go to, bytes.",
+                                value=recording["disk_total_bytes"])
 
 
 class Metrics:

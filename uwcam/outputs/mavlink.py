@@ -25,6 +25,9 @@ Field semantics follow MAVLink's common.xml:
   FRD, clockwise positive, ``angle_offset`` the centre of sector 0), each the robust minimum
   horizontal distance of its valid pixels in cm; UINT16_MAX where unknown, ``max_distance +
   1`` where the sector's pixels saw only lit water (no obstacle within range).
+* STATUSTEXT for each alert raised or cleared (uwcam.alerts), with the alert's MAV_SEVERITY
+  (cleared: INFO), its text cut to the message's 50 characters; queued while the link is down
+  (the newest 16 kept).
 * HEARTBEAT at 1 Hz as an onboard controller, so the autopilot and ground station see the
   component; ``system_status`` ACTIVE while distances are sent, STANDBY otherwise. 1 Hz also
   while the link is being re-opened: a reconnect does not send one of its own.
@@ -35,6 +38,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 from uwcam.config import MavlinkConfig
@@ -53,6 +57,9 @@ from uwcam.runtime.published import Published
 log = logging.getLogger(__name__)
 
 HEARTBEAT_PERIOD_S = 1.0
+STATUSTEXT_BYTES = 50
+"""STATUSTEXT's text field (a longer text would need MAVLink 2's chunks, which not every ground station joins)."""
+STATUSTEXT_QUEUE = 16
 # MAVLink enum values used here (common.xml), named so the code reads like the spec.
 MAV_DISTANCE_SENSOR_UNKNOWN = 4
 MAV_FRAME_BODY_FRD = 12
@@ -63,7 +70,8 @@ MAV_STATE_STANDBY, MAV_STATE_ACTIVE = 3, 4
 
 @dataclass
 class MavlinkStats:
-    sent: dict[str, int] = field(default_factory=lambda: {"HEARTBEAT": 0, "DISTANCE_SENSOR": 0, "OBSTACLE_DISTANCE": 0})
+    sent: dict[str, int] = field(default_factory=lambda: {"HEARTBEAT": 0, "DISTANCE_SENSOR": 0, "OBSTACLE_DISTANCE": 0,
+                                                          "STATUSTEXT": 0})
     send_errors: int = 0
     reconnects: int = 0
     frames_measured: int = 0
@@ -92,6 +100,7 @@ class MavlinkOutput:
         self._parser.robust_parsing = True
         self._slot: Published | None = None  # newest frame not yet measured (one slot, newest wins)
         self._slot_lock = threading.Lock()
+        self._texts: deque[tuple[int, bytes]] = deque(maxlen=STATUSTEXT_QUEUE)  # guarded by _slot_lock
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._transport = None
@@ -112,6 +121,15 @@ class MavlinkOutput:
             if self._slot is not None:
                 self.stats.frames_skipped_for_newer += 1
             self._slot = published
+
+    def offer_statustext(self, severity: str, text: str) -> None:
+        """Queue a STATUSTEXT (severity: a MAV_SEVERITY name such as "critical"; text: cut to 50
+        bytes of UTF-8) for this output's thread; any thread may call it."""
+        from uwcam.alerts import SEVERITIES
+
+        data = text.encode("utf-8")[:STATUSTEXT_BYTES].decode("utf-8", "ignore").encode("utf-8")
+        with self._slot_lock:
+            self._texts.append((SEVERITIES[severity], data))
 
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self) -> None:
@@ -191,6 +209,7 @@ class MavlinkOutput:
                 if now >= next_send:
                     next_send = max(next_send + period, now)
                     self._send_distance(now)
+                self._send_texts()
             except LinkDown as exc:
                 self._link_down(str(exc), now)
             except Exception as exc:  # never let the output die: report and go on
@@ -219,6 +238,18 @@ class MavlinkOutput:
         for msg in messages:
             if msg.get_type() == "HEARTBEAT" and msg.autopilot != MAV_AUTOPILOT_INVALID:
                 self.autopilot_heartbeat_monotonic = time.monotonic()
+
+    def _send_texts(self) -> None:
+        while True:
+            with self._slot_lock:
+                if not self._texts:
+                    return
+                severity, text = self._texts[0]
+            self._mav.statustext_send(severity, text)  # LinkDown leaves it queued for the next link
+            with self._slot_lock:
+                if self._texts and self._texts[0] == (severity, text):
+                    self._texts.popleft()
+            self.stats.sent["STATUSTEXT"] += 1
 
     def _send_heartbeat(self) -> None:
         status = MAV_STATE_ACTIVE if self.sending else MAV_STATE_STANDBY

@@ -31,7 +31,7 @@ from uwcam.fileio import UserInputError
 from uwcam.pipeline import FramePipeline
 from uwcam.runtime.published import Published
 from uwcam.profile import CalibrationProfile
-from uwcam.recording_disk import DiskBudget, disk_free_bytes, time_name, unique_path
+from uwcam.recording_disk import DiskBudget, disk_space_bytes, time_name, unique_path
 from uwcam.recording_records import BUDGET, frame_metadata, ranging_record, summary_of, to_depth
 
 log = logging.getLogger(__name__)
@@ -313,13 +313,13 @@ class Recorder:
     def _disk_outlook(self, size: int, recording: bool) -> dict:
         """Free disk where recordings go, and the hours of recording it holds at the budget (or,
         without one, at the rate measured while recording)."""
-        free = disk_free_bytes(self._files[-1] if self._files else self.config.folder)
+        free, total = disk_space_bytes(self._files[-1] if self._files else self.config.folder)
         rate = self.config.budget_mb_s * 1e6 if self.config.budget_mb_s else None
         if rate is None and recording and self._started_wall:
             elapsed = time.time() - self._started_wall
             rate = size / elapsed if elapsed > 5 and size > 0 else None
         hours = None if free is None or not rate else round(free / rate / 3600, 2)
-        return {"disk_free_bytes": free, "hours_left": hours}
+        return {"disk_free_bytes": free, "disk_total_bytes": total, "hours_left": hours}
 
     # ---------------------------------------------------------------------- writer thread
     def _open(self, path: str) -> None:

@@ -34,14 +34,16 @@ from uwcam.runtime.published import Published
 
 log = logging.getLogger(__name__)
 
-STATUS, SUMMARY, PREVIEW_RANGE, PREVIEW_COLOUR, HEALTH = (
-    "status", "range/summary", "range/preview/range", "range/preview/colour", "health")
+STATUS, SUMMARY, PREVIEW_RANGE, PREVIEW_COLOUR, HEALTH, ALERTS = (
+    "status", "range/summary", "range/preview/range", "range/preview/colour", "health", "alerts")
 JSON, PNG, JPEG = "application/json", "image/png", "image/jpeg"
 """Zenoh encodings (MIME types) of the payloads."""
 DEVICES = ("camera", "lamp", "rangefinder")
 """Devices of /api/v1/status whose health goes to ``health/<device>``."""
 STATUS_PERIOD_S = 1.0
 QUEUE_FRAMES = 8
+ALERTS_QUEUE = 64
+"""Alert documents waiting for the thread at most (events are rare; this only bounds a stuck thread)."""
 """Published frames waiting for their summary; beyond this the oldest is dropped and counted."""
 SUMMARY_WIDTH = 320
 """Summaries are computed on the range map subsampled to at most this many pixels across: the
@@ -62,8 +64,25 @@ RATE_WINDOW_S = 5.0
 
 
 def require_zenoh():
-    """The zenoh module; UserInputError saying what to install when it is missing."""
+    """The zenoh module; UserInputError naming the extra to install when it is missing."""
     return require_extra("zenoh")
+
+
+def open_session(mode: str, listen: list[str], connect: list[str], scouting: bool, hint: str):
+    """A Zenoh session in ``mode`` (peer or client) on these endpoints; UserInputError ending with
+    ``hint`` (what to check) when Zenoh refuses it."""
+    zenoh = require_zenoh()
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode))
+    if listen:
+        conf.insert_json5("listen/endpoints", json.dumps(listen))
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(connect))
+    conf.insert_json5("scouting/multicast/enabled", json.dumps(scouting))
+    try:
+        return zenoh.open(conf)
+    except Exception as exc:  # zenoh raises its own ZError for a taken port or an unreachable router
+        raise UserInputError(f"cannot open the Zenoh session ({exc}); {hint}") from None
 
 
 def default_key_prefix() -> str:
@@ -128,6 +147,12 @@ def preview_images(published: Published, width: int, quality: int) -> tuple[byte
     rgb = cv2.resize(preview_rgb8(published.frame.data), (width, height), interpolation=cv2.INTER_AREA)
     colour = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, quality])[1].tobytes()
     return rng, colour
+
+
+def alerts_document(event, active: list) -> bytes:
+    """The ``alerts`` payload: the event (None in the first one) and every alert active after it."""
+    return json.dumps({"event": None if event is None else event.as_dict(),
+                       "active": [a.as_dict() for a in active]}).encode()
 
 
 class ByteRates:
@@ -197,6 +222,9 @@ class ZenohOutput:
         self._lock = threading.Lock()  # guards the queue, the latest values and the counters
         self._ready = threading.Condition(self._lock)
         self._queue: deque[Published] = deque(maxlen=QUEUE_FRAMES)
+        # Alert documents waiting for the thread: every event is sent (they are rare and small),
+        # the first one saying that none is active, so that a late ``get`` always has an answer.
+        self._alerts: deque[bytes] = deque([alerts_document(None, [])], maxlen=ALERTS_QUEUE)
         self._latest: dict[str, tuple[bytes, str]] = {}  # full key → (payload, encoding)
         self._stop = False
         self._thread: threading.Thread | None = None
@@ -215,18 +243,9 @@ class ZenohOutput:
         self.error: str | None = None
 
     def start(self) -> None:
-        zenoh = self._zenoh = require_zenoh()
-        conf = zenoh.Config()
-        conf.insert_json5("mode", json.dumps(self.config.mode))
-        if self.config.listen:
-            conf.insert_json5("listen/endpoints", json.dumps(self.config.listen))
-        if self.config.connect:
-            conf.insert_json5("connect/endpoints", json.dumps(self.config.connect))
-        conf.insert_json5("scouting/multicast/enabled", json.dumps(self.config.scouting))
-        try:
-            self._session = zenoh.open(conf)
-        except Exception as exc:  # zenoh raises its own ZError for a taken port or an unreachable router
-            raise UserInputError(f"cannot open the Zenoh session ({exc}); check zenoh.listen and zenoh.connect") from None
+        self._zenoh = require_zenoh()
+        self._session = open_session(self.config.mode, self.config.listen, self.config.connect, self.config.scouting,
+                                     "check zenoh.listen and zenoh.connect")
         self._queryable = self._session.declare_queryable(f"{self.prefix}/**", self._on_query, complete=True)
         self._thread = threading.Thread(target=self._run, name="zenoh-output", daemon=True)
         self._thread.start()
@@ -238,6 +257,13 @@ class ZenohOutput:
             if len(self._queue) == self._queue.maxlen:
                 self.dropped += 1
             self._queue.append(published)
+            self._ready.notify()
+
+    def offer_alerts(self, event, active: list) -> None:
+        """An alert raised or cleared (:class:`uwcam.alerts.AlertEvent`) and those active after
+        it: queued for this output's thread to publish on ``alerts``."""
+        with self._lock:
+            self._alerts.append(alerts_document(event, active))
             self._ready.notify()
 
     def _on_query(self, query) -> None:
@@ -275,7 +301,8 @@ class ZenohOutput:
         with self._lock:
             rates = dict(self._rates_now)
             total = sum(rates.values())
-            return {"key_prefix": self.prefix, "mode": self.config.mode, "summaries": self.summaries,
+            return {"key_prefix": self.prefix, "mode": self.config.mode, "page_url": self.config.page_url,
+                    "summaries": self.summaries,
                     "previews": self.previews, "frames_dropped": self.dropped, "queries": self.queries,
                     "preview_width": self.preview_width, "preview_interval_s": round(self.preview_interval_s, 3),
                     "bytes_per_s": {k: round(v, 1) for k, v in sorted(rates.items())},
@@ -296,13 +323,17 @@ class ZenohOutput:
         while True:
             with self._lock:
                 deadline = min(next_status, next_preview if newest is not None else math.inf)
-                self._ready.wait_for(lambda: self._stop or self._queue,
+                self._ready.wait_for(lambda: self._stop or self._queue or self._alerts,
                                      timeout=max(0.0, deadline - time.monotonic()))
                 if self._stop:
                     return
                 frames = list(self._queue)
                 self._queue.clear()
+                alerts = list(self._alerts)
+                self._alerts.clear()
             try:
+                for doc in alerts:
+                    self._put(ALERTS, doc, JSON, time.monotonic())
                 for p in frames:
                     self._put(SUMMARY, json.dumps(range_summary(p)).encode(), JSON, time.monotonic())
                     with self._lock:

@@ -6,6 +6,9 @@ import { COLOUR_MAPS, REASON_COLOURS, cssColour, lut, reasonColour } from "./col
 import { ViewStream, centreAndMinimum, float16, sample } from "./stream.js";
 import { PointCloudView } from "./viewer3d.js";
 import { startTank } from "./tank.js";
+// --- alert banner (issue 28): begin ---
+import { startAlertBanner } from "./alerts.js";
+// --- alert banner: end ---
 
 const $ = (id) => document.getElementById(id);
 const STALE_AFTER_MS = 1500;
@@ -888,5 +891,8 @@ loadSession();
 loadProfiles();
 pollStatus();
 setInterval(checkStale, 250);
+// --- alert banner (issue 28): begin ---
+startAlertBanner($("alert-banner"));
+// --- alert banner: end ---
 
 window.addEventListener("resize", () => stream.setWidth());

@@ -102,6 +102,9 @@ class PatchTracker:
         return {
             "attenuation_differences": dict(zip(names, map(float, self.tracked))),
             "drift": dict(zip(names, map(float, self.tracked - self.calibrated))),
+            # The calibration's own uncertainty of each difference (1/m; 0: not known): a drift
+            # within a few of these is the calibration's noise, beyond them the water has changed.
+            "drift_std": dict(zip(names, map(float, self.profile.array("attenuation_difference_std")))),
             "accepted": self.accepted,
             "rejected": self.rejected,
             "state": self.last_reason,
