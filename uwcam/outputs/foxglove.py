@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import logging
-import threading
 import time
 from collections.abc import Callable
 
@@ -25,6 +24,7 @@ from uwcam.optics.geometry import pixel_rays
 from uwcam.recording_records import to_depth
 from uwcam.pipeline import FramePipeline
 from uwcam.runtime.published import Published
+from uwcam.outputs.subscriber import ThreadedOutput
 
 log = logging.getLogger(__name__)
 PREVIEW = "/uwcam/image/preview"
@@ -50,21 +50,17 @@ def point_cloud(range_m: np.ndarray, rays: np.ndarray, rgb: np.ndarray, stride: 
     return points.tobytes(), len(points)
 
 
-class FoxgloveOutput:
+class FoxgloveOutput(ThreadedOutput):
     """The Foxglove WebSocket server and its sender thread."""
 
     def __init__(self, pipeline: FramePipeline, config: FoxgloveConfig,
                  status: Callable[[], dict] | None = None, rangefinder: object | None = None) -> None:
-        self.pipeline = pipeline
+        super().__init__(pipeline, "foxglove-output")
         self.config = config
         self._status_fn = status
         self.rangefinder = rangefinder
         self._next_status = 0.0
-        self._lock = threading.Lock()  # guards the one-slot holder and the counters
-        self._ready = threading.Condition(self._lock)
         self._newest: Published | None = None
-        self._stop = False
-        self._thread: threading.Thread | None = None
         self.server = None
         self.gateway: FoxgloveGateway | None = None
         self.sent = 0
@@ -104,9 +100,7 @@ class FoxgloveOutput:
             rec.STATUS: foxglove.Channel(rec.STATUS, context=ctx),
             rec.RANGEFINDER: foxglove.Channel(rec.RANGEFINDER, context=ctx),
         }
-        self._thread = threading.Thread(target=self._run, name="foxglove-output", daemon=True)
-        self._thread.start()
-        self.pipeline.subscribe(self._on_published)
+        self._start_thread()
         log.info("Foxglove WebSocket server on ws://%s:%d", self.config.host, self.port)
 
     @property
@@ -121,13 +115,7 @@ class FoxgloveOutput:
             self._ready.notify()
 
     def close(self) -> None:
-        self.pipeline.unsubscribe(self._on_published)
-        with self._lock:
-            self._stop = True
-            self._ready.notify()
-        if self._thread is not None:
-            self._thread.join(timeout=10.0)
-            self._thread = None
+        self._stop_thread()
         if self.gateway is not None:
             self.gateway.stop()
             self.gateway = None

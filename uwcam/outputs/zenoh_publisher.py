@@ -16,7 +16,6 @@ import json
 import logging
 import math
 import socket
-import threading
 import time
 from collections import deque
 from collections.abc import Callable
@@ -31,6 +30,7 @@ from uwcam.outputs.foxglove import preview_rgb8
 from uwcam.outputs.mavlink_measure import region_statistic
 from uwcam.pipeline import FramePipeline
 from uwcam.runtime.published import Published
+from uwcam.outputs.subscriber import ThreadedOutput
 
 log = logging.getLogger(__name__)
 
@@ -211,23 +211,19 @@ def next_preview_width(width: int, sent_bytes: int, target_bytes: float, largest
     return int(min(max(round(width * factor), MIN_PREVIEW_WIDTH), largest))
 
 
-class ZenohOutput:
+class ZenohOutput(ThreadedOutput):
     """The Zenoh session, its queryable and the publishing thread."""
 
     def __init__(self, pipeline: FramePipeline, config: ZenohConfig, status: Callable[[], dict] | None = None) -> None:
-        self.pipeline = pipeline
+        super().__init__(pipeline, "zenoh-output")
         self.config = config
         self.prefix = config.key_prefix or default_key_prefix()
         self._status_fn = status
-        self._lock = threading.Lock()  # guards the queue, the latest values and the counters
-        self._ready = threading.Condition(self._lock)
         self._queue: deque[Published] = deque(maxlen=QUEUE_FRAMES)
         # Alert documents waiting for the thread: every event is sent (they are rare and small),
         # the first one saying that none is active, so that a late ``get`` always has an answer.
         self._alerts: deque[bytes] = deque([alerts_document(None, [])], maxlen=ALERTS_QUEUE)
         self._latest: dict[str, tuple[bytes, str]] = {}  # full key → (payload, encoding)
-        self._stop = False
-        self._thread: threading.Thread | None = None
         self._session = None
         self._queryable = None
         self._rates = ByteRates()
@@ -247,9 +243,7 @@ class ZenohOutput:
         self._session = open_session(self.config.mode, self.config.listen, self.config.connect, self.config.scouting,
                                      "check zenoh.listen and zenoh.connect")
         self._queryable = self._session.declare_queryable(f"{self.prefix}/**", self._on_query, complete=True)
-        self._thread = threading.Thread(target=self._run, name="zenoh-output", daemon=True)
-        self._thread.start()
-        self.pipeline.subscribe(self._on_published)
+        self._start_thread()
         log.info("publishing on Zenoh under %s/ (%s mode)", self.prefix, self.config.mode)
 
     def _on_published(self, published: Published) -> None:  # loop thread: hand off only
@@ -283,13 +277,7 @@ class ZenohOutput:
         query.drop()
 
     def close(self) -> None:
-        self.pipeline.unsubscribe(self._on_published)
-        with self._lock:
-            self._stop = True
-            self._ready.notify()
-        if self._thread is not None:
-            self._thread.join(timeout=10.0)
-            self._thread = None
+        self._stop_thread()
         if self._queryable is not None:
             self._queryable.undeclare()
             self._queryable = None
