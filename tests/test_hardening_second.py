@@ -95,6 +95,54 @@ def test_a_flood_of_wrong_sign_ins_holds_up_neither_the_api_nor_a_right_token_fr
     assert operator_wait < 3.0 and max(status_waits) < 3.0, (operator_wait, status_waits)
 
 
+def test_a_right_token_from_a_flooding_address_is_accepted_at_once_and_status_stays_responsive():
+    """A flood of wrong sign-ins from one address, then the right token from that same address
+    while it is still told to wait: the right token is accepted at once (before, it got 429 until
+    the wait was over). The address's wait is made 60 s long so that the right token surely comes
+    during it, however loaded the machine; the status is read throughout the flood."""
+    flood = 80
+
+    async def attack(s):
+        status_codes, status_waits = [], []
+        async with httpx.AsyncClient(base_url=s.url, timeout=60.0, limits=httpx.Limits(max_connections=40)) as client:
+            async def read_status():
+                for _ in range(5):
+                    start = time.monotonic()
+                    r = await client.get("/api/v1/status")
+                    status_waits.append(time.monotonic() - start)
+                    status_codes.append(r.status_code)
+                    await asyncio.sleep(0.1)
+
+            reader = asyncio.create_task(read_status())
+            wrong = await asyncio.gather(*(client.post("/api/v1/session", json={"token": f"guess-{i}"})
+                                           for i in range(flood)))
+            await reader
+            throttled_s = s.app.state.guard.throttle.wait_s("127.0.0.1")
+            right = await client.post("/api/v1/session", json={"token": TOKEN})
+            after = await client.post("/api/v1/session", json={"token": "guess-again"})
+        return wrong, status_codes, status_waits, throttled_s, right, after
+
+    with Server(small_config(token=TOKEN)) as s:
+        s.app.state.guard.throttle = SignInThrottle(step_s=60.0, most_s=60.0)
+        wrong, status_codes, status_waits, throttled_s, right, after = asyncio.run(attack(s))
+        # The session the right token opened works: a state change with its cookie and CSRF token.
+        csrf = right.json()["csrf_token"]
+        cookie = right.cookies[s.app.state.guard.cookie]
+        s.http.cookies.set(s.app.state.guard.cookie, cookie)
+        changed = s.http.patch("/api/v1/config", json={}, headers={"X-CSRF-Token": csrf})
+        s.http.cookies.clear()
+    codes = [r.status_code for r in wrong]
+    print(f"flood: {codes.count(401)}× 401, {codes.count(429)}× 429; status waits (s): "
+          + " ".join(f"{w:.2f}" for w in status_waits))
+    assert codes.count(401) == 1 and codes.count(429) == flood - 1, codes  # only the first is checked as wrong
+    assert throttled_s > 30.0  # the address was still told to wait when the right token came
+    assert right.status_code == 200 and right.json()["csrf_token"], right.text
+    assert changed.status_code == 200, changed.text
+    # A right token clears the address's count: the next wrong one is a plain 401, not a 429.
+    assert after.status_code == 401, after.text
+    assert status_codes == [200] * 5 and max(status_waits) < 5.0, status_waits
+
+
 def test_the_throttle_counts_per_address_and_forgets_the_oldest(monkeypatch):
     now = [100.0]
     monkeypatch.setattr("uwcam.api.security.time.monotonic", lambda: now[0])
