@@ -551,6 +551,55 @@ def test_a_client_reading_every_two_seconds_gets_maps_at_most_1_5_s_old():
     assert max(ages) <= 1.5, ages
 
 
+def newest_ages_when_draining(port: int, route: str, read_every_s: float, drains: int) -> list[float]:
+    """A plain client (no acknowledgements, nothing special) that every ``read_every_s`` takes all
+    the messages there are for it: the age (s, capture to that moment) of the newest range map
+    among them, per drain (inf when there was none)."""
+    import socket
+
+    import websockets
+
+    from uwcam.api import HEADER
+
+    async def client():
+        sock = socket.socket()
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)  # room for a backlog, as a default client has
+        sock.connect(("127.0.0.1", port))
+        sock.setblocking(False)
+        ages = []
+        async with websockets.connect(f"ws://127.0.0.1:{port}{route}", sock=sock, max_size=None) as ws:
+            json.loads(await asyncio.wait_for(ws.recv(), 30.0))  # hello
+            while len(ages) < drains:
+                await asyncio.sleep(read_every_s)
+                newest = None
+                while True:  # everything there is, until nothing more comes for 5 ms
+                    try:
+                        msg = await asyncio.wait_for(ws.recv(), 0.005)
+                    except TimeoutError:
+                        break
+                    if isinstance(msg, bytes):
+                        newest = HEADER.unpack_from(msg)[2]
+                ages.append(float("inf") if newest is None else (time.time_ns() - newest) / 1e9)
+        return ages
+
+    return asyncio.run(client())
+
+
+@pytest.mark.slow
+def test_a_plain_client_draining_every_two_seconds_finds_a_fresh_map():
+    """The attack's reader got maps 5.9 s old: frames sent at 30 Hz filled its buffers within a
+    fraction of a second of each read, and waited there. A client that asks for nothing special and
+    takes what there is every 2 s now finds a map at most 1.5 s old each time, once the daemon
+    has learnt its pace (the first three reads)."""
+    config = small_config(token=TOKEN)
+    config.simulation["size"] = [320, 240]  # 150 kB per map: a default client's buffers would hold several
+    with Server(config) as s:
+        assert wait_for(lambda: s.daemon.pipeline.processed > 5, 60.0)
+        ages = newest_ages_when_draining(s.port, "/api/v1/stream?rate=30", 5.0, 7)
+    print("age of the newest map at each read (s):", " ".join(f"{a:.2f}" for a in ages))
+    assert max(ages[3:]) <= 1.5, ages
+
+
 # -- 10: the smaller ones ----------------------------------------------------------------------
 
 def test_pty_folders_of_killed_processes_are_removed_by_the_next_start(tmp_path, monkeypatch):
