@@ -643,13 +643,41 @@ def test_pty_folders_of_killed_processes_are_removed_by_the_next_start(tmp_path,
 
 
 def test_the_profile_parser_is_libyaml_where_pyyaml_has_it():
-    """A 1 MB profile took 16-21 s of CPU with the pure-Python parser, and the frame rate fell."""
+    """A 1 MB profile took 16-21 s of CPU with the pure-Python parser, and the frame rate fell;
+    uploads and files alike are parsed with libyaml (uploads in a child process)."""
     import yaml
 
     from uwcam.fileio import SAFE_LOADER
 
     assert yaml.__with_libyaml__, "PyYAML here is built with libyaml"
     assert SAFE_LOADER is yaml.CSafeLoader
+
+
+def test_a_large_upload_is_parsed_in_a_child_process_and_answered_as_before(server):
+    """A 1 MB YAML upload cost 16-21 s of the daemon's CPU with the pure-Python parser (the frame
+    rate fell to 16), and held the interpreter 0.6-0.7 s with libyaml in a thread. Now libyaml
+    parses it in a child process: the CPU shows in the children's account, and the answers are
+    those of before (not a profile: 422; bad YAML: where; too deep: nested)."""
+    import resource
+
+    import yaml
+
+    from uwcam.api.profiles import MAX_PROFILE_BYTES
+
+    body = yaml.safe_dump({f"key{k}": [k, k + 0.5, "text"] for k in range(20000)}).encode()
+    assert 0.5 * MAX_PROFILE_BYTES < len(body) < MAX_PROFILE_BYTES
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    r = server.http.put("/api/v1/calibration/profiles/large", content=body, headers=BEARER, timeout=120.0)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    child_cpu_s = (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
+    print(f"1 MB upload: CPU of the parsing child {child_cpu_s:.2f} s")
+    assert r.status_code == 422 and "format" in r.json()["detail"], r.text  # read in full: not a profile
+    assert child_cpu_s > 0.1  # parsed there, not here
+    bad = server.http.put("/api/v1/calibration/profiles/bad", content=b"a: [1, 2\nb: }", headers=BEARER)
+    assert bad.status_code == 422 and "not valid YAML or JSON at line" in bad.json()["detail"], bad.text
+    not_text = server.http.put("/api/v1/calibration/profiles/bad", content=b"a: \xff\xfe", headers=BEARER)
+    assert not_text.status_code == 422 and "utf-8" in not_text.json()["detail"], not_text.text
+    assert "large" not in server.daemon.profiles and "bad" not in server.daemon.profiles
 
 
 def test_a_missing_token_is_reported_before_the_socket_is_bound():
