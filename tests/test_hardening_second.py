@@ -600,6 +600,28 @@ def test_a_plain_client_draining_every_two_seconds_finds_a_fresh_map():
     assert max(ages[3:]) <= 1.5, ages
 
 
+def test_the_pace_backs_off_to_what_a_stalled_client_took_and_grows_slowly():
+    """Hand-worked: 30 maps sent over 10 s, then a message waits 3 s to be taken → 0.75 × 30 / 13 s
+    = 1.731 Hz; 10 s of messages taken at once → 1.731 × e^(0.02 × 10) + 0.05 × 10 = 2.614 Hz; never
+    above the rate asked for, never below 0.1 Hz."""
+    from uwcam.api.backpressure import Pace
+
+    pace = Pace(30.0, now_s=100.0)
+    for _ in range(30):
+        pace.sent_map()
+    pace.taken(0.01, now_s=110.0)
+    assert pace.hz == 30.0  # taken at once: already at the rate asked for
+    pace.taken(3.0, now_s=113.0)
+    assert pace.hz == pytest.approx(0.75 * 30 / 13.0)
+    pace.taken(0.01, now_s=123.0)
+    assert pace.hz == pytest.approx(0.75 * 30 / 13.0 * 2.718281828 ** 0.2 + 0.5)
+    assert pace.period_s == pytest.approx(1.0 / pace.hz)
+    pace.taken(5.0, now_s=124.0)  # a stall with no map sent since the last: the floor
+    assert pace.hz == pytest.approx(0.1)
+    pace.taken(0.0, now_s=10_000.0)
+    assert pace.hz == 30.0
+
+
 # -- 10: the smaller ones ----------------------------------------------------------------------
 
 def test_pty_folders_of_killed_processes_are_removed_by_the_next_start(tmp_path, monkeypatch):
