@@ -699,6 +699,10 @@ def test_a_large_upload_is_parsed_in_a_child_process_and_answered_as_before(serv
     assert bad.status_code == 422 and "not valid YAML or JSON at line" in bad.json()["detail"], bad.text
     not_text = server.http.put("/api/v1/calibration/profiles/bad", content=b"a: \xff\xfe", headers=BEARER)
     assert not_text.status_code == 422 and "utf-8" in not_text.json()["detail"], not_text.text
+    too_large = server.http.put("/api/v1/calibration/profiles/large", content=b"#" * (MAX_PROFILE_BYTES + 1), headers=BEARER)
+    assert too_large.status_code == 413 and "\n" not in too_large.json()["detail"]
+    assert f"larger than {MAX_PROFILE_BYTES} bytes" in too_large.json()["detail"]
+    assert "profiles folder" in too_large.json()["detail"]  # what to do instead
     assert "large" not in server.daemon.profiles and "bad" not in server.daemon.profiles
 
 
