@@ -74,7 +74,7 @@ class Pace:
     """A message not taken within this time (s) means the client's buffers are full."""
     BACK_OFF = 0.75
     GROWTH_PER_S = 0.02
-    STEP_HZ_PER_S = 0.05
+    STEP_HZ_PER_S = 0.02
     LEAST_HZ = 0.1
 
     def __init__(self, most_hz: float, now_s: float) -> None:
