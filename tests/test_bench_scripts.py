@@ -78,3 +78,18 @@ def test_zenoh_benchmark_runs():
                           "--size", "160x120", "--fps", "10"],
                          check=True, capture_output=True, text=True, timeout=600).stdout
     assert "range/summary" in out and "status" in out and "kbit/s of 128" in out
+
+
+@pytest.mark.slow
+@pytest.mark.browser
+def test_soak_runs_and_judges():
+    """A 45 s soak (three samples): the table and every verdict are printed; whether they pass on
+    a loaded test machine is the long soak's question, not this one's."""
+    result = subprocess.run([sys.executable, str(ROOT / "bench" / "soak.py"), "--minutes", "0.75", "--sample-s", "15",
+                             "--silent-s", "20"], capture_output=True, text=True, timeout=600)
+    out = result.stdout
+    assert "rss_MB" in out and "reader_age_s" in out, result.stderr[-2000:]
+    for verdict in ("fps within 10 %", "RSS within 10 %", "no recorded frame lost unaccounted",
+                    "silent lamp shown, then answering", "slow reader's newest map", "page open throughout"):
+        assert f"  {verdict}" in out, out
+    assert result.returncode == (0 if "soak passed" in out else 1), out

@@ -95,6 +95,54 @@ def test_a_flood_of_wrong_sign_ins_holds_up_neither_the_api_nor_a_right_token_fr
     assert operator_wait < 3.0 and max(status_waits) < 3.0, (operator_wait, status_waits)
 
 
+def test_a_right_token_from_a_flooding_address_is_accepted_at_once_and_status_stays_responsive():
+    """A flood of wrong sign-ins from one address, then the right token from that same address
+    while it is still told to wait: the right token is accepted at once (before, it got 429 until
+    the wait was over). The address's wait is made 60 s long so that the right token surely comes
+    during it, however loaded the machine; the status is read throughout the flood."""
+    flood = 80
+
+    async def attack(s):
+        status_codes, status_waits = [], []
+        async with httpx.AsyncClient(base_url=s.url, timeout=60.0, limits=httpx.Limits(max_connections=40)) as client:
+            async def read_status():
+                for _ in range(5):
+                    start = time.monotonic()
+                    r = await client.get("/api/v1/status")
+                    status_waits.append(time.monotonic() - start)
+                    status_codes.append(r.status_code)
+                    await asyncio.sleep(0.1)
+
+            reader = asyncio.create_task(read_status())
+            wrong = await asyncio.gather(*(client.post("/api/v1/session", json={"token": f"guess-{i}"})
+                                           for i in range(flood)))
+            await reader
+            throttled_s = s.app.state.guard.throttle.wait_s("127.0.0.1")
+            right = await client.post("/api/v1/session", json={"token": TOKEN})
+            after = await client.post("/api/v1/session", json={"token": "guess-again"})
+        return wrong, status_codes, status_waits, throttled_s, right, after
+
+    with Server(small_config(token=TOKEN)) as s:
+        s.app.state.guard.throttle = SignInThrottle(step_s=60.0, most_s=60.0)
+        wrong, status_codes, status_waits, throttled_s, right, after = asyncio.run(attack(s))
+        # The session the right token opened works: a state change with its cookie and CSRF token.
+        csrf = right.json()["csrf_token"]
+        cookie = right.cookies[s.app.state.guard.cookie]
+        s.http.cookies.set(s.app.state.guard.cookie, cookie)
+        changed = s.http.patch("/api/v1/config", json={}, headers={"X-CSRF-Token": csrf})
+        s.http.cookies.clear()
+    codes = [r.status_code for r in wrong]
+    print(f"flood: {codes.count(401)}× 401, {codes.count(429)}× 429; status waits (s): "
+          + " ".join(f"{w:.2f}" for w in status_waits))
+    assert codes.count(401) == 1 and codes.count(429) == flood - 1, codes  # only the first is checked as wrong
+    assert throttled_s > 30.0  # the address was still told to wait when the right token came
+    assert right.status_code == 200 and right.json()["csrf_token"], right.text
+    assert changed.status_code == 200, changed.text
+    # A right token clears the address's count: the next wrong one is a plain 401, not a 429.
+    assert after.status_code == 401, after.text
+    assert status_codes == [200] * 5 and max(status_waits) < 5.0, status_waits
+
+
 def test_the_throttle_counts_per_address_and_forgets_the_oldest(monkeypatch):
     now = [100.0]
     monkeypatch.setattr("uwcam.api.security.time.monotonic", lambda: now[0])
@@ -503,6 +551,78 @@ def test_a_client_reading_every_two_seconds_gets_maps_at_most_1_5_s_old():
     assert max(ages) <= 1.5, ages
 
 
+def newest_ages_when_draining(port: int, route: str, read_every_s: float, drains: int) -> list[float]:
+    """A plain client (no acknowledgements, nothing special) that every ``read_every_s`` takes all
+    the messages there are for it: the age (s, capture to that moment) of the newest range map
+    among them, per drain (inf when there was none)."""
+    import socket
+
+    import websockets
+
+    from uwcam.api import HEADER
+
+    async def client():
+        sock = socket.socket()
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)  # room for a backlog, as a default client has
+        sock.connect(("127.0.0.1", port))
+        sock.setblocking(False)
+        ages = []
+        async with websockets.connect(f"ws://127.0.0.1:{port}{route}", sock=sock, max_size=None) as ws:
+            json.loads(await asyncio.wait_for(ws.recv(), 30.0))  # hello
+            while len(ages) < drains:
+                await asyncio.sleep(read_every_s)
+                newest = None
+                while True:  # everything there is, until nothing more comes for 5 ms
+                    try:
+                        msg = await asyncio.wait_for(ws.recv(), 0.005)
+                    except TimeoutError:
+                        break
+                    if isinstance(msg, bytes):
+                        newest = HEADER.unpack_from(msg)[2]
+                ages.append(float("inf") if newest is None else (time.time_ns() - newest) / 1e9)
+        return ages
+
+    return asyncio.run(client())
+
+
+@pytest.mark.slow
+def test_a_plain_client_draining_every_four_seconds_finds_a_fresh_map():
+    """The attack's reader got maps 5.9 s old: frames sent at 30 Hz filled its buffers within a
+    fraction of a second of each read, and waited there. A client that asks for nothing special and
+    takes what there is every 4 s (here at 2 s the small rig's maps did not fill its buffers; at
+    4 s they did: 2.5 s old maps before, 3.5 s at 5 s) now finds a map at most 1.5 s old each time,
+    once the daemon has learnt its pace (the first three reads)."""
+    config = small_config(token=TOKEN)
+    config.simulation["size"] = [320, 240]  # 150 kB per map: a default client's buffers would hold several
+    with Server(config) as s:
+        assert wait_for(lambda: s.daemon.pipeline.processed > 5, 60.0)
+        ages = newest_ages_when_draining(s.port, "/api/v1/stream?rate=30", 4.0, 8)
+    print("age of the newest map at each read (s):", " ".join(f"{a:.2f}" for a in ages))
+    assert max(ages[3:]) <= 1.5, ages
+
+
+def test_the_pace_backs_off_to_what_a_stalled_client_took_and_grows_slowly():
+    """Hand-worked: 30 maps sent over 10 s, then a message waits 3 s to be taken → 0.75 × 30 / 13 s
+    = 1.731 Hz; 10 s of messages taken at once → 1.731 × e^(0.02 × 10) + 0.02 × 10 = 2.314 Hz; never
+    above the rate asked for, never below 0.1 Hz."""
+    from uwcam.api.backpressure import Pace
+
+    pace = Pace(30.0, now_s=100.0)
+    for _ in range(30):
+        pace.sent_map()
+    pace.taken(0.01, now_s=110.0)
+    assert pace.hz == 30.0  # taken at once: already at the rate asked for
+    pace.taken(3.0, now_s=113.0)
+    assert pace.hz == pytest.approx(0.75 * 30 / 13.0)
+    pace.taken(0.01, now_s=123.0)
+    assert pace.hz == pytest.approx(0.75 * 30 / 13.0 * 2.718281828 ** 0.2 + 0.2)
+    assert pace.period_s == pytest.approx(1.0 / pace.hz)
+    pace.taken(5.0, now_s=124.0)  # a stall with no map sent since the last: the floor
+    assert pace.hz == pytest.approx(0.1)
+    pace.taken(0.0, now_s=10_000.0)
+    assert pace.hz == 30.0
+
+
 # -- 10: the smaller ones ----------------------------------------------------------------------
 
 def test_pty_folders_of_killed_processes_are_removed_by_the_next_start(tmp_path, monkeypatch):
@@ -546,13 +666,45 @@ def test_pty_folders_of_killed_processes_are_removed_by_the_next_start(tmp_path,
 
 
 def test_the_profile_parser_is_libyaml_where_pyyaml_has_it():
-    """A 1 MB profile took 16-21 s of CPU with the pure-Python parser, and the frame rate fell."""
+    """A 1 MB profile took 16-21 s of CPU with the pure-Python parser, and the frame rate fell;
+    uploads and files alike are parsed with libyaml (uploads in a child process)."""
     import yaml
 
     from uwcam.fileio import SAFE_LOADER
 
     assert yaml.__with_libyaml__, "PyYAML here is built with libyaml"
     assert SAFE_LOADER is yaml.CSafeLoader
+
+
+def test_a_large_upload_is_parsed_in_a_child_process_and_answered_as_before(server):
+    """A 1 MB YAML upload cost 16-21 s of the daemon's CPU with the pure-Python parser (the frame
+    rate fell to 16), and held the interpreter 0.6-0.7 s with libyaml in a thread. Now libyaml
+    parses it in a child process: the CPU shows in the children's account, and the answers are
+    those of before (not a profile: 422; bad YAML: where; too deep: nested)."""
+    import resource
+
+    import yaml
+
+    from uwcam.api.profiles import MAX_PROFILE_BYTES
+
+    body = yaml.safe_dump({f"key{k}": [k, k + 0.5, "text"] for k in range(20000)}).encode()
+    assert 0.5 * MAX_PROFILE_BYTES < len(body) < MAX_PROFILE_BYTES
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    r = server.http.put("/api/v1/calibration/profiles/large", content=body, headers=BEARER, timeout=120.0)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    child_cpu_s = (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
+    print(f"1 MB upload: CPU of the parsing child {child_cpu_s:.2f} s")
+    assert r.status_code == 422 and "format" in r.json()["detail"], r.text  # read in full: not a profile
+    assert child_cpu_s > 0.1  # parsed there, not here
+    bad = server.http.put("/api/v1/calibration/profiles/bad", content=b"a: [1, 2\nb: }", headers=BEARER)
+    assert bad.status_code == 422 and "not valid YAML or JSON at line" in bad.json()["detail"], bad.text
+    not_text = server.http.put("/api/v1/calibration/profiles/bad", content=b"a: \xff\xfe", headers=BEARER)
+    assert not_text.status_code == 422 and "utf-8" in not_text.json()["detail"], not_text.text
+    too_large = server.http.put("/api/v1/calibration/profiles/large", content=b"#" * (MAX_PROFILE_BYTES + 1), headers=BEARER)
+    assert too_large.status_code == 413 and "\n" not in too_large.json()["detail"]
+    assert f"larger than {MAX_PROFILE_BYTES} bytes" in too_large.json()["detail"]
+    assert "profiles folder" in too_large.json()["detail"]  # what to do instead
+    assert "large" not in server.daemon.profiles and "bad" not in server.daemon.profiles
 
 
 def test_a_missing_token_is_reported_before_the_socket_is_bound():

@@ -105,7 +105,7 @@ def create_app(config: DaemonConfig, daemon: Daemon | None = None) -> FastAPI:
     app.state.config = config
     app.state.guard = guard
 
-    app.add_middleware(BodyLimit, limits={profiles.router.prefix + "/": profiles.MAX_PROFILE_BYTES})
+    app.add_middleware(BodyLimit, limits={profiles.router.prefix + "/": (profiles.MAX_PROFILE_BYTES, profiles.TOO_LARGE_HINT)})
     app.add_middleware(ConnectionSocket)  # outermost: it must see the server's own send
 
     @app.exception_handler(UserInputError)

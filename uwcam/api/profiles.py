@@ -14,7 +14,10 @@ from uwcam.profile import CalibrationProfile
 
 router = APIRouter(prefix="/api/v1/calibration/profiles", tags=["calibration"])
 MAX_PROFILE_BYTES = 1 << 20
-"""Bytes; enforced while the upload streams in (:mod:`uwcam.api.limits`)."""
+"""Bytes; enforced while the upload streams in (:mod:`uwcam.api.limits`). Measured: a profile is
+3 kB, 22 kB with an 8-bit response table, 0.3 MB with a 12-bit one, 4.8 MB with a 16-bit one."""
+TOO_LARGE_HINT = ("a calibration profile is at most 0.3 MB unless it holds a 16-bit response table; put such a "
+                  "profile into the profiles folder (profiles_dir) and restart uwcam instead")
 NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 """Not starting with '.': such a file is hidden, and temporary files of atomic writes look so."""
 
@@ -34,30 +37,69 @@ def get_profile(name: str, d: Daemon = Depends(get_daemon)) -> dict:
     return d.profiles[name].model_dump(mode="json")
 
 
-def parse_profile(body: bytes, name: str) -> CalibrationProfile:
-    """YAML or JSON bytes → a validated profile; HTTPException 422 saying what is wrong."""
-    import yaml
+PARSE_TIMEOUT_S = 30.0
+"""An upload whose YAML takes longer than this to parse is refused (a real profile: under 0.5 s)."""
 
+# Run by ``python -c`` in a child process: reads YAML bytes on stdin, writes a pickle of
+# ("ok", data) or ("error", kind, message, line, column) to stdout. Only the parent's own child
+# writes what the parent unpickles, and safe_load makes nothing but plain values.
+_PARSER = """
+import pickle, sys, yaml
+from uwcam.fileio import safe_load
+try:
+    answer = ("ok", safe_load(sys.stdin.buffer.read().decode("utf-8")))
+except UnicodeDecodeError as exc:
+    answer = ("error", "text", str(exc), None, None)
+except yaml.YAMLError as exc:
+    mark = getattr(exc, "problem_mark", None)
+    answer = ("error", "yaml", getattr(exc, "problem", None) or str(exc), mark and mark.line, mark and mark.column)
+except RecursionError:
+    answer = ("error", "deep", "", None, None)
+except ValueError as exc:
+    answer = ("error", "value", str(exc), None, None)
+sys.stdout.buffer.write(pickle.dumps(answer))
+"""
+
+
+async def parse_yaml(body: bytes) -> object:
+    """YAML or JSON bytes → plain values, parsed by libyaml in a child process; HTTPException 422
+    saying what is wrong.
+
+    In a child process because libyaml composes a whole document without letting go of the
+    interpreter (a 1 MB upload held status requests for 0.6-0.7 s), and PyYAML's pure-Python
+    parser, which does let go, costs about nine times the CPU (16-21 s for 1 MB: the frame rate
+    fell from 30 to 16). In the child, libyaml's second or so of CPU delays nothing here."""
+    import pickle
+    import sys
+
+    child = await asyncio.create_subprocess_exec(sys.executable, "-c", _PARSER, stdin=asyncio.subprocess.PIPE,
+                                                 stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+    try:
+        out, err = await asyncio.wait_for(child.communicate(body), PARSE_TIMEOUT_S)
+    except TimeoutError:
+        child.kill()
+        await child.wait()
+        raise HTTPException(status_code=422, detail=f"profile took over {PARSE_TIMEOUT_S:.0f} s to parse; "
+                                                    "a calibration profile parses in under a second") from None
+    if child.returncode != 0 or not out:
+        last = (err.decode("utf-8", "replace").strip().splitlines() or ["no answer"])[-1]
+        raise HTTPException(status_code=422, detail=f"profile could not be parsed: {last}")
+    answer = pickle.loads(out)  # noqa: S301 (our own child's answer, plain values only)
+    if answer[0] == "ok":
+        return answer[1]
+    _, kind, problem, line, column = answer
+    if kind == "deep" or "nesting depth" in problem:  # libyaml's own limit: a profile is a few levels deep
+        raise HTTPException(status_code=422, detail="profile is nested too deeply to be a calibration profile")
+    if kind == "value":  # e.g. an integer of thousands of digits
+        raise HTTPException(status_code=422, detail=f"profile holds a value that cannot be read: {problem}")
+    where = f" at line {line + 1}, column {column + 1}" if line is not None else ""
+    raise HTTPException(status_code=422, detail=f"profile is not valid YAML or JSON{where}: {problem}")
+
+
+def profile_from_upload(data: object, name: str) -> CalibrationProfile:
+    """Parsed values → a validated profile; HTTPException 422 saying what is wrong."""
     from uwcam.profile import profile_from_mapping
 
-    try:
-        # The pure-Python parser, not libyaml's: an upload is parsed in a worker thread, and
-        # libyaml composes a whole document without letting go of the interpreter (a 1 MB upload
-        # held status requests for 0.6-0.7 s of its 1.3 s); the pure-Python one yields every few ms.
-        data = yaml.safe_load(body.decode("utf-8"))
-    except UnicodeDecodeError as exc:
-        raise HTTPException(status_code=422, detail=f"profile is not valid YAML or JSON: {exc}") from None
-    except yaml.YAMLError as exc:
-        problem = getattr(exc, "problem", None) or str(exc)
-        if "nesting depth" in problem:  # libyaml's own limit: a profile is a few levels deep
-            raise HTTPException(status_code=422, detail="profile is nested too deeply to be a calibration profile") from None
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        raise HTTPException(status_code=422, detail=f"profile is not valid YAML or JSON{where}: {problem}") from None
-    except RecursionError:
-        raise HTTPException(status_code=422, detail="profile is nested too deeply to be a calibration profile") from None
-    except ValueError as exc:  # e.g. an integer of thousands of digits
-        raise HTTPException(status_code=422, detail=f"profile holds a value that cannot be read: {exc}") from None
     if not isinstance(data, dict):
         raise HTTPException(status_code=422, detail="profile must be a mapping of keys to values")
     try:
@@ -83,8 +125,10 @@ async def upload_profile(name: str, request: Request, d: Daemon = Depends(get_da
     async for chunk in request.stream():  # the body limit middleware stops an oversized one here
         size += len(chunk)
         chunks.append(chunk)
-    # Parsing and saving take time: in a worker thread, so the event loop (status, streams) runs on.
-    profile = await asyncio.to_thread(parse_profile, b"".join(chunks), name)
+    # Parsing and saving take time: in a child process and a worker thread, so the event loop
+    # (status, streams) and the frame loop run on.
+    data = await parse_yaml(b"".join(chunks))
+    profile = await asyncio.to_thread(profile_from_upload, data, name)
     try:
         await asyncio.to_thread(d.save_profile, name, profile)
     except UserInputError as exc:

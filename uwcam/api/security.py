@@ -117,15 +117,15 @@ class Sessions:
 
 
 class SignInThrottle:
-    """Slows down guessing, per client address: every wrong token in a row from an address makes
-    that address wait longer before its next attempt (``step_s`` more each time, at most
-    ``most_s``); a right token clears the address's count.
+    """Wrong sign-ins, per client address: every wrong token in a row from an address makes that
+    address wait longer before its next wrong token is answered 401 (``step_s`` more each time, at
+    most ``most_s``); a right token clears the address's count.
 
-    The wait is not spent holding a request: an attempt that comes too early is refused at once
-    (429, with the seconds left) without its token being checked, so a flood of wrong sign-ins
-    costs neither a worker thread nor the time of anyone at another address. At most ``addresses``
-    addresses are remembered (the longest unused forgotten first), so a flood from many addresses
-    costs bounded memory."""
+    The wait is not spent holding a request: a wrong token that comes too early is refused at once
+    (429, with the seconds left), so a flood of wrong sign-ins costs neither a worker thread nor the
+    time of anyone else; a right token is never refused (see :func:`uwcam.api.session.sign_in`).
+    At most ``addresses`` addresses are remembered (the longest unused forgotten first), so a
+    flood from many addresses costs bounded memory."""
 
     def __init__(self, step_s: float = 0.25, most_s: float = 5.0, addresses: int = 4096) -> None:
         self._table: dict[str, tuple[int, float]] = {}  # address → (wrong tokens in a row, last one, monotonic s)

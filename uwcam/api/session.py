@@ -41,18 +41,24 @@ def session_state(request: Request) -> dict:
 async def sign_in(body: SignIn, request: Request, response: Response) -> dict:
     """Exchange the token for a session cookie; returns the CSRF token to send as X-CSRF-Token.
 
-    After wrong tokens an address must wait before its next attempt; one that comes earlier is
-    answered 429 at once, its token unchecked. Runs on the event loop (checking a token takes
-    microseconds): no attempt, right or wrong, holds a worker thread or waits for another."""
+    The token is checked first (in constant time), so a right token is accepted at once, whatever
+    wrong tokens came before it from the same address. After a wrong token an address must wait
+    before its next one is answered 401: a wrong token that comes earlier is answered 429 (with the
+    seconds left) and does not lengthen the wait. Runs on the event loop (checking a token takes
+    microseconds): no attempt, right or wrong, holds a worker thread or waits for another.
+
+    The wait does not limit how fast tokens can be guessed (a bearer header on any state change is
+    checked at once too): that rests on the token being long and random, see docs/api.md."""
     guard: Guard = request.app.state.guard
     address = request.client.host if request.client else ""
-    wait = guard.throttle.wait_s(address)
-    if wait > 0:
-        raise HTTPException(status_code=429, headers={"Retry-After": str(math.ceil(wait))},
-                            detail=f"too many wrong tokens from {address}: try again in {wait:.1f} s")
-    ok = guard.check_token(body.token)
-    guard.throttle.record(ok, address)
-    if not ok:
+    if guard.check_token(body.token):
+        guard.throttle.record(True, address)
+    else:
+        wait = guard.throttle.wait_s(address)
+        if wait > 0:
+            raise HTTPException(status_code=429, headers={"Retry-After": str(math.ceil(wait))},
+                                detail=f"too many wrong tokens from {address}: try again in {wait:.1f} s")
+        guard.throttle.record(False, address)
         raise HTTPException(status_code=401, detail="wrong token")
     session, csrf = guard.sessions.open()
     response.set_cookie(guard.cookie, session, httponly=True, samesite="strict", path="/", max_age=COOKIE_MAX_AGE_S,

@@ -19,7 +19,7 @@ import numpy as np
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
 from uwcam import __version__
-from uwcam.api.backpressure import SCOPE_KEY, unsent_bytes
+from uwcam.api.backpressure import SCOPE_KEY, Pace, unsent_bytes
 from uwcam.api.common import Broadcaster
 from uwcam.api.snapshots import range_millimetres
 from uwcam.daemon import Daemon
@@ -72,7 +72,8 @@ async def stream(ws: WebSocket, rate: float = 30.0, encoding: Literal["float16",
 
     A client only ever gets the newest frame: while the previous message is still on its way
     (being sent, or not yet taken by the client from the network), newer frames are skipped,
-    never queued (:mod:`uwcam.api.backpressure`). With ``ack=true`` the client asks for each
+    never queued; and the rate is lowered to what the client takes, so that its own buffers
+    hold no backlog either (:mod:`uwcam.api.backpressure`). With ``ack=true`` the client asks for each
     map: ``{"ack": 0}`` for the first, ``{"ack": N}`` after the map of frame N when it wants the
     next; it is sent at most one map it has not acknowledged, so whatever its pace the map it
     gets was the newest when it asked (its own buffers can hold no backlog).
@@ -149,7 +150,8 @@ async def _serve(ws: WebSocket, rate: float, encoding: str, ack: bool) -> None:
 
     flow, changed = _Flow(ack), b.listen()
     reader = asyncio.ensure_future(_read_acks(ws, flow, changed))
-    last_sent, next_telemetry, next_frame, period = 0, 0.0, 0.0, 1.0 / rate
+    last_sent, next_telemetry, next_frame = 0, 0.0, 0.0
+    pace, sent_at = Pace(rate, time.monotonic()), None  # sent_at: when the message in flight was sent (monotonic s)
     in_flight: asyncio.Task | None = None
     try:
         while not reader.done():
@@ -166,13 +168,17 @@ async def _serve(ws: WebSocket, rate: float, encoding: str, ack: bool) -> None:
             if unsent_bytes(connection):
                 continue  # the client has not taken the last message yet
             now = time.monotonic()
+            if sent_at is not None:
+                pace.taken(now - sent_at, now)
+                sent_at = None
             if now >= next_telemetry and flow.may_send_map():  # acking: telemetry at the client's pace too
-                next_telemetry = now + 0.1
-                in_flight = asyncio.create_task(ws.send_text(telemetry()))
+                next_telemetry = now + max(0.1, pace.period_s)
+                in_flight, sent_at = asyncio.create_task(ws.send_text(telemetry())), now
                 continue
             if b.latest is not None and b.latest.number != last_sent and now >= next_frame and flow.may_send_map():
                 newest = b.latest  # read once: the loop's thread replaces it at any time
-                last_sent, next_frame = newest.number, now + period
+                last_sent, next_frame, sent_at = newest.number, now + pace.period_s, now
+                pace.sent_map()
                 if flow.acking:
                     flow.unacked.add(newest.number)
                 in_flight = asyncio.create_task(send_frame(newest))

@@ -79,7 +79,8 @@ def range_plane(range_m: NDArray[np.float32], reasons: NDArray[np.uint8], step: 
 def sigma_plane(variance_m2: NDArray[np.float32], step: int) -> NDArray[np.float16]:
     """σ in millimetres at every ``step``-th pixel, float16 (NaN where invalid)."""
     v = variance_m2[::step, ::step]
-    return (np.sqrt(v, dtype=np.float32) * 1000.0).astype("<f2")
+    with np.errstate(over="ignore"):  # σ over 65.5 m is float16's infinity, as meant: no warning per frame
+        return (np.sqrt(v, dtype=np.float32) * 1000.0).astype("<f2")
 
 
 @dataclass
