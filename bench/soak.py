@@ -36,7 +36,6 @@ import asyncio
 import json
 import os
 import shutil
-import socket
 import statistics
 import struct
 import subprocess
@@ -47,6 +46,7 @@ import time
 import urllib.request
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+from tests.ports import free_port  # noqa: E402
 
 CHROMIUM = "/usr/bin/chromium"
 STREAM_HEADER = struct.Struct("<4sIqqHHB3xf")  # docs/api.md: magic, frame, capture ns, send ns, w, h, dtype, scale
@@ -90,12 +90,6 @@ def serve(port: int, folder: str, record_mb_s: float) -> None:
         server.run()
     finally:
         daemon.stop()
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def get(url: str, timeout: float = 10.0) -> dict:
