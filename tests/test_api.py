@@ -474,7 +474,7 @@ def test_marker_locates_the_patch_in_a_drawn_image():
 
 def test_daemon_tracks_the_patch_found_by_its_marker():
     from uwcam.config import MarkerConfig, PatchConfig
-    from uwcam.daemon import simulated_patch
+    from uwcam.runtime.simulated_rig import simulated_patch
     from uwcam.drivers.sim import SimulatedRig
     from uwcam.simulation.scene import MARKER_CENTRE_M, MARKER_SIDE_M, PATCH_CENTRE_M, PATCH_SIZE_M
 

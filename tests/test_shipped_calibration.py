@@ -9,13 +9,13 @@ import os
 import pytest
 
 from uwcam.config import default_config
-from uwcam.daemon import calibrate_simulated_water, shipped_calibration_path, simulated_calibration
+from uwcam.runtime.simulated_rig import calibrate_simulated_water, shipped_calibration_path, simulated_calibration
 from uwcam.drivers.sim import SimulatedRig
 from uwcam.profile import load_profile
 from uwcam.simulation import tank
 
 REGENERATE = ("regenerate it: .venv/bin/python -c 'from uwcam.config import default_config; "
-              "from uwcam.daemon import ship_simulated_calibration; ship_simulated_calibration(default_config())'")
+              "from uwcam.runtime.simulated_rig import ship_simulated_calibration; ship_simulated_calibration(default_config())'")
 
 
 def default_rig() -> SimulatedRig:
@@ -52,7 +52,7 @@ def test_the_shipped_calibration_is_what_calibrating_gives_today():
 def test_the_default_rig_starts_from_the_shipped_calibration_without_calibrating(monkeypatch, tmp_path, caplog):
     monkeypatch.setenv("UWCAM_CACHE_DIR", str(tmp_path / "empty"))
     monkeypatch.setattr(tank, "calibrate_in_simulation", lambda *a, **k: pytest.fail("calibrated at start"))
-    caplog.set_level("INFO", logger="uwcam.daemon")
+    caplog.set_level("INFO", logger="uwcam.runtime.simulated_rig")
     rig = default_rig()
     profile = simulated_calibration(rig)
     assert profile.intrinsics["fx"] == pytest.approx(rig.world.intrinsics.fx)

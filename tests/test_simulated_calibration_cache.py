@@ -6,8 +6,8 @@ import os
 
 import pytest
 
-from uwcam import daemon
-from uwcam.daemon import simulated_calibration, simulated_calibration_key
+from uwcam.runtime import simulated_rig
+from uwcam.runtime.simulated_rig import simulated_calibration, simulated_calibration_key
 from uwcam.drivers.sim import SimulatedRig
 from uwcam.simulation import tank
 
@@ -78,13 +78,13 @@ def test_an_unwritable_cache_still_gives_a_calibration(counted, monkeypatch, tmp
 def test_the_cache_folder_follows_the_environment(monkeypatch, tmp_path):
     monkeypatch.delenv("UWCAM_CACHE_DIR")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
-    assert daemon.cache_dir() == str(tmp_path / "uwcam")
+    assert simulated_rig.cache_dir() == str(tmp_path / "uwcam")
     monkeypatch.delenv("XDG_CACHE_HOME")
-    assert daemon.cache_dir() == os.path.expanduser("~/.cache/uwcam")
+    assert simulated_rig.cache_dir() == os.path.expanduser("~/.cache/uwcam")
 
 
 def test_only_the_newest_calibrations_are_kept(counted, monkeypatch, tmp_path):
-    monkeypatch.setattr(daemon, "SIMULATED_CALIBRATIONS_KEPT", 2)
+    monkeypatch.setattr(simulated_rig, "SIMULATED_CALIBRATIONS_KEPT", 2)
     for water in ("jerlov-IA", "jerlov-IB", "jerlov-II"):
         simulated_calibration(rig(water=water))
     kept = sorted(os.listdir(tmp_path / "cache"))

@@ -89,7 +89,7 @@ def test_ranges_from_the_simulated_calibration_match_the_truth(case):
     ray/plane ranges at several altitudes. First without backscatter (the two renderers'
     consistency alone), then as the daemon calibrates at start (simulated_calibration: a
     smaller plate image, the rig camera's intrinsics) in Jerlov IA with its backscatter."""
-    from uwcam.daemon import simulated_calibration
+    from uwcam.runtime.simulated_rig import simulated_calibration
 
     if case.startswith("no backscatter"):
         size, tolerance = SIZE, 0.006
@@ -290,7 +290,7 @@ def test_marker_locates_the_patch_on_survey_frames(terrain):
     """The bracket stays put while the seabed moves: the marker finds the patch where the fixed
     region says it is, frame after frame."""
     from uwcam.config import MarkerConfig, PatchConfig
-    from uwcam.daemon import simulated_patch
+    from uwcam.runtime.simulated_rig import simulated_patch
     from uwcam.runtime.stages.patch_tracker import PatchTracker
     from uwcam.simulation.scene import MARKER_CENTRE_M, MARKER_SIDE_M, PATCH_CENTRE_M, PATCH_SIZE_M
 

@@ -116,7 +116,7 @@ def _not_the_plate(d: Daemon, dictionary: str) -> tuple[tuple[int, ...], tuple[t
     if patch is not None and patch.marker is not None and patch.marker.dictionary == dictionary:
         ids.append(int(patch.marker.id))
     if d.rig is not None and d.rig.scene != "plate":
-        from uwcam.daemon import PATCH_SCENES
+        from uwcam.runtime.simulated_rig import PATCH_SCENES
 
         if d.rig.scene in PATCH_SCENES:
             from uwcam.simulation.scene import MARKER_ID

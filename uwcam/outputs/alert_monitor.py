@@ -17,7 +17,7 @@ from collections.abc import Callable
 from uwcam.alerts import (AlertEvaluator, AlertEvent, DropWindow, calibration_conditions, device_conditions,
                           disk_condition, dropped_condition, range_condition)
 from uwcam.config import AlertsConfig
-from uwcam.pipeline import Published
+from uwcam.runtime.published import Published
 
 log = logging.getLogger(__name__)
 

@@ -1,1 +1,1 @@
-"""Simulated-water calibrations that ship with uwcam (see uwcam.daemon.simulated_calibration)."""
+"""Simulated-water calibrations that ship with uwcam (see uwcam.runtime.simulated_rig.simulated_calibration)."""
