@@ -14,6 +14,8 @@ range) and interpolated; the subtraction and transform run in the compiled kerne
 
 from __future__ import annotations
 
+import time
+
 import cv2
 import numpy as np
 from numpy.typing import NDArray
@@ -24,6 +26,7 @@ from uwcam.optics.geometry import pixel_rays
 from uwcam.optics.validity import Reason
 from uwcam.profile import CalibrationProfile
 from uwcam.ranging import RangeEstimator, RangeResult, block_means
+from uwcam.water_light import WaterLight
 
 BLOCK = 8
 """Side of the blocks (pixels) the backscatter is evaluated on."""
@@ -115,7 +118,7 @@ class BackscatterCompensator:
         self._response_coarse = None if response is None else cv2.resize(
             self._response, coarse, interpolation=cv2.INTER_AREA).reshape(coarse[1], coarse[0], -1)
         # Once backscatter is subtracted, the floor that stays is the black patch's own noise
-        # (3σ), not backscatter + 3σ (as uwcam.backscatter.compensated_range).
+        # (3σ), not backscatter + 3σ.
         sigma = profile.backscatter.noise_sigma if profile.backscatter else {}
         channels = [c.model_copy(update={"noise_floor": 3.0 * sigma.get(c.name, 0.0)}) for c in profile.channels]
         compensated = profile.model_copy(update={"channels": channels})
@@ -132,6 +135,9 @@ class BackscatterCompensator:
         self._axis_cos_coarse = cv2.resize(self._axis_cos, coarse, interpolation=cv2.INTER_AREA)
         for est in (self.estimator, self._coarse):  # compiled (or loaded from the cache) now, not mid-frame
             est.warm_up()
+        self.water = WaterLight(self.model.open_water_level(shape).astype(np.float32), MODEL_UNCERTAINTY,
+                                "open-water frame" if self.open_water else "black-patch measurements")
+        """The open-water light of the same model, that each pixel must be clearly above."""
 
     def level(self, range_m: NDArray, coarse: bool = False, scale: NDArray | float = 1.0) -> NDArray[np.float32]:
         """Backscatter (DN, dark-corrected) in front of surfaces at camera range ``range_m`` metres
@@ -191,3 +197,49 @@ class BackscatterCompensator:
         result = self.estimator(frame, background=background, samples=samples)
         drop_unresolved(result)
         return result
+
+
+def water_light(profile: CalibrationProfile, shape: tuple[int, int], open_water: NDArray | None = None) -> WaterLight | None:
+    """The open-water light per pixel for frames of ``shape`` (H, W), from the backscatter model of
+    ``profile`` with ``open_water`` (as :class:`BackscatterCompensator`), with the model's
+    uncertainty; None when the profile has no backscatter measurements (nothing tells the water's
+    light then)."""
+    if profile.backscatter is None:
+        return None
+    model = BackscatterModel.from_profile(profile, open_water, shape)
+    return WaterLight(model.open_water_level(shape).astype(np.float32), MODEL_UNCERTAINTY,
+                      "open-water frame" if open_water is not None else "black-patch measurements")
+
+
+def light_scale(profile: CalibrationProfile, estimator: RangeEstimator, gathered: NDArray | None,
+                from_open_water: bool, open_water_exposure: NDArray | list[float] | None = None) -> NDArray | None:
+    """(N,) the frame's exposure × gain over that of the light the backscatter model came from
+    (None: taken as 1): ``gathered`` the frame's light gathered per channel (None: unknown);
+    ``from_open_water``: the model came from an open-water frame, taken at ``open_water_exposure``
+    (None: unknown), else from the calibration, whose exposure the estimator's shift is relative to."""
+    if gathered is None:
+        return None
+    if from_open_water:
+        if open_water_exposure is None or len(open_water_exposure) != np.size(gathered):
+            return None
+        return gathered / np.asarray(open_water_exposure, dtype=np.float64)
+    if profile.calibration_exposure()[0] is not None:
+        return np.exp(estimator.exposure_shift)
+    return None
+
+
+def compensation(comp: BackscatterCompensator, estimator: RangeEstimator, ambient: NDArray | None = None,
+                 scale: NDArray | None = None, timings: list | None = None):
+    """The transform of :func:`uwcam.ranging.range_frame` that ranges with ``comp``: the estimator's
+    attenuation differences (centred: only differences matter) and log constants (those of the
+    exposure: effective), ``ambient`` light subtracted too, the model scaled by ``scale``.
+    timings: a list (or deque) that each call's time (ms) is appended to."""
+
+    def transform(data: NDArray, samples: NDArray | None) -> RangeResult:
+        started = time.perf_counter()
+        result = comp.range(data, estimator.attenuation, estimator.effective_log_constant, ambient, samples, scale)
+        if timings is not None:
+            timings.append((time.perf_counter() - started) * 1e3)
+        return result
+
+    return transform

@@ -61,6 +61,12 @@ class Published:
     none was found; None when orientation is off or unavailable."""
     incidence_block: int = 0
     """Side of the pixel blocks of ``incidence``."""
+    water_source: str | None = None
+    """What the open-water light this frame was judged against came from (uwcam.water_light), or None."""
+    light_scale: tuple[float, ...] | None = None
+    """Per channel, this frame's exposure × gain over that of the backscatter model's light (None: 1)."""
+    open_water: NDArray[np.float32] | None = None
+    """The open-water frame the backscatter model was made with, when it was (raw DN less ambient)."""
 
     @property
     def latency_s(self) -> float:
@@ -400,6 +406,9 @@ class FramePipeline:
         self._lamp_commander = LampCommander(lamp) if lamp is not None else None
         # Backscatter compensation (processing thread only, apart from the open-water frame).
         self._compensator = None
+        # The open-water light each pixel is judged against when backscatter is not compensated
+        # (uwcam.water_light), with the frame shape and open-water frame it was made for.
+        self._water: tuple | None = None
         self.open_water: NDArray[np.float32] | None = None
         """A lamp-lit frame (H, W, N) of open water, raw DN less ambient light, or None."""
         self.open_water_info: dict = {}
@@ -473,9 +482,11 @@ class FramePipeline:
         estimator.warm_up(background=bool(processing.lamp_off_interval))
         # So is the backscatter compensator (0.3-0.6 s at 720p: 10-17 frames of a 30 fps loop)
         # once frames have come; before that, the loop builds it on the first frame.
-        water, compensator = self.open_water, None
+        water, compensator, light = self.open_water, None, None
         if processing.backscatter is not None and self._frame_shape is not None:
             compensator = self._make_compensator(processing, profile, self._frame_shape, water)
+        elif self._frame_shape is not None:
+            light = self._make_water(profile, self._frame_shape, water)
         with self._lock:  # one swap: a frame sees the old set or the new set, never a mix
             self.profile = profile
             self.processing = processing
@@ -487,6 +498,7 @@ class FramePipeline:
             self._hdr = hdr
             # An open-water frame taken meanwhile makes the one built here stale: the loop builds anew.
             self._compensator = compensator if self.open_water is water else None
+            self._water = light if self.open_water is water else None
 
     def check(self, processing: ProcessingConfig | None = None, profile: CalibrationProfile | None = None) -> None:
         """ValueError if these settings or this profile would not work; changes nothing."""
@@ -518,18 +530,24 @@ class FramePipeline:
         the loop goes on with the one it has."""
         water = None if frame is None else np.asarray(frame, np.float32)
         processing, profile, shape = self.processing, self.profile, self._frame_shape
-        compensator = None
+        compensator, light = None, None
         if processing.backscatter is not None and shape is not None:
             try:
                 compensator = self._make_compensator(processing, profile, shape, water)
             except Exception:  # the frame is kept all the same; the loop tries again, and says why
                 log.exception("could not build backscatter compensation for the open-water frame")
+        elif shape is not None:
+            try:
+                light = self._make_water(profile, shape, water)
+            except Exception:
+                log.exception("could not model the open water's light from the open-water frame")
         with self._lock:
             self.open_water = water
             self.open_water_info = dict(info or {})
             # Settings or profile changed meanwhile: the loop builds one for what it has now.
             current = self.processing is processing and self.profile is profile
             self._compensator = compensator if current else None
+            self._water = light if current else None
 
     def request_open_water(self, frames: int = 4, timeout_s: float = 10.0) -> threading.Event:
         """Average the next ``frames`` lamp-lit frames into the open-water frame; the event is set
@@ -607,33 +625,40 @@ class FramePipeline:
         return BackscatterCompensator(profile, tuple(frame_shape[:2]), processing.backscatter.iterations, water,
                                       pair=processing.pair, path_length_bounds=processing.path_length_bounds)
 
+    @staticmethod
+    def _make_water(profile: CalibrationProfile, frame_shape: tuple[int, ...], open_water: NDArray | None) -> tuple:
+        """(shape, open-water frame, WaterLight or None) for frames of ``frame_shape`` (H, W, N)
+        ranged without compensation, with the open-water frame if it is of that shape."""
+        from uwcam.backscatter_loop import water_light
+
+        water = open_water if open_water is not None and open_water.shape == tuple(frame_shape) else None
+        return tuple(frame_shape[:2]), open_water, water_light(profile, tuple(frame_shape[:2]), water)
+
     def _compensation(self, frame: Frame, processing: ProcessingConfig, profile: CalibrationProfile,
-                      estimator: RangeEstimator, ambient: NDArray | None):
-        """The transform of range_frame that subtracts backscatter, or None."""
+                      estimator: RangeEstimator, ambient: NDArray | None) -> tuple:
+        """(the transform of range_frame that subtracts backscatter or None, the open-water light
+        each pixel is judged against or None, the frame's light over the model's per channel or None)."""
+        from uwcam.backscatter_loop import compensation, light_scale
+
         config = processing.backscatter
+        exposure = self.open_water_info.get("exposure")
         if config is None:
-            return None
+            made = self._water
+            if made is None or made[0] != frame.data.shape[:2] or made[1] is not self.open_water:
+                made = self._make_water(profile, frame.data.shape, self.open_water)
+                self._water = made
+            light = made[2]
+            if light is None:
+                return None, None, None
+            scale = light_scale(profile, estimator, frame.light_gathered(), light.source == "open-water frame", exposure)
+            return None, light, scale
         comp = self._compensator
         if comp is None or comp.shape != frame.data.shape[:2]:
             comp = self._make_compensator(processing, profile, frame.data.shape, self.open_water)
             self._compensator = comp
-
         # The modelled backscatter is in the counts of the light it came from: scaled to this frame's exposure.
-        scale, gathered = None, frame.light_gathered()
-        made_at = self.open_water_info.get("exposure") if comp.open_water else None
-        if gathered is not None and made_at is not None and len(made_at) == gathered.size:
-            scale = gathered / np.asarray(made_at, dtype=np.float64)
-        elif gathered is not None and not comp.open_water and profile.calibration_exposure()[0] is not None:
-            scale = np.exp(estimator.exposure_shift)
-
-        def transform(data: NDArray, samples: NDArray | None) -> RangeResult:
-            started = time.perf_counter()
-            # The loop's attenuation differences (centred: only differences matter) and log constants.
-            result = comp.range(data, estimator.attenuation, estimator.effective_log_constant, ambient, samples, scale)
-            self._compensation_ms.append((time.perf_counter() - started) * 1e3)
-            return result
-
-        return transform
+        scale = light_scale(profile, estimator, frame.light_gathered(), comp.open_water, exposure)
+        return compensation(comp, estimator, ambient, scale, self._compensation_ms), comp.water, scale
 
     def backscatter_status(self) -> dict:
         """Whether backscatter is compensated, with what, and its cost per frame."""
@@ -817,9 +842,9 @@ class FramePipeline:
                 estimator.set_log_constants(b)
         if frame.lamp_on is not False:
             self._take_open_water(frame, ambient, "taken on request")
-        transform = self._compensation(frame, processing, profile, estimator, ambient)
+        transform, water, scale = self._compensation(frame, processing, profile, estimator, ambient)
         result = range_frame(estimator, frame.data, processing.smoothing, processing.smoothing_stage, ambient,
-                             processing.vehicle_mask, transform)
+                             processing.vehicle_mask, transform, water, scale)
         if exposure is not None:
             wanted = exposure.update(frame.data, frame.exposures()[0], frame.lamp_on, profile.array("dark_level"),
                                      estimator.floor, profile.saturation_level, taken)
@@ -834,7 +859,10 @@ class FramePipeline:
         now = time.monotonic_ns()
         published = Published(self.processed + 1, frame if coded is None else coded, result, now, tuple(float(v) for v in attenuation),
                                tuple(float(v) for v in estimator.log_constant), ambient, incidence,
-                               orientation.config.block if orientation is not None else 0)
+                               orientation.config.block if orientation is not None else 0,
+                               None if water is None else water.source,
+                               None if scale is None else tuple(float(v) for v in np.asarray(scale).ravel()),
+                               self.open_water if water is not None and water.source == "open-water frame" else None)
         with self._lock:
             self._latest = published
         self.processed += 1
