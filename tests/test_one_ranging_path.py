@@ -86,7 +86,8 @@ def test_cli_loop_and_reprocess_give_bit_identical_results(setting, tmp_path, co
     pipeline.set_open_water(open_water.astype(np.float32))  # raw, no ambient light here
     published = []
     pipeline.subscribe(published.append)
-    recorder = Recorder(pipeline, RecordingConfig(folder=str(tmp_path / "rec"), chunk_kb=64))
+    # results: true, so the live depth, variance and reasons are in the file to compare with.
+    recorder = Recorder(pipeline, RecordingConfig(folder=str(tmp_path / "rec"), chunk_kb=64, results=True))
     path = str(tmp_path / "dive.mcap")
     recorder.start(path)
     pipeline.start()
