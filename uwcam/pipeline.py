@@ -404,11 +404,9 @@ class FramePipeline:
         self._lit_while_dark = 0
         self._ticket = 0
         self._lamp_commander = LampCommander(lamp) if lamp is not None else None
-        # Backscatter compensation (processing thread only, apart from the open-water frame).
+        # Backscatter compensation (processing thread only, apart from the open-water frame): wherever
+        # the profile knows the water's light (uwcam.backscatter_loop.compensation_iterations).
         self._compensator = None
-        # The open-water light each pixel is judged against when backscatter is not compensated
-        # (uwcam.water_light), with the frame shape and open-water frame it was made for.
-        self._water: tuple | None = None
         self.open_water: NDArray[np.float32] | None = None
         """A lamp-lit frame (H, W, N) of open water, raw DN less ambient light, or None."""
         self.open_water_info: dict = {}
@@ -482,11 +480,9 @@ class FramePipeline:
         estimator.warm_up(background=bool(processing.lamp_off_interval))
         # So is the backscatter compensator (0.3-0.6 s at 720p: 10-17 frames of a 30 fps loop)
         # once frames have come; before that, the loop builds it on the first frame.
-        water, compensator, light = self.open_water, None, None
-        if processing.backscatter is not None and self._frame_shape is not None:
+        water, compensator = self.open_water, None
+        if self._iterations(processing, profile) is not None and self._frame_shape is not None:
             compensator = self._make_compensator(processing, profile, self._frame_shape, water)
-        elif self._frame_shape is not None:
-            light = self._make_water(profile, self._frame_shape, water)
         with self._lock:  # one swap: a frame sees the old set or the new set, never a mix
             self.profile = profile
             self.processing = processing
@@ -498,7 +494,6 @@ class FramePipeline:
             self._hdr = hdr
             # An open-water frame taken meanwhile makes the one built here stale: the loop builds anew.
             self._compensator = compensator if self.open_water is water else None
-            self._water = light if self.open_water is water else None
 
     def check(self, processing: ProcessingConfig | None = None, profile: CalibrationProfile | None = None) -> None:
         """ValueError if these settings or this profile would not work; changes nothing."""
@@ -530,24 +525,18 @@ class FramePipeline:
         the loop goes on with the one it has."""
         water = None if frame is None else np.asarray(frame, np.float32)
         processing, profile, shape = self.processing, self.profile, self._frame_shape
-        compensator, light = None, None
-        if processing.backscatter is not None and shape is not None:
+        compensator = None
+        if self._iterations(processing, profile) is not None and shape is not None:
             try:
                 compensator = self._make_compensator(processing, profile, shape, water)
             except Exception:  # the frame is kept all the same; the loop tries again, and says why
                 log.exception("could not build backscatter compensation for the open-water frame")
-        elif shape is not None:
-            try:
-                light = self._make_water(profile, shape, water)
-            except Exception:
-                log.exception("could not model the open water's light from the open-water frame")
         with self._lock:
             self.open_water = water
             self.open_water_info = dict(info or {})
             # Settings or profile changed meanwhile: the loop builds one for what it has now.
             current = self.processing is processing and self.profile is profile
             self._compensator = compensator if current else None
-            self._water = light if current else None
 
     def request_open_water(self, frames: int = 4, timeout_s: float = 10.0) -> threading.Event:
         """Average the next ``frames`` lamp-lit frames into the open-water frame; the event is set
@@ -615,24 +604,23 @@ class FramePipeline:
             self.on_open_water(mean, info)
 
     @staticmethod
-    def _make_compensator(processing: ProcessingConfig, profile: CalibrationProfile, frame_shape: tuple[int, ...],
+    def _iterations(processing: ProcessingConfig, profile: CalibrationProfile) -> int | None:
+        """Passes of backscatter compensation: as configured, else wherever the profile knows the
+        water's light (:func:`uwcam.backscatter_loop.compensation_iterations`); None: none."""
+        from uwcam.backscatter_loop import compensation_iterations
+
+        return compensation_iterations(None if processing.backscatter is None else processing.backscatter.iterations, profile)
+
+    @classmethod
+    def _make_compensator(cls, processing: ProcessingConfig, profile: CalibrationProfile, frame_shape: tuple[int, ...],
                           open_water: NDArray | None):
         """A backscatter compensator for frames of ``frame_shape`` (H, W, N), with the open-water
         frame if it is of that shape."""
         from uwcam.backscatter_loop import BackscatterCompensator
 
         water = open_water if open_water is not None and open_water.shape == tuple(frame_shape) else None
-        return BackscatterCompensator(profile, tuple(frame_shape[:2]), processing.backscatter.iterations, water,
+        return BackscatterCompensator(profile, tuple(frame_shape[:2]), cls._iterations(processing, profile), water,
                                       pair=processing.pair, path_length_bounds=processing.path_length_bounds)
-
-    @staticmethod
-    def _make_water(profile: CalibrationProfile, frame_shape: tuple[int, ...], open_water: NDArray | None) -> tuple:
-        """(shape, open-water frame, WaterLight or None) for frames of ``frame_shape`` (H, W, N)
-        ranged without compensation, with the open-water frame if it is of that shape."""
-        from uwcam.backscatter_loop import water_light
-
-        water = open_water if open_water is not None and open_water.shape == tuple(frame_shape) else None
-        return tuple(frame_shape[:2]), open_water, water_light(profile, tuple(frame_shape[:2]), water)
 
     def _compensation(self, frame: Frame, processing: ProcessingConfig, profile: CalibrationProfile,
                       estimator: RangeEstimator, ambient: NDArray | None) -> tuple:
@@ -640,18 +628,9 @@ class FramePipeline:
         each pixel is judged against or None, the frame's light over the model's per channel or None)."""
         from uwcam.backscatter_loop import compensation, light_scale
 
-        config = processing.backscatter
         exposure = self.open_water_info.get("exposure")
-        if config is None:
-            made = self._water
-            if made is None or made[0] != frame.data.shape[:2] or made[1] is not self.open_water:
-                made = self._make_water(profile, frame.data.shape, self.open_water)
-                self._water = made
-            light = made[2]
-            if light is None:
-                return None, None, None
-            scale = light_scale(profile, estimator, frame.light_gathered(), light.source == "open-water frame", exposure)
-            return None, light, scale
+        if self._iterations(processing, profile) is None:
+            return None, None, None
         comp = self._compensator
         if comp is None or comp.shape != frame.data.shape[:2]:
             comp = self._make_compensator(processing, profile, frame.data.shape, self.open_water)
@@ -662,14 +641,17 @@ class FramePipeline:
 
     def backscatter_status(self) -> dict:
         """Whether backscatter is compensated, with what, and its cost per frame."""
-        config = self.processing.backscatter
+        iterations = self._iterations(self.processing, self.profile)
         info = dict(self.open_water_info)
         if "monotonic" in info:
             info["age_s"] = round(time.monotonic() - info.pop("monotonic"), 1)
         ms = list(self._compensation_ms)
-        return {"enabled": config is not None, "iterations": None if config is None else config.iterations,
+        # Compensated wherever the profile knows the water's light, asked for or not (a range with
+        # that light left in reads short): "configured" says whether the settings asked for it.
+        return {"enabled": iterations is not None, "iterations": iterations,
+                "configured": self.processing.backscatter is not None,
                 "open_water": info or None,
-                "model": None if config is None else ("open-water frame and black-patch measurements" if self.open_water is not None
+                "model": None if iterations is None else ("open-water frame and black-patch measurements" if self.open_water is not None
                                                        else "black-patch measurements of the calibration"),
                 "ms_per_frame": round(float(np.median(ms)), 2) if ms else None,
                 "capture": "capturing" if self._pending_open_water() is not None else self._open_water_capture}

@@ -70,12 +70,14 @@ def range_images(
     """Range, variance and reasons of a static scene seen in ``frames`` (K ≥ 1 raw frames (H, W, N)).
 
     compensate: subtract modelled backscatter (``iterations`` passes, as the frame loop's
-    ``backscatter.iterations``); open_water: a lamp-lit frame of open water (H, W, N) raw, or several
+    ``backscatter.iterations``); it is subtracted all the same wherever the profile has backscatter
+    measurements (:func:`uwcam.backscatter_loop.compensation_iterations`: a range with the water's
+    light left in reads short), so the flag only refuses a profile without them; open_water: a lamp-lit frame of open water (H, W, N) raw, or several
     (K, H, W, N), for the backscatter's pattern and the per-pixel open-water light. Whenever the
     profile has backscatter measurements, a pixel not clearly above the open water's light has no
     range (reason 3). smoothing: "none", "mean" or "median", of the range map (as the loop's
     smoothing stage "after")."""
-    from uwcam.backscatter_loop import BackscatterCompensator, compensation, water_light
+    from uwcam.backscatter_loop import BackscatterCompensator, compensation, compensation_iterations
 
     options = dict(pair=pair, surface_reflectance=surface_reflectance, path_length_bounds=path_length_bounds)
     estimator = RangeEstimator(profile, **options)
@@ -89,10 +91,9 @@ def range_images(
                              f"but the image is {frame.shape[1]}×{frame.shape[0]}×{frame.shape[2]}; "
                              "take it with the same camera and settings")
     shape = frame.shape[:2]
-    transform = None
-    if compensate:
-        comp = BackscatterCompensator(profile, shape, iterations, open_water, **options)
+    transform, water = None, None
+    passes = compensation_iterations(iterations if compensate else None, profile)
+    if compensate or passes is not None:
+        comp = BackscatterCompensator(profile, shape, passes or iterations, open_water, **options)
         transform, water = compensation(comp, estimator), comp.water
-    else:
-        water = water_light(profile, shape, open_water)
     return range_frame(estimator, frame, smoothing, "after", None, (), transform, water, None, samples)

@@ -499,8 +499,6 @@ def range_frame(estimator: RangeEstimator, frame: NDArray, smoothing: str = "non
     else:
         result = estimator(frame, background=background, samples=samples)
     if water is not None:
-        if transform is None:
-            result = water.bound_uncompensated(result, frame, estimator, water_scale, background, samples)
         water.judge(result, frame, estimator, water_scale, background, samples)
     if vehicle_mask:
         mask_vehicle(result, vehicle_mask)

@@ -150,27 +150,25 @@ def _water_and_compensation(cache: dict, profile: CalibrationProfile, estimator:
     """(transform, open-water light, light scale) for :func:`range_frame`, as the frame loop had them
     for this frame (its record says whether backscatter was compensated and what the water's light
     came from); built once per profile, settings and open-water frame (``cache``)."""
-    from uwcam.backscatter_loop import BackscatterCompensator, compensation, water_light
+    from uwcam.backscatter_loop import BackscatterCompensator, compensation, compensation_iterations
 
     source = record.get("water")  # recordings made before the water's light was judged have none
     if source is None:
         return None, None, None
-    iterations = record["processing"].get("backscatter")
+    # As the loop: compensated wherever the profile knows the water's light, asked for or not.
+    iterations = compensation_iterations(record["processing"].get("backscatter"), profile)
     water_frame = open_water if source == "open-water frame" else None
     if water_frame is None and source == "open-water frame":
         raise UserInputError(f"frame {record['number']} was judged against an open-water frame that the recording "
                              "does not hold; it cannot be ranged again the same way")
     made_for = (*key, iterations, tuple(shape), source)
     if made_for not in cache:
-        if iterations is None:
-            cache[made_for] = (None, water_light(profile, tuple(shape[:2]), water_frame))
-        else:
-            comp = BackscatterCompensator(profile, tuple(shape[:2]), iterations, water_frame, pair=key[1],
-                                          path_length_bounds=key[2])
-            cache[made_for] = (comp, comp.water)
+        comp = BackscatterCompensator(profile, tuple(shape[:2]), iterations, water_frame, pair=key[1],
+                                      path_length_bounds=key[2])
+        cache[made_for] = (comp, comp.water)
     comp, water = cache[made_for]
     scale = None if record.get("light_scale") is None else np.asarray(record["light_scale"], dtype=np.float64)
-    transform = None if comp is None else compensation(comp, estimator, ambient, scale)
+    transform = compensation(comp, estimator, ambient, scale)
     return transform, water, scale
 
 

@@ -15,30 +15,25 @@ the surface's light only where
 with E the dark-corrected value (ambient light subtracted), σ²(E) the noise model's variance of
 the total light and u the model's relative uncertainty; a pixel needs two such channels (of
 those ranged with) to keep its range. A per-pixel level follows the lamp's backscatter pattern,
-which one level per channel cannot (it is brighter where beam and view overlap). A range made
-without subtracting backscatter also gets the backscatter it leaves in counted in its variance
-(:meth:`WaterLight.bound_uncompensated`).
+which one level per channel cannot (it is brighter where beam and view overlap). Wherever the
+water's light is known it is also subtracted before ranging (the frame loop's compensation,
+:func:`uwcam.backscatter_loop.compensation_iterations`): a range with it left in reads short by a
+bias the whole view shares, which no σ describing the ranges' spread can cover.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from uwcam.jit import HAVE_NUMBA, njit, prange
 from uwcam.optics.validity import Reason
-from uwcam.ranging import RangeResult
 
 SIGMAS = 3.0
 """How many standard deviations above the water's light a channel must be (as the compensation's
 test of what is left once backscatter is subtracted: :data:`uwcam.ranging.BACKGROUND_SIGMAS`)."""
-
-COARSE = 4
-"""The bias left by uncompensated backscatter is found on frames reduced this many times."""
-
 
 def _judge_py(frame, limit, active, saturation, range_m, variance, reasons, reason):
     """Over rows (H, W·N) of frame and limit and (H, W) outputs: a pixel with a range whose values
@@ -122,72 +117,6 @@ class WaterLight:
         if plain:
             self._cache[key] = out
         return out
-
-    def _coarse(self, estimator):
-        """A copy of ``estimator`` for frames reduced :data:`COARSE` times (its pixel rays those of
-        the full frame's blocks), in its present state (attenuation, log constants, exposure)."""
-        from uwcam.ranging import RangeEstimator
-
-        made = self._cache.get("coarse")
-        if made is None or made[0] is not estimator:
-            profile = estimator.profile
-            intr = profile.camera_intrinsics()
-            if intr is not None:
-                f = COARSE
-                profile = profile.model_copy(update={"intrinsics": {
-                    "fx": intr.fx / f, "fy": intr.fy / f, "cx": (intr.cx + 0.5) / f - 0.5, "cy": (intr.cy + 0.5) / f - 0.5}})
-            made = (estimator, RangeEstimator(profile, path_length_bounds=tuple(estimator.bounds), calibration_variance=False))
-            self._cache["coarse"] = made
-        coarse = made[1]
-        for name in ("active", "log_constant", "exposure_shift", "floor", "read_noise", "shot_gain", "response"):
-            setattr(coarse, name, getattr(estimator, name, None))
-        coarse.set_attenuation_differences(estimator.attenuation)
-        return coarse
-
-    def bound_uncompensated(self, result, frame: NDArray, estimator, scale: NDArray | None = None,
-                            ambient: NDArray | None = None, samples: NDArray | None = None):
-        """``result`` (ranged without subtracting backscatter) with the backscatter it left in counted
-        in its variance: the light in front of a surface is between none and the open water's, so
-        the true range lies between the plain one and the one ranged with all of the open water's
-        light subtracted (r_W); (r − r_W)² is added to the variance, as a part shared by neighbouring
-        pixels (the water in front of them is alike: smoothing does not divide it, see
-        :func:`uwcam.ranging.smooth_range_map`). The shift is a bias that varies slowly across the
-        image: it is found on the frame reduced :data:`COARSE` times (4×4 means; both ranges there)
-        and interpolated, at a sixteenth of a full pass's cost. A pixel in a block that has a plain
-        range but none with the water's light subtracted has no bound: reason 3. ``samples`` does
-        not enter (block means have their own noise). Without this, a range read short by the
-        water's light would be reported with the noise's σ alone, confidently wrong."""
-        from uwcam.ranging import block_means
-
-        frame = np.asarray(frame)
-        response = getattr(estimator, "response", None)
-        if response is not None and np.issubdtype(frame.dtype, np.integer):
-            frame = response.linearise(frame)  # block means of light, not of a tone curve's codes
-        h, w = frame.shape[:2]
-        size = (max(w // COARSE, 1), max(h // COARSE, 1))
-        n = frame.shape[-1]
-        small = block_means(frame, size).reshape(size[1], size[0], n)
-        level = self.level if scale is None else self.level * np.asarray(scale, np.float32)
-        water = cv2.resize(level.astype(np.float32), size, interpolation=cv2.INTER_AREA).reshape(size[1], size[0], n)
-        light = np.zeros_like(water) if ambient is None else cv2.resize(
-            np.asarray(ambient, np.float32), size, interpolation=cv2.INTER_AREA).reshape(size[1], size[0], n)
-        coarse = self._coarse(estimator)
-        plain = coarse(small, background=light)
-        bound = coarse(small, background=light + water)
-        with np.errstate(invalid="ignore"):
-            shift = (plain.range.astype(np.float64) - bound.range) ** 2
-        lost = np.isfinite(plain.range) & ~np.isfinite(shift)
-        shift = cv2.resize(np.where(np.isfinite(shift), shift, 0.0).astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
-        lost = cv2.resize(lost.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
-        out = RangeResult(result.range.copy(), result.variance.copy(), result.reasons.copy(),
-                          None if result.calibration_variance is None else result.calibration_variance.copy())
-        unbounded = (out.reasons == Reason.VALID) & lost
-        out.range[unbounded] = np.nan
-        out.variance[unbounded] = np.nan
-        out.reasons[unbounded] = Reason.BACKSCATTER_ONLY
-        np.add(out.variance, shift, out=out.variance)  # NaN (no range) stays NaN
-        common = shift if out.calibration_variance is None else out.calibration_variance + shift
-        return RangeResult(out.range, out.variance, out.reasons, common)
 
     def judge(self, result, frame: NDArray, estimator, scale: NDArray | None = None,
               ambient: NDArray | None = None, samples: NDArray | None = None) -> None:
