@@ -110,13 +110,20 @@ def test_tracked_values_reach_the_estimator_on_their_frame_and_its_record(drifti
     tracked = run(profile, frames, processing)
     still = run(profile, frames, ProcessingConfig())
 
+    # The profile knows the water's light: the loop subtracts it (uwcam.backscatter_loop), so the
+    # range these values give is the compensated one.
+    from uwcam.backscatter_loop import BackscatterCompensator, compensation
+    from uwcam.ranging import range_frame
+
+    comp = BackscatterCompensator(profile, frames[0].shape[:2], 2)
     for p, data in zip(tracked, frames):
         v = patch_estimate(profile, data, path)
         np.testing.assert_allclose(p.attenuation_differences, v, rtol=0, atol=1e-12)
         # The range of this frame is the one these values give, not the last frame's.
         est = RangeEstimator(profile)
         est.set_attenuation_differences(v)
-        assert np.array_equal(p.result.range, est(data).range, equal_nan=True)
+        expected = range_frame(est, data, transform=compensation(comp, est), water=comp.water)
+        assert np.array_equal(p.result.range, expected.range, equal_nan=True)
         record = ranging_record(p, profile, processing)
         np.testing.assert_allclose(record["attenuation_differences"], v, rtol=0, atol=1e-12)
     # The two last frames, 0.1 s apart, were measured apart: each frame carries its own values.

@@ -36,8 +36,9 @@ SIGMAS = 3.0
 test of what is left once backscatter is subtracted: :data:`uwcam.ranging.BACKGROUND_SIGMAS`)."""
 
 def _judge_py(frame, limit, active, saturation, range_m, variance, reasons, reason):
-    """Over rows (H, W·N) of frame and limit and (H, W) outputs: a pixel with a range whose values
-    exceed their limits (and stay below saturation) in fewer than two active channels loses it.
+    """Over rows (H, W·N) of frame and limit and (H, W) outputs: a pixel with a range (or a path out
+    of bounds, reason 5) whose values exceed their limits (and stay below saturation) in fewer than
+    two active channels loses it.
     Each row: the counts in one branch-free pass (it vectorises), then the few pixels that lose."""
     h, w = range_m.shape
     n = active.shape[0]
@@ -55,7 +56,7 @@ def _judge_py(frame, limit, active, saturation, range_m, variance, reasons, reas
                 v = np.float32(row[j * n + k])
                 count[j] += np.int32((v > lim[j * n + k]) & (v < sat))
         for j in range(w):
-            if count[j] < 2 and reasons[i, j] == 0:
+            if count[j] < 2 and (reasons[i, j] == 0 or reasons[i, j] == 5):
                 range_m[i, j] = np.nan
                 variance[i, j] = np.nan
                 reasons[i, j] = reason
@@ -122,7 +123,9 @@ class WaterLight:
               ambient: NDArray | None = None, samples: NDArray | None = None) -> None:
         """In place: pixels of ``result`` with a range whose light, in fewer than two of the
         channels ranged with, is clearly above the water's (see :meth:`threshold`) lose it:
-        NaN range and variance, reason 3 ("backscatter only")."""
+        NaN range and variance, reason 3 ("backscatter only"). So do those whose path came out of
+        bounds (reason 5) on such light: the water's light, once subtracted, leaves a ratio of
+        noise, whose path says nothing; that the light is the water's is the reason."""
         if frame.shape[:2] != self.level.shape[:2]:
             raise ValueError(f"the water's light is known for {self.level.shape[1]}×{self.level.shape[0]} frames, "
                              f"not {frame.shape[1]}×{frame.shape[0]}")
@@ -141,7 +144,7 @@ class WaterLight:
             return
         above = (np.asarray(frame) > limit) & (np.asarray(frame) < saturation)
         count = above[..., active].sum(axis=-1)
-        lost = (count < 2) & (result.reasons == Reason.VALID)
+        lost = (count < 2) & ((result.reasons == Reason.VALID) | (result.reasons == Reason.PATH_OUT_OF_BOUNDS))
         if lost.any():
             result.range[lost] = np.nan
             result.variance[lost] = np.nan
