@@ -689,7 +689,8 @@ def build_parser() -> argparse.ArgumentParser:
     rng.add_argument("--path-bounds", metavar="MIN,MAX", help="accepted lamp→surface→camera path length in metres")
     rng.add_argument("--smooth", choices=("mean", "median"), help="3×3 smoothing of the range map over valid pixels")
     rng.add_argument("--compensate-backscatter", action="store_true",
-                     help="subtract modelled backscatter and iterate (needs a profile calibrated with a black patch)")
+                     help="insist on subtracting modelled backscatter (done anyway whenever the profile was calibrated "
+                     "with a black patch; with this flag a profile without one is refused)")
     rng.add_argument("--open-water", metavar="IMAGE", help="lamp-lit frame of open water, same exposure: the backscatter "
                      "pattern, and the light each pixel must be clearly above to have a range")
     rng.set_defaults(func=cmd_range)
