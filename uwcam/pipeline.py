@@ -858,7 +858,13 @@ class FramePipeline:
             if corrector is not None:
                 corrector.observe(result.range)  # the normal at the footprint, for the next reading
             if orientation is not None:
-                incidence = orientation.estimate(frame.data, result, corrector, ambient, estimator.exposure_shift)
+                # The surface's light alone, as the corrector's scale it is compared with: less the
+                # water's own light in front of each surface where that is subtracted before ranging.
+                light = ambient
+                if transform is not None and self._compensator is not None:
+                    light = self._compensator.level(result.range, scale=1.0 if scale is None else np.asarray(scale, np.float32))
+                    light = light if ambient is None else light + ambient
+                incidence = orientation.estimate(frame.data, result, corrector, light, estimator.exposure_shift)
         now = time.monotonic_ns()
         published = Published(self.processed + 1, frame if coded is None else coded, result, now, tuple(float(v) for v in attenuation),
                                tuple(float(v) for v in estimator.log_constant), ambient, incidence,
