@@ -210,18 +210,23 @@ def smoothed_log_signal(frame: ArrayLike, mask: ArrayLike, dark_level: ArrayLike
     return np.log(values[positive]), pixels
 
 
+def mean_weights(pixels: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """(H, W) the weight a_p with which each pixel's value enters the mean over ``pixels`` of the
+    5×5 box averages: (interior boxes holding p)/(25·P)."""
+    count = int(pixels.sum())
+    if SMOOTHING > 1 and count and not np.array_equal(pixels, np.zeros_like(pixels)):
+        return cv2.boxFilter(pixels.astype(np.float64), -1, (SMOOTHING, SMOOTHING), normalize=True,
+                             borderType=cv2.BORDER_CONSTANT) / count
+    return pixels / max(count, 1)
+
+
 def log_mean_variance(pixels: NDArray[np.bool_], signal: NDArray, pixel_variance: NDArray) -> NDArray[np.float64]:
     """Variance (N,) of the mean over ``pixels`` of ln(5×5 box average of E), from independent pixel noise.
 
-    Pixel p enters the mean with weight a_p = (interior boxes holding p)/(25·P); the variance is
+    Pixel p enters the mean with weight a_p (:func:`mean_weights`); the variance is
     Σ a_p² σ_p²/E_p² (σ_p², E_p: (H, W, N) per-pixel noise variance and signal).
     """
-    count = int(pixels.sum())
-    if SMOOTHING > 1 and count and not np.array_equal(pixels, np.zeros_like(pixels)):
-        share = cv2.boxFilter(pixels.astype(np.float64), -1, (SMOOTHING, SMOOTHING), normalize=True,
-                              borderType=cv2.BORDER_CONSTANT) / count
-    else:
-        share = pixels / max(count, 1)
+    share = mean_weights(pixels)
     e = np.maximum(np.asarray(signal, dtype=np.float64), 1e-30)
     rel = np.asarray(pixel_variance, dtype=np.float64) / e**2
     used = share > 0
@@ -293,12 +298,15 @@ def fit_attenuation_differences(
     path_lengths: ArrayLike,
     reference: int = 0,
     log_variance: ArrayLike | None = None,
+    log_covariance: ArrayLike | None = None,
 ) -> AttenuationFit:
     """Attenuation differences V_k = c_k − c_ref (1/m) and log constants b_k from n ≥ 2 distances.
 
     log_signal: (n, N) mean of ln E_k over the target in each image; path_lengths: (n,)
     mean d_T over the same pixels, metres; log_variance: (n, N) variance of each
-    log_signal entry, if known (independent between channels and distances). Two distances
+    log_signal entry, if known (independent between channels); log_covariance: (n, n, N) covariance
+    of one channel's entries between distances (its diagonal unused: ``log_variance``), e.g. from
+    the same pixels' fixed pattern, which cancels between distances; None: independent. Two distances
     use the closed form of docs/physics.md §4, more use generalised least squares on
     ln(E_k/E_ref) = b_k − V_k·d_T for all channels jointly: the ratios of one distance share the
     reference channel's noise, so they are correlated, and the joint fit gives the covariance of
@@ -323,6 +331,12 @@ def fit_attenuation_differences(
     for i in range(n_img):
         block = np.diag(lv[i, others]) + lv[i, reference]
         cov_y[i * q : (i + 1) * q, i * q : (i + 1) * q] = block
+    if log_covariance is not None:
+        lc = np.asarray(log_covariance, dtype=np.float64)
+        for i in range(n_img):
+            for i2 in range(n_img):
+                if i != i2:
+                    cov_y[i * q : (i + 1) * q, i2 * q : (i2 + 1) * q] = np.diag(lc[i, i2, others]) + lc[i, i2, reference]
     # Parameters θ = [V_others..., b_others...]: y = b − V·d.
     x = np.zeros((n_img * q, 2 * q))
     for i in range(n_img):
@@ -716,6 +730,7 @@ def calibrate_with_details(frames: list[NDArray], distances_m: list[float], inpu
 
     fitted: list[DistanceGroup] = []
     log_signal, log_variance, path_lengths, log_spread_corrected = [], [], [], []
+    weights: list[NDArray | None] = []  # each distance's pixel weights in its mean (None: patch-local)
     for g, estimate in zip(groups, estimates):
         m = len(g.images)
         if patch_local:
@@ -738,6 +753,7 @@ def calibrate_with_details(frames: list[NDArray], distances_m: list[float], inpu
             smooth = cv2.blur(g.mean_frame * inside[..., None], (SMOOTHING, SMOOTHING), borderType=cv2.BORDER_CONSTANT)
             smooth = smooth / np.maximum(weight, 1e-12)[..., None]
             lv = log_mean_variance(pixels, np.maximum(smooth, 1e-30), pixel_variance(smooth, m))
+            weights.append(mean_weights(pixels))
             ln_mean = ln_e.mean(axis=0)
         lv = np.maximum(lv, variance_floor(np.exp(ln_mean), step) / np.exp(ln_mean) ** 2)
         u = rays[pixels] if rays is not None else np.array([[0.0, 0.0, 1.0]])
@@ -756,7 +772,14 @@ def calibrate_with_details(frames: list[NDArray], distances_m: list[float], inpu
                               fit_pixels=pixels))
 
     ref = inputs.reference
-    fit = fit_attenuation_differences(np.array(log_signal), path_lengths, ref, np.array(log_variance))
+    # The fixed pattern of pixels that two distances share is the same in both means: it cancels in
+    # their difference (the attenuation differences), and counted as independent it would inflate
+    # their σ several times. Its covariance between distances i and j: f_k²·Σ_p a_p(i)·a_p(j).
+    covariance = None
+    if not patch_local and np.any(noise.fixed_pattern > 0):
+        cross = np.array([[float(np.sum(a * b)) for b in weights] for a in weights])
+        covariance = cross[:, :, None] * np.asarray(noise.fixed_pattern, np.float64) ** 2
+    fit = fit_attenuation_differences(np.array(log_signal), path_lengths, ref, np.array(log_variance), covariance)
 
     backscatter_samples = None
     floor = np.zeros(n_ch)

@@ -291,8 +291,9 @@ def cmd_rig_print(args: argparse.Namespace) -> int:
 
 def cmd_range(args: argparse.Namespace) -> int:
     from uwcam.imageio import MAP_SUFFIXES, read_frame, write_map
+    from uwcam.config import BackscatterConfig
     from uwcam.profile import load_profile
-    from uwcam.ranging import RangeEstimator, smooth_range_map
+    from uwcam.range_images import range_images
 
     outputs = [(args.output, "-o")] + [(p, f) for p, f in ((args.variance, "--variance"), (args.reasons, "--reasons")) if p]
     for path, flag in outputs:
@@ -302,7 +303,7 @@ def cmd_range(args: argparse.Namespace) -> int:
         if not p.parent.exists():
             raise UserInputError(f"output folder {p.parent} of {flag} does not exist")
     profile = load_profile(args.profile)
-    frame = read_frame(args.image)
+    frames = [read_frame(path) for path in args.image]
     pair = None
     if args.pair:
         pair = tuple(s.strip() for s in args.pair.split(","))
@@ -316,19 +317,14 @@ def cmd_range(args: argparse.Namespace) -> int:
         bounds = tuple(parse_floats(args.path_bounds, "--path-bounds", 2))
         if not 0 <= bounds[0] < bounds[1]:
             raise UserInputError(f"--path-bounds must be MIN,MAX metres with 0 ≤ MIN < MAX, got '{args.path_bounds}'")
-    options = dict(pair=pair, surface_reflectance=surface, path_length_bounds=bounds)
-    if args.compensate_backscatter:
-        from uwcam.backscatter import BackscatterModel, compensated_range
-
-        open_water = read_frame(args.open_water) if args.open_water else None
-        model = BackscatterModel.from_profile(profile, open_water, frame.shape[:2])
-        result = compensated_range(profile, frame, model, **options)  # type: ignore[arg-type]
-    else:
-        if args.open_water:
-            raise UserInputError("--open-water is used by --compensate-backscatter; add that flag")
-        result = RangeEstimator(profile, **options)(frame)  # type: ignore[arg-type]
-    if args.smooth:
-        result = smooth_range_map(result, args.smooth)
+    if args.open_water and profile.backscatter is None:
+        raise UserInputError("--open-water needs a profile with backscatter measurements; calibrate with a rig that "
+                             "has a black patch (e.g. --rig grey-plate)")
+    open_water = read_frame(args.open_water) if args.open_water else None
+    result = range_images(profile, frames, pair=pair, surface_reflectance=surface,  # type: ignore[arg-type]
+                          path_length_bounds=bounds, smoothing=args.smooth or "none",
+                          compensate=args.compensate_backscatter, iterations=BackscatterConfig().iterations,
+                          open_water=open_water)
     write_map(args.output, result.range)
     if args.variance:
         write_map(args.variance, result.variance)
@@ -717,7 +713,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     rng = sub.add_parser("range", help="turn an image into a range map with a calibration profile")
     rng.add_argument("profile", metavar="PROFILE.yaml")
-    rng.add_argument("image", metavar="IMAGE")
+    rng.add_argument("image", metavar="IMAGE", nargs="+",
+                     help="image to range; several of one static scene are fused first (their mean, noise from their count)")
     rng.add_argument("-o", "--output", required=True, metavar="RANGE.(npy|tif)", help="float32 camera range in metres, NaN invalid")
     rng.add_argument("--variance", metavar="VAR.(npy|tif)", help="variance of the range in m²")
     rng.add_argument("--reasons", metavar="REASONS.(npy|tif)", help="uint8 reason code per pixel (0 valid)")
@@ -726,8 +723,10 @@ def build_parser() -> argparse.ArgumentParser:
     rng.add_argument("--path-bounds", metavar="MIN,MAX", help="accepted lamp→surface→camera path length in metres")
     rng.add_argument("--smooth", choices=("mean", "median"), help="3×3 smoothing of the range map over valid pixels")
     rng.add_argument("--compensate-backscatter", action="store_true",
-                     help="subtract modelled backscatter and iterate (needs a profile calibrated with a black patch)")
-    rng.add_argument("--open-water", metavar="IMAGE", help="lamp-lit frame of open water: the backscatter pattern")
+                     help="insist on subtracting modelled backscatter (done anyway whenever the profile was calibrated "
+                     "with a black patch; with this flag a profile without one is refused)")
+    rng.add_argument("--open-water", metavar="IMAGE", help="lamp-lit frame of open water, same exposure: the backscatter "
+                     "pattern, and the light each pixel must be clearly above to have a range")
     rng.set_defaults(func=cmd_range)
 
     sim = sub.add_parser("simulate", help="render a physically modelled underwater frame (and its ground truth)")
