@@ -29,7 +29,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
-from uwcam.backscatter import BackscatterModel, compensated_range  # noqa: E402
+from uwcam.range_images import range_images  # noqa: E402
 from uwcam.range_smoothing import smooth_range_map  # noqa: E402
 from uwcam.ranging import RangeEstimator  # noqa: E402
 from uwcam.simulation import CameraModel, Lamp, SimulatedWorld, water_preset  # noqa: E402
@@ -77,8 +77,8 @@ class Rig:
         elif np.any(self.water.backscatter > 0):
             water = SimulatedWorld(scene="open-water", distance=distance, size=self.size, water=self.water, lamp=LAMP,
                                    camera=self.camera(), fixed_exposure=scene.exposure, seed=6)
-            model = BackscatterModel.from_profile(self.profile, water.noise_free_frame() if self.noise_free else water.frame(0))
-            fixed = compensated_range(self.profile, frame, model, pair=pair)
+            fixed = range_images(self.profile, [frame], pair=pair, compensate=True,
+                                 open_water=water.noise_free_frame() if self.noise_free else water.frame(0))
         else:
             fixed = raw
         if smooth:

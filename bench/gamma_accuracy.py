@@ -27,7 +27,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
-from uwcam.backscatter import BackscatterModel, compensated_range  # noqa: E402
+from uwcam.range_images import range_images  # noqa: E402
 from uwcam.simulation import CameraModel, Lamp, SimulatedWorld, water_preset  # noqa: E402
 from uwcam.simulation.tank import calibrate_in_simulation  # noqa: E402
 
@@ -89,13 +89,13 @@ def measure(label: str, camera: dict, size: tuple[int, int], frames: int, bitrat
                                camera=CameraModel(**camera), material="grey", seed=11)
         open_water = SimulatedWorld(scene="open-water", distance=distance, size=size, water=water, lamp=LAMP,
                                     camera=CameraModel(**camera), fixed_exposure=world.exposure, seed=6)
-        model = BackscatterModel.from_profile(profile, np.stack([open_water.frame(k) for k in range(2)]))
+        water_frames = np.stack([open_water.frame(k) for k in range(2)])
         rel, z, valid = [], [], []
         images = [world.frame(k) for k in range(frames)]
         if bitrate_kbps is not None:
             images = through_rtsp(images, bitrate_kbps)
         for image in images:
-            result = compensated_range(profile, image, model)
+            result = range_images(profile, [image], compensate=True, open_water=water_frames)
             truth = world.camera_range
             ok = np.isfinite(result.range) & (result.variance > 0)
             valid.append(ok.mean())

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Annotated, Callable, NamedTuple
 
 import numpy as np
@@ -85,11 +85,18 @@ class SimulatedRig:
     """Survey time source (s); the survey starts when the world is built."""
     plate_rig: str | None = None
     """Built-in rig (e.g. "charuco-plate") drawn by the "plate" scene; None: the grey plate."""
+    drift: tuple[float, ...] | None = None
+    """Static scenes: how much the water's attenuation (c and G alike, 1/m per channel) changes, as a
+    tide, a plume or a temperature front would: c(t) = c + drift·(1 − cos(2πt/drift_period))/2, t the
+    rig's time since the world was built; None: the water never changes."""
+    drift_period: float = 300.0
+    """Seconds of one drift cycle (from the calibration's water to c + drift and back)."""
     exposure_us: tuple[float, ...] = (NOMINAL_EXPOSURE_US,) * 3
     """Exposure time of each channel's sensor (µs), as a 3-chip camera sets them apart;
     NOMINAL_EXPOSURE_US is the world's auto-exposure, electrons scale with the time."""
     _exposure: float | None = field(default=None, repr=False)
     _world: SimulatedWorld | SurveyWorld | None = field(default=None, repr=False)
+    _drifted: tuple | None = field(default=None, repr=False)
     _t0: float = field(default=0.0, repr=False)
     _cache: dict = field(default_factory=dict, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
@@ -184,8 +191,35 @@ class SimulatedRig:
         scale = np.asarray(state.exposure_us, np.float64) / NOMINAL_EXPOSURE_US
         if isinstance(world, SurveyWorld):
             return world.frame(state.t, index, state.level, exposure_scale=None if np.all(scale == 1) else scale)
-        mean, std = self.expected((state.lit, state.level), state.exposure_us)
+        mean, std = self.expected((state.lit, state.level), state.exposure_us, self._drift_step(state.t))
         return world.camera.digitise(mean, std, world.seed, index)
+
+    DRIFT_STEP_S = 0.25
+    """The drifting water is rendered anew every this many seconds of rig time."""
+
+    def _drift_step(self, t: float) -> int:
+        return 0 if self.drift is None else int(t // self.DRIFT_STEP_S)
+
+    def water_change(self, t: float) -> NDArray[np.float64]:
+        """(N,) the change of the water's attenuation (1/m) at rig time ``t`` (s), as rendered."""
+        if self.drift is None:
+            return np.zeros(3)
+        t = self._drift_step(t) * self.DRIFT_STEP_S
+        return np.asarray(self.drift, np.float64) * (1.0 - np.cos(2.0 * np.pi * t / self.drift_period)) / 2.0
+
+    def _world_at(self, step: int) -> SimulatedWorld:
+        """The static world with its water drifted to ``step`` (see :attr:`drift`), exposure held."""
+        world = self.world
+        if step == 0:
+            return world
+        drifted = self._drifted
+        if drifted is None or drifted[0] != (id(world), step):
+            delta = self.water_change(step * self.DRIFT_STEP_S)
+            water = world.water.with_overrides(attenuation=world.water.attenuation + delta,
+                                               scatter_attenuation=world.water.scatter_attenuation + delta)
+            drifted = ((id(world), step), replace(world, water=water, fixed_exposure=world.exposure))
+            self._drifted = drifted
+        return drifted[1]
 
     def set_lamp(self, on: bool | None = None, intensity: float | None = None) -> None:
         """Change the lamp (the simulated lamp device calls this); both values change together."""
@@ -195,8 +229,8 @@ class SimulatedRig:
             if intensity is not None:
                 self.lamp_intensity = float(intensity)
 
-    def expected(self, state: tuple[bool, float] | None = None,
-                 exposure_us: tuple[float, ...] | None = None) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    def expected(self, state: tuple[bool, float] | None = None, exposure_us: tuple[float, ...] | None = None,
+                 drift_step: int = 0) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
         """Static scenes: mean and σ (DN) for a lamp state (lit, level; default: the present one)
         and each channel's exposure time (µs; default: the present ones); lamp light scales with
         its level, electrons with the exposure time."""
@@ -205,10 +239,10 @@ class SimulatedRig:
         if exposure_us is None:
             exposure_us = tuple(self.exposure_us)
         on, level = state
-        key = (on, level, tuple(exposure_us))
+        key = (on, level, tuple(exposure_us), drift_step)
         cache = self._cache  # place() swaps in a new dict: a world being replaced cannot write into it
         if key not in cache:
-            w = self.world
+            w = self._world_at(drift_step)
             if on:
                 lit = w.components(True)
                 ambient = w.components(False).total

@@ -16,6 +16,7 @@ import pytest
 
 from tests.served import Server
 from tests.waiting import wait_for
+from uwcam.ranging import RangeEstimator
 from uwcam.config import ApiConfig, CameraConfig, DaemonConfig, DeviceConfig
 
 SERIAL = "SIM-BACKSCATTER"
@@ -50,8 +51,14 @@ def test_compensation_in_the_loop_with_an_open_water_frame_taken_through_the_api
     with Server(jerlov_config(tmp_path)) as s:
         assert wait_for(lambda: s.daemon.pipeline.latest is not None, 60.0)
         truth = s.daemon.rig.world.camera_range
-        raw_median, _, _ = errors(fresh(s), truth)
-        assert raw_median < -0.2  # the water's light reads the seabed far short
+        # The profile knows the water's light, so the loop subtracts it before being asked to
+        # (from the black-patch measurements alone); ranged with it left in, the seabed reads far short.
+        start = s.http.get("/api/v1/backscatter").json()
+        assert start["enabled"] and not start["configured"] and start["iterations"] == 2
+        fresh(s)
+        plain = RangeEstimator(s.daemon.pipeline.profile)(s.daemon.pipeline.latest.frame.data)
+        raw_median, _, _ = errors(plain, truth)
+        assert raw_median < -0.2
         assert s.http.post("/api/v1/backscatter/open-water").status_code == 401
         assert s.http.patch("/api/v1/config", json={"backscatter": {"iterations": 0}}, headers=auth).status_code == 422
         assert s.http.patch("/api/v1/config", json={"backscatter": {"iterations": 2.5}}, headers=auth).status_code == 422
@@ -105,6 +112,10 @@ def test_switching_compensation_on_builds_it_in_the_requests_thread_not_the_loop
     with Server(jerlov_config(tmp_path)) as s:
         pipeline = s.daemon.pipeline
         assert wait_for(lambda: pipeline.latest is not None, 60.0)
+        # The profile knows the water's light: compensated from the first frame, whose size the
+        # loop learnt only then.
+        assert built_in == ["frame-pipeline"], built_in
+        built_in.clear()
         on = s.http.patch("/api/v1/config", json={"backscatter": {"iterations": 2}}, headers=auth)
         assert on.status_code == 200, on.text
         assert len(built_in) == 1 and built_in[0] != "frame-pipeline", built_in

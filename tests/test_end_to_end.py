@@ -5,7 +5,7 @@ import re
 import numpy as np
 import pytest
 
-from uwcam.backscatter import BackscatterModel, compensated_range
+from uwcam.range_images import range_images
 from uwcam.cli import main
 from uwcam.ranging import RangeEstimator
 from uwcam.rig import resolve_reflectance
@@ -67,8 +67,7 @@ def test_backscatter_compensation_halves_the_error():
     open_water = study_world("open-water", distance, beta, fixed_exposure=scene.exposure, seed=6)
     frame = scene.frame(0)
     raw = RangeEstimator(profile, surface_reflectance=SAND)(frame)
-    model = BackscatterModel.from_profile(profile, open_water.frame(0))
-    fixed = compensated_range(profile, frame, model, surface_reflectance=SAND)
+    fixed = range_images(profile, [frame], surface_reflectance=SAND, compensate=True, open_water=open_water.frame(0))
     truth = scene.camera_range
 
     def rms(r):

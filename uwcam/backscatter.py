@@ -35,8 +35,6 @@ from numpy.typing import NDArray
 from uwcam.fileio import UserInputError
 from uwcam.optics.geometry import pixel_rays
 from uwcam.profile import CalibrationProfile
-from uwcam.range_result import RangeResult
-from uwcam.ranging import RangeEstimator
 from uwcam.jit import HAVE_NUMBA, njit
 
 
@@ -104,7 +102,9 @@ def _column_geometry(rays: NDArray, lamp: NDArray, radius: float, z: NDArray) ->
     t = z[None, :] / rays[:, 2:3]  # (P, Z) distance along each ray
     offset = t[..., None] * rays[:, None, :] - lamp
     ds = np.linalg.norm(offset, axis=-1)
-    spread = (radius / (ds + radius)) ** 2 * np.gradient(t, axis=1)
+    # Irradiance falls as (r/(d_s + r))²: up to the constant r², which no use of the column's shape
+    # keeps, 1/(d_s + r)², so a point lamp (r = 0) spreads as 1/d_s² instead of vanishing.
+    spread = np.gradient(t, axis=1) / np.maximum(ds + radius, 1e-3) ** 2
     return ds + t, offset[..., 2] / np.maximum(ds, 1e-12), spread
 
 
@@ -159,6 +159,18 @@ def _column_shares(rays: NDArray, lamp: NDArray, radius: float, attenuation: NDA
         cum /= cum[:, -1:]
         shares.append(np.stack([np.interp(depths, z, row) for row in cum]))
     return np.stack(shares, axis=-1)
+
+
+def _column_totals(rays: NDArray, lamp: NDArray, radius: float, attenuation: NDArray) -> NDArray:
+    """(P, N) each ray's whole lit-column backscatter ∫ exp(−c(d_s + t))/(d_s + r)² dt, up to a
+    constant, with an even beam: how open water's light changes across the view with the lamp's
+    place (brighter toward the lamp's side)."""
+    z = np.geomspace(_PORT, 200.0, _DEPTH_SAMPLES * 4)
+    path, _, spread = _column_geometry(rays, lamp, radius, z)
+    return np.stack([np.sum(spread * np.exp(-c * path), axis=1) for c in attenuation], axis=-1)
+
+
+_PATTERN_STEP = 8  # pixels between the rays the physical open-water pattern is evaluated on
 
 
 @dataclass(frozen=True)
@@ -248,11 +260,23 @@ class BackscatterModel:
         if pattern is not None:
             response = pixel_response(frames, pattern) if frames.shape[0] >= 2 else None
             return cls(depths, shares, pattern, step, response)
-        # No open-water frame: scale F so the model meets the last patch measurement, uniform in space.
+        # No open-water frame: scale F so the model meets the last patch measurement; uniform in
+        # space, or, with the physics of the column, following the lamp's place across the view.
         x, y = patches[-1]
         at_patch = model.fraction(np.array([[measured_depths[-1]]]), np.array([[y]]), np.array([[x]]))[0, 0]
+        shape_across = np.ones((1, 1, n))
+        if physical:
+            h, w = shape if shape is not None else (int(2 * intr.cy + 1), int(2 * intr.cx + 1))
+            gh, gw = max(h // _PATTERN_STEP, 2), max(w // _PATTERN_STEP, 2)
+            rows = np.linspace(0, h - 1, gh).round().astype(int)
+            cols = np.linspace(0, w - 1, gw).round().astype(int)
+            rays = pixel_rays(intr, h, w)[np.ix_(rows, cols)].reshape(-1, 3)
+            totals = _column_totals(rays, np.array(profile.lamp_position_m), profile.lamp_radius_m, c).reshape(gh, gw, n)
+            totals = totals / totals.max(axis=(0, 1))
+            shape_across = cv2.resize(totals.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR).reshape(h, w, n)
+            at_patch = at_patch * shape_across[int(round(min(max(y, 0), h - 1))), int(round(min(max(x, 0), w - 1)))]
         scale = np.where(at_patch > 0, levels[-1] / np.where(at_patch > 0, at_patch, 1.0), 0.0)
-        return cls(depths, shares, scale[None, None, :], step)
+        return cls(depths, shares, (shape_across * scale).astype(np.float64), step)
 
     def corners(self, rows: NDArray, cols: NDArray) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
         """For pixels at (rows, cols) (any shape S, full-resolution coordinates): the rows of the
@@ -300,35 +324,12 @@ class BackscatterModel:
         weight = np.concatenate([spatial * (1 - f), spatial * f])
         return np.einsum("q...,q...n->...n", weight, flat[both])
 
+    def open_water_level(self, shape: tuple[int, int]) -> NDArray[np.float64]:
+        """(H, W, N) backscatter (DN, dark-corrected) of open water, nothing in range, at every pixel of
+        frames of ``shape`` (H, W): the light a pixel must be clearly above to carry a surface's."""
+        return self.level(np.full(shape, np.nan))
+
     def level(self, depth: NDArray) -> NDArray[np.float64]:
         """Backscatter (DN, dark-corrected) for surfaces at ``depth`` (H, W) metres → (H, W, N)."""
         level = self.pattern * self.fraction(depth)
         return level if self.response is None else level * self.response
-
-
-def compensated_range(
-    profile: CalibrationProfile,
-    frame: NDArray,
-    model: BackscatterModel,
-    iterations: int = 3,
-    **estimator_options,
-) -> RangeResult:
-    """Range of ``frame`` with backscatter subtracted, iterating range ↔ backscatter.
-
-    Once backscatter is subtracted, the floor that stays is the black patch's own noise
-    (3σ), not backscatter + 3σ.
-    """
-    if frame.ndim != 3 or frame.shape[-1] != len(profile.channels):
-        raise UserInputError(f"the image must have {len(profile.channels)} channels like the profile")
-    first = RangeEstimator(profile, **estimator_options)(frame)
-    sigma = profile.backscatter.noise_sigma if profile.backscatter else {}
-    channels = [c.model_copy(update={"noise_floor": 3.0 * sigma.get(c.name, 0.0)}) for c in profile.channels]
-    compensated = RangeEstimator(profile.model_copy(update={"channels": channels}), **estimator_options)
-    h, w = frame.shape[:2]
-    intr = profile.camera_intrinsics()
-    axis_cos = pixel_rays(intr, h, w)[..., 2] if intr is not None else np.ones((h, w))
-    result = first
-    for _ in range(iterations):
-        depth = result.range.astype(np.float64) * axis_cos
-        result = compensated(frame, background=model.level(depth))
-    return result

@@ -31,6 +31,7 @@ from uwcam.calibration_lines import (
     common_pixel_means,
     fit_attenuation_differences,
     log_mean_variance,
+    mean_weights,
     smoothed_log_signal,
     spreading_log,
 )
@@ -269,6 +270,7 @@ def calibrate_with_details(frames: list[NDArray], distances_m: list[float], inpu
 
     fitted: list[DistanceGroup] = []
     log_signal, log_variance, path_lengths, log_spread_corrected = [], [], [], []
+    weights: list[NDArray | None] = []  # each distance's pixel weights in its mean (None: patch-local)
     for g, estimate in zip(groups, estimates):
         m = len(g.images)
         if patch_local:
@@ -291,6 +293,7 @@ def calibrate_with_details(frames: list[NDArray], distances_m: list[float], inpu
             smooth = cv2.blur(g.mean_frame * inside[..., None], (SMOOTHING, SMOOTHING), borderType=cv2.BORDER_CONSTANT)
             smooth = smooth / np.maximum(weight, 1e-12)[..., None]
             lv = log_mean_variance(pixels, np.maximum(smooth, 1e-30), pixel_variance(smooth, m))
+            weights.append(mean_weights(pixels))
             ln_mean = ln_e.mean(axis=0)
         lv = np.maximum(lv, variance_floor(np.exp(ln_mean), step) / np.exp(ln_mean) ** 2)
         u = rays[pixels] if rays is not None else np.array([[0.0, 0.0, 1.0]])
@@ -309,7 +312,14 @@ def calibrate_with_details(frames: list[NDArray], distances_m: list[float], inpu
                               fit_pixels=pixels))
 
     ref = inputs.reference
-    fit = fit_attenuation_differences(np.array(log_signal), path_lengths, ref, np.array(log_variance))
+    # The fixed pattern of pixels that two distances share is the same in both means: it cancels in
+    # their difference (the attenuation differences), and counted as independent it would inflate
+    # their σ several times. Its covariance between distances i and j: f_k²·Σ_p a_p(i)·a_p(j).
+    covariance = None
+    if not patch_local and np.any(noise.fixed_pattern > 0):
+        cross = np.array([[float(np.sum(a * b)) for b in weights] for a in weights])
+        covariance = cross[:, :, None] * np.asarray(noise.fixed_pattern, np.float64) ** 2
+    fit = fit_attenuation_differences(np.array(log_signal), path_lengths, ref, np.array(log_variance), covariance)
 
     backscatter_samples = None
     floor = np.zeros(n_ch)

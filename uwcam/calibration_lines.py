@@ -44,18 +44,23 @@ def smoothed_log_signal(frame: ArrayLike, mask: ArrayLike, dark_level: ArrayLike
     return np.log(values[positive]), pixels
 
 
+def mean_weights(pixels: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """(H, W) the weight a_p with which each pixel's value enters the mean over ``pixels`` of the
+    5×5 box averages: (interior boxes holding p)/(25·P)."""
+    count = int(pixels.sum())
+    if SMOOTHING > 1 and count and not np.array_equal(pixels, np.zeros_like(pixels)):
+        return cv2.boxFilter(pixels.astype(np.float64), -1, (SMOOTHING, SMOOTHING), normalize=True,
+                             borderType=cv2.BORDER_CONSTANT) / count
+    return pixels / max(count, 1)
+
+
 def log_mean_variance(pixels: NDArray[np.bool_], signal: NDArray, pixel_variance: NDArray) -> NDArray[np.float64]:
     """Variance (N,) of the mean over ``pixels`` of ln(5×5 box average of E), from independent pixel noise.
 
-    Pixel p enters the mean with weight a_p = (interior boxes holding p)/(25·P); the variance is
+    Pixel p enters the mean with weight a_p (:func:`mean_weights`); the variance is
     Σ a_p² σ_p²/E_p² (σ_p², E_p: (H, W, N) per-pixel noise variance and signal).
     """
-    count = int(pixels.sum())
-    if SMOOTHING > 1 and count and not np.array_equal(pixels, np.zeros_like(pixels)):
-        share = cv2.boxFilter(pixels.astype(np.float64), -1, (SMOOTHING, SMOOTHING), normalize=True,
-                              borderType=cv2.BORDER_CONSTANT) / count
-    else:
-        share = pixels / max(count, 1)
+    share = mean_weights(pixels)
     e = np.maximum(np.asarray(signal, dtype=np.float64), 1e-30)
     rel = np.asarray(pixel_variance, dtype=np.float64) / e**2
     used = share > 0
@@ -127,12 +132,15 @@ def fit_attenuation_differences(
     path_lengths: ArrayLike,
     reference: int = 0,
     log_variance: ArrayLike | None = None,
+    log_covariance: ArrayLike | None = None,
 ) -> AttenuationFit:
     """Attenuation differences V_k = c_k − c_ref (1/m) and log constants b_k from n ≥ 2 distances.
 
     log_signal: (n, N) mean of ln E_k over the target in each image; path_lengths: (n,)
     mean d_T over the same pixels, metres; log_variance: (n, N) variance of each
-    log_signal entry, if known (independent between channels and distances). Two distances
+    log_signal entry, if known (independent between channels); log_covariance: (n, n, N) covariance
+    of one channel's entries between distances (its diagonal unused: ``log_variance``), e.g. from
+    the same pixels' fixed pattern, which cancels between distances; None: independent. Two distances
     use the closed form of docs/physics.md §4, more use generalised least squares on
     ln(E_k/E_ref) = b_k − V_k·d_T for all channels jointly: the ratios of one distance share the
     reference channel's noise, so they are correlated, and the joint fit gives the covariance of
@@ -157,6 +165,12 @@ def fit_attenuation_differences(
     for i in range(n_img):
         block = np.diag(lv[i, others]) + lv[i, reference]
         cov_y[i * q : (i + 1) * q, i * q : (i + 1) * q] = block
+    if log_covariance is not None:
+        lc = np.asarray(log_covariance, dtype=np.float64)
+        for i in range(n_img):
+            for i2 in range(n_img):
+                if i != i2:
+                    cov_y[i * q : (i + 1) * q, i2 * q : (i2 + 1) * q] = np.diag(lc[i, i2, others]) + lc[i, i2, reference]
     # Parameters θ = [V_others..., b_others...]: y = b − V·d.
     x = np.zeros((n_img * q, 2 * q))
     for i in range(n_img):

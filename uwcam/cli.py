@@ -68,7 +68,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     rng = sub.add_parser("range", help="turn an image into a range map with a calibration profile")
     rng.add_argument("profile", metavar="PROFILE.yaml")
-    rng.add_argument("image", metavar="IMAGE")
+    rng.add_argument("image", metavar="IMAGE", nargs="+",
+                     help="image to range; several of one static scene are fused first (their mean, noise from their count)")
     rng.add_argument("-o", "--output", required=True, metavar="RANGE.(npy|tif)", help="float32 camera range in metres, NaN invalid")
     rng.add_argument("--variance", metavar="VAR.(npy|tif)", help="variance of the range in m²")
     rng.add_argument("--reasons", metavar="REASONS.(npy|tif)", help="uint8 reason code per pixel (0 valid)")
@@ -77,8 +78,10 @@ def build_parser() -> argparse.ArgumentParser:
     rng.add_argument("--path-bounds", metavar="MIN,MAX", help="accepted lamp→surface→camera path length in metres")
     rng.add_argument("--smooth", choices=("mean", "median"), help="3×3 smoothing of the range map over valid pixels")
     rng.add_argument("--compensate-backscatter", action="store_true",
-                     help="subtract modelled backscatter and iterate (needs a profile calibrated with a black patch)")
-    rng.add_argument("--open-water", metavar="IMAGE", help="lamp-lit frame of open water: the backscatter pattern")
+                     help="insist on subtracting modelled backscatter (done anyway whenever the profile was calibrated "
+                     "with a black patch; with this flag a profile without one is refused)")
+    rng.add_argument("--open-water", metavar="IMAGE", help="lamp-lit frame of open water, same exposure: the backscatter "
+                     "pattern, and the light each pixel must be clearly above to have a range")
     rng.set_defaults(func=cmd_range)
 
     sim = sub.add_parser("simulate", help="render a physically modelled underwater frame (and its ground truth)")

@@ -61,7 +61,8 @@ class FramePipeline:
         self._lit_while_dark = 0
         self._ticket = 0
         self._lamp_commander = LampCommander(lamp) if lamp is not None else None
-        # Backscatter compensation (processing thread only, apart from the open-water frame).
+        # Backscatter compensation (processing thread only, apart from the open-water frame): wherever
+        # the profile knows the water's light (uwcam.backscatter_loop.compensation_iterations).
         self._compensator = None
         self.open_water: NDArray[np.float32] | None = None
         """A lamp-lit frame (H, W, N) of open water, raw DN less ambient light, or None."""
@@ -137,7 +138,7 @@ class FramePipeline:
         # So is the backscatter compensator (0.3-0.6 s at 720p: 10-17 frames of a 30 fps loop)
         # once frames have come; before that, the loop builds it on the first frame.
         water, compensator = self.open_water, None
-        if processing.backscatter is not None and self._frame_shape is not None:
+        if self._iterations(processing, profile) is not None and self._frame_shape is not None:
             compensator = self._make_compensator(processing, profile, self._frame_shape, water)
         with self._lock:  # one swap: a frame sees the old set or the new set, never a mix
             self.profile = profile
@@ -182,7 +183,7 @@ class FramePipeline:
         water = None if frame is None else np.asarray(frame, np.float32)
         processing, profile, shape = self.processing, self.profile, self._frame_shape
         compensator = None
-        if processing.backscatter is not None and shape is not None:
+        if self._iterations(processing, profile) is not None and shape is not None:
             try:
                 compensator = self._make_compensator(processing, profile, shape, water)
             except Exception:  # the frame is kept all the same; the loop tries again, and says why
@@ -260,54 +261,73 @@ class FramePipeline:
             self.on_open_water(mean, info)
 
     @staticmethod
-    def _make_compensator(processing: ProcessingConfig, profile: CalibrationProfile, frame_shape: tuple[int, ...],
+    def _iterations(processing: ProcessingConfig, profile: CalibrationProfile) -> int | None:
+        """Passes of backscatter compensation: as configured, else wherever the profile knows the
+        water's light (:func:`uwcam.backscatter_loop.compensation_iterations`); None: none."""
+        from uwcam.backscatter_loop import compensation_iterations
+
+        return compensation_iterations(None if processing.backscatter is None else processing.backscatter.iterations, profile)
+
+    @classmethod
+    def _make_compensator(cls, processing: ProcessingConfig, profile: CalibrationProfile, frame_shape: tuple[int, ...],
                           open_water: NDArray | None):
         """A backscatter compensator for frames of ``frame_shape`` (H, W, N), with the open-water
         frame if it is of that shape."""
         from uwcam.backscatter_loop import BackscatterCompensator
 
         water = open_water if open_water is not None and open_water.shape == tuple(frame_shape) else None
-        return BackscatterCompensator(profile, tuple(frame_shape[:2]), processing.backscatter.iterations, water,
+        return BackscatterCompensator(profile, tuple(frame_shape[:2]), cls._iterations(processing, profile), water,
                                       pair=processing.pair, path_length_bounds=processing.path_length_bounds)
 
     def _compensation(self, frame: Frame, processing: ProcessingConfig, profile: CalibrationProfile,
-                      estimator: RangeEstimator, ambient: NDArray | None):
-        """The transform of range_frame that subtracts backscatter, or None."""
-        config = processing.backscatter
-        if config is None:
-            return None
+                      estimator: RangeEstimator, ambient: NDArray | None) -> tuple:
+        """(the transform of range_frame that subtracts backscatter or None, the open-water light
+        each pixel is judged against or None, the frame's light over the model's per channel or None)."""
+        from uwcam.backscatter_loop import compensation, light_scale
+
+        exposure = self.open_water_info.get("exposure")
+        if self._iterations(processing, profile) is None:
+            return None, None, None
         comp = self._compensator
         if comp is None or comp.shape != frame.data.shape[:2]:
             comp = self._make_compensator(processing, profile, frame.data.shape, self.open_water)
             self._compensator = comp
-
         # The modelled backscatter is in the counts of the light it came from: scaled to this frame's exposure.
-        scale, gathered = None, frame.light_gathered()
-        made_at = self.open_water_info.get("exposure") if comp.open_water else None
-        if gathered is not None and made_at is not None and len(made_at) == gathered.size:
-            scale = gathered / np.asarray(made_at, dtype=np.float64)
-        elif gathered is not None and not comp.open_water and profile.calibration_exposure()[0] is not None:
-            scale = np.exp(estimator.exposure_shift)
+        scale = light_scale(profile, estimator, frame.light_gathered(), comp.open_water, exposure)
+        return compensation(comp, estimator, ambient, scale, self._compensation_ms), comp.water, scale
 
-        def transform(data: NDArray, samples: NDArray | None) -> RangeResult:
-            started = time.perf_counter()
-            # The loop's attenuation differences (centred: only differences matter) and log constants.
-            result = comp.range(data, estimator.attenuation, estimator.effective_log_constant, ambient, samples, scale)
-            self._compensation_ms.append((time.perf_counter() - started) * 1e3)
-            return result
-
-        return transform
+    def _light_before_footprint(self, frame: Frame, corrector, transform, ambient: NDArray | None,
+                                scale: NDArray | None) -> NDArray | None:
+        """The light (DN) in the rangefinder's footprint that is not the surface's: the ambient
+        light and, where backscatter is subtracted before ranging, the water's own light in front
+        of a surface at the reading's range. The corrector's log constants must describe the
+        surface's light alone, as the ranges they enter are made from it: fitted to light with the
+        water's in it, they absorbed the backscatter that compensation then subtracts again
+        (Jerlov IB, seabed at 2 m: +3.4 % in the middle of the view)."""
+        comp = self._compensator
+        reading = corrector.rangefinder.latest()
+        if transform is None or comp is None or reading is None or not np.isfinite(reading.range_m):
+            return ambient
+        x, y, w, h = corrector.config.footprint
+        # The reading's range over the footprint's blocks, open water (no surface) elsewhere.
+        at = np.full(frame.data.shape[:2], np.nan, np.float32)
+        at[y : y + h, x : x + w] = reading.range_m
+        water = comp.level(at, scale=1.0 if scale is None else np.asarray(scale, np.float32))
+        return water if ambient is None else water + ambient
 
     def backscatter_status(self) -> dict:
         """Whether backscatter is compensated, with what, and its cost per frame."""
-        config = self.processing.backscatter
+        iterations = self._iterations(self.processing, self.profile)
         info = dict(self.open_water_info)
         if "monotonic" in info:
             info["age_s"] = round(time.monotonic() - info.pop("monotonic"), 1)
         ms = list(self._compensation_ms)
-        return {"enabled": config is not None, "iterations": None if config is None else config.iterations,
+        # Compensated wherever the profile knows the water's light, asked for or not (a range with
+        # that light left in reads short): "configured" says whether the settings asked for it.
+        return {"enabled": iterations is not None, "iterations": iterations,
+                "configured": self.processing.backscatter is not None,
                 "open_water": info or None,
-                "model": None if config is None else ("open-water frame and black-patch measurements" if self.open_water is not None
+                "model": None if iterations is None else ("open-water frame and black-patch measurements" if self.open_water is not None
                                                        else "black-patch measurements of the calibration"),
                 "ms_per_frame": round(float(np.median(ms)), 2) if ms else None,
                 "capture": "capturing" if self._pending_open_water() is not None else self._open_water_capture}
@@ -474,15 +494,17 @@ class FramePipeline:
         if tracker is not None and tracker.update(frame.data, ambient, estimator.exposure_shift):
             estimator.set_attenuation_differences(tracker.tracked)
         attenuation = tracker.tracked if tracker is not None else profile.array("attenuation_difference")
+        # (The transform reads the estimator's log constants when it runs, after the corrector's.)
+        transform, water, scale = self._compensation(frame, processing, profile, estimator, ambient)
         if corrector is not None:
-            b = corrector.update(frame, attenuation, ambient, estimator.exposure_shift)
+            background = self._light_before_footprint(frame, corrector, transform, ambient, scale)
+            b = corrector.update(frame, attenuation, background, estimator.exposure_shift)
             if b is not None and np.max(np.abs(b - estimator.log_constant)) > processing.reflectance.tolerance:
                 estimator.set_log_constants(b)
         if frame.lamp_on is not False:
             self._take_open_water(frame, ambient, "taken on request")
-        transform = self._compensation(frame, processing, profile, estimator, ambient)
         result = range_frame(estimator, frame.data, processing.smoothing, processing.smoothing_stage, ambient,
-                             processing.vehicle_mask, transform)
+                             processing.vehicle_mask, transform, water, scale)
         if exposure is not None:
             wanted = exposure.update(frame.data, frame.exposures()[0], frame.lamp_on, profile.array("dark_level"),
                                      estimator.floor, profile.saturation_level, taken)
@@ -493,11 +515,20 @@ class FramePipeline:
             if corrector is not None:
                 corrector.observe(result.range)  # the normal at the footprint, for the next reading
             if orientation is not None:
-                incidence = orientation.estimate(frame.data, result, corrector, ambient, estimator.exposure_shift)
+                # The surface's light alone, as the corrector's scale it is compared with: less the
+                # water's own light in front of each surface where that is subtracted before ranging.
+                light = ambient
+                if transform is not None and self._compensator is not None:
+                    light = self._compensator.level(result.range, scale=1.0 if scale is None else np.asarray(scale, np.float32))
+                    light = light if ambient is None else light + ambient
+                incidence = orientation.estimate(frame.data, result, corrector, light, estimator.exposure_shift)
         now = time.monotonic_ns()
         published = Published(self.processed + 1, frame if coded is None else coded, result, now, tuple(float(v) for v in attenuation),
                                tuple(float(v) for v in estimator.log_constant), ambient, incidence,
-                               orientation.config.block if orientation is not None else 0)
+                               orientation.config.block if orientation is not None else 0,
+                               None if water is None else water.source,
+                               None if scale is None else tuple(float(v) for v in np.asarray(scale).ravel()),
+                               self.open_water if water is not None and water.source == "open-water frame" else None)
         with self._lock:
             self._latest = published
         self.processed += 1

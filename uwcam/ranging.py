@@ -400,21 +400,30 @@ class RangeEstimator:
 
 def range_frame(estimator: RangeEstimator, frame: NDArray, smoothing: str = "none", stage: str = "after",
                 background: NDArray | None = None, vehicle_mask: Sequence[tuple[int, int, int, int]] = (),
-                transform: Callable[[NDArray, NDArray | None], RangeResult] | None = None) -> RangeResult:
+                transform: Callable[[NDArray, NDArray | None], RangeResult] | None = None,
+                water=None, water_scale: NDArray | None = None, samples: NDArray | None = None) -> RangeResult:
     """Range one frame as the daemon's processing settings say: 3×3 smoothing of the image
     (stage "before", :func:`smooth_frame`), the transform (``estimator``, or ``transform(frame,
-    samples)`` such as backscatter compensation), the vehicle mask (:func:`mask_vehicle`), then 3×3
-    smoothing of the range map (stage "after", :func:`smooth_range_map`: the masked vehicle lends
-    no range to its neighbours). The frame loop and ``uwcam reprocess`` both range through here."""
-    samples = None
+    samples)`` such as backscatter compensation; ``background``: light not from the lamp, e.g.
+    ambient, subtracted by the plain transform and judged against by ``water``), the water's own
+    light judged (``water``, a :class:`uwcam.water_light.WaterLight`: pixels not clearly above it
+    lose their range, reason 3; ``water_scale``: (N,) the frame's exposure × gain over that of the
+    water light's), the vehicle mask (:func:`mask_vehicle`), then 3×3 smoothing of the range map
+    (stage "after", :func:`smooth_range_map`: the masked vehicle lends no range to its neighbours).
+    ``uwcam range``, the frame loop and ``uwcam reprocess`` all range through here. samples: (H, W, N)
+    how many single-pixel noises each value's variance equals (frames fused over time,
+    :func:`uwcam.range_images.fuse_frames`); None: one."""
     if smoothing != "none" and stage == "before":
         if estimator.response is not None and np.issubdtype(frame.dtype, np.integer):
             frame = estimator.response.linearise(frame)  # average light, not codes of a tone curve
-        frame, samples = smooth_frame(frame, smoothing, estimator.profile.saturation_level)
+        frame, smoothed = smooth_frame(frame, smoothing, estimator.profile.saturation_level)
+        samples = smoothed if samples is None else samples * smoothed
     if transform is not None:
         result = transform(frame, samples)
     else:
         result = estimator(frame, background=background, samples=samples)
+    if water is not None:
+        water.judge(result, frame, estimator, water_scale, background, samples)
     if vehicle_mask:
         mask_vehicle(result, vehicle_mask)
     if smoothing != "none" and stage == "after":

@@ -13,6 +13,7 @@ Topics (log time: the frame's capture time, ns since the epoch, so a frame's mes
 ``/uwcam/reasons``          foxglove.RawImage mono8   reason code per pixel (0 valid)
 ``/uwcam/ranging``          JSON                      per ranged frame: what it was ranged with
 ``/uwcam/ambient``          foxglove.RawImage 32FCn   ambient light subtracted (when it changes)
+``/uwcam/open_water``       foxglove.RawImage 32FCn   open-water frame of the backscatter model (when it changes)
 ``/uwcam/camera_calibration`` foxglove.CameraCalibration  intrinsics (per file, on change)
 ``/uwcam/rangefinder``      JSON                      rangefinder readings
 ``/uwcam/status``           JSON                      daemon status, about once a second
@@ -50,6 +51,7 @@ VARIANCE = "/uwcam/variance"
 REASONS = "/uwcam/reasons"
 RANGING = "/uwcam/ranging"
 AMBIENT = "/uwcam/ambient"
+OPEN_WATER = "/uwcam/open_water"
 CALIBRATION = "/uwcam/camera_calibration"
 RANGEFINDER = "/uwcam/rangefinder"
 STATUS = "/uwcam/status"

@@ -145,6 +145,34 @@ def _corrected(profile: CalibrationProfile, recorded: CalibrationProfile | None,
             profile.array("log_constant") + (b - recorded.array("log_constant")))
 
 
+def _water_and_compensation(cache: dict, profile: CalibrationProfile, estimator: RangeEstimator, key: tuple,
+                            shape: tuple[int, ...], record: dict, open_water: NDArray | None,
+                            ambient: NDArray | None) -> tuple:
+    """(transform, open-water light, light scale) for :func:`range_frame`, as the frame loop had them
+    for this frame (its record says whether backscatter was compensated and what the water's light
+    came from); built once per profile, settings and open-water frame (``cache``)."""
+    from uwcam.backscatter_loop import BackscatterCompensator, compensation, compensation_iterations
+
+    source = record.get("water")  # recordings made before the water's light was judged have none
+    if source is None:
+        return None, None, None
+    # As the loop: compensated wherever the profile knows the water's light, asked for or not.
+    iterations = compensation_iterations(record["processing"].get("backscatter"), profile)
+    water_frame = open_water if source == "open-water frame" else None
+    if water_frame is None and source == "open-water frame":
+        raise UserInputError(f"frame {record['number']} was judged against an open-water frame that the recording "
+                             "does not hold; it cannot be ranged again the same way")
+    made_for = (*key, iterations, tuple(shape), source)
+    if made_for not in cache:
+        comp = BackscatterCompensator(profile, tuple(shape[:2]), iterations, water_frame, pair=key[1],
+                                      path_length_bounds=key[2])
+        cache[made_for] = (comp, comp.water)
+    comp, water = cache[made_for]
+    scale = None if record.get("light_scale") is None else np.asarray(record["light_scale"], dtype=np.float64)
+    transform = compensation(comp, estimator, ambient, scale)
+    return transform, water, scale
+
+
 def process_part(part: Part, profile_yaml: str | None = None, kernel_threads: int | None = None) -> PartResult:
     """Range every ranged frame of one part again. ``profile_yaml``: a profile to use instead of
     the one each frame was recorded with. ``kernel_threads``: threads of the compiled ranging
@@ -166,15 +194,21 @@ def process_part(part: Part, profile_yaml: str | None = None, kernel_threads: in
         reader = rec.open_checked_reader(fh, part.skip_offsets)
         recorded = rec.read_profiles(reader)
         ambient = None
-        if part.start_ns > 0:  # the ambient estimate in force when the part begins
+        open_water = None
+        if part.start_ns > 0:  # the ambient estimate and open-water frame in force when the part begins
             for _s, _c, _m, decoded in reader.iter_decoded_messages(topics=[rec.AMBIENT], ending_before=part.start_ns,
                                                                     reverse=True):
                 ambient = rec.decode_raw_image(decoded).astype(np.float64)
                 break
+            for _s, _c, _m, decoded in reader.iter_decoded_messages(topics=[rec.OPEN_WATER], ending_before=part.start_ns,
+                                                                    reverse=True):
+                open_water = rec.decode_raw_image(decoded).astype(np.float32)
+                break
+        lit: dict[tuple, tuple] = {}
         images: dict[int, NDArray] = {}
         exposures: dict[int, tuple] = {}
         for _s, channel, message, decoded in reader.iter_decoded_messages(
-                topics=[rec.IMAGE, rec.IMAGE_METADATA, rec.AMBIENT, rec.RANGING], starting_at=part.start_ns,
+                topics=[rec.IMAGE, rec.IMAGE_METADATA, rec.AMBIENT, rec.OPEN_WATER, rec.RANGING], starting_at=part.start_ns,
                 ending_before=part.end_ns):
             t = message.log_time
             if channel.topic == rec.IMAGE:
@@ -186,6 +220,10 @@ def process_part(part: Part, profile_yaml: str | None = None, kernel_threads: in
                 continue
             if channel.topic == rec.AMBIENT:
                 ambient = rec.decode_raw_image(decoded).astype(np.float64)
+                continue
+            if channel.topic == rec.OPEN_WATER:
+                open_water = rec.decode_raw_image(decoded).astype(np.float32)
+                lit.clear()  # built for the frame before
                 continue
             record, raw = decoded, images.pop(t, None)
             if raw is None:
@@ -212,9 +250,12 @@ def process_part(part: Part, profile_yaml: str | None = None, kernel_threads: in
             est.set_log_constants(b)
             exposure, gain = exposures.pop(t, (None, None))
             est.set_exposure(exposure, gain)  # each channel's exposure when it was taken: exact whatever it was
+            frame_ambient = ambient if record["ambient_subtracted"] else None
+            transform, water, scale = _water_and_compensation(lit, profile, est, key, raw.shape, record, open_water,
+                                                              frame_ambient)
             # Recordings made before the vehicle mask existed have none.
-            result = range_frame(est, raw, proc["smoothing"], proc["smoothing_stage"],
-                                 ambient if record["ambient_subtracted"] else None, proc.get("vehicle_mask") or ())
+            result = range_frame(est, raw, proc["smoothing"], proc["smoothing_stage"], frame_ambient,
+                                 proc.get("vehicle_mask") or (), transform, water, scale)
             shape = (profile.name, *raw.shape[:2])
             if shape not in factors:
                 factors[shape] = rec.depth_factor(profile, *raw.shape[:2])

@@ -19,15 +19,15 @@ from uwcam.commands.arguments import (
 
 def cmd_range(args: argparse.Namespace) -> int:
     from uwcam.imageio import MAP_SUFFIXES, read_frame, write_map
+    from uwcam.config import BackscatterConfig
     from uwcam.profile import load_profile
-    from uwcam.range_smoothing import smooth_range_map
-    from uwcam.ranging import RangeEstimator
+    from uwcam.range_images import range_images
 
     outputs = [(args.output, "-o")] + [(p, f) for p, f in ((args.variance, "--variance"), (args.reasons, "--reasons")) if p]
     for path, flag in outputs:
         checked_output(path, MAP_SUFFIXES, flag + " {path} must end in .npy, .tif or .tiff", flag)
     profile = load_profile(args.profile)
-    frame = read_frame(args.image)
+    frames = [read_frame(path) for path in args.image]
     pair = None
     if args.pair:
         pair = tuple(s.strip() for s in args.pair.split(","))
@@ -41,19 +41,14 @@ def cmd_range(args: argparse.Namespace) -> int:
         bounds = tuple(parse_floats(args.path_bounds, "--path-bounds", 2))
         if not 0 <= bounds[0] < bounds[1]:
             raise UserInputError(f"--path-bounds must be MIN,MAX metres with 0 ≤ MIN < MAX, got '{args.path_bounds}'")
-    options = dict(pair=pair, surface_reflectance=surface, path_length_bounds=bounds)
-    if args.compensate_backscatter:
-        from uwcam.backscatter import BackscatterModel, compensated_range
-
-        open_water = read_frame(args.open_water) if args.open_water else None
-        model = BackscatterModel.from_profile(profile, open_water, frame.shape[:2])
-        result = compensated_range(profile, frame, model, **options)  # type: ignore[arg-type]
-    else:
-        if args.open_water:
-            raise UserInputError("--open-water is used by --compensate-backscatter; add that flag")
-        result = RangeEstimator(profile, **options)(frame)  # type: ignore[arg-type]
-    if args.smooth:
-        result = smooth_range_map(result, args.smooth)
+    if args.open_water and profile.backscatter is None:
+        raise UserInputError("--open-water needs a profile with backscatter measurements; calibrate with a rig that "
+                             "has a black patch (e.g. --rig grey-plate)")
+    open_water = read_frame(args.open_water) if args.open_water else None
+    result = range_images(profile, frames, pair=pair, surface_reflectance=surface,  # type: ignore[arg-type]
+                          path_length_bounds=bounds, smoothing=args.smooth or "none",
+                          compensate=args.compensate_backscatter, iterations=BackscatterConfig().iterations,
+                          open_water=open_water)
     write_map(args.output, result.range)
     if args.variance:
         write_map(args.variance, result.variance)

@@ -328,6 +328,7 @@ class Recorder:
         self._attached = set()
         self._last_profile = None
         self._last_ambient = None
+        self._last_open_water = None
         self._rotate_due = False
         # Every file carries the calibration in use and the camera's mounting from its start
         # (self-contained parts).
@@ -507,6 +508,10 @@ class Recorder:
             self._last_ambient = p.ambient
             c = p.ambient.shape[-1]
             f.write(rec.AMBIENT, "foxglove.RawImage", rec.raw_image(p.ambient.astype(np.float32), t, f"32FC{c}"), t)
+        if p.open_water is not None and p.open_water is not self._last_open_water:
+            self._last_open_water = p.open_water
+            c = p.open_water.shape[-1]
+            f.write(rec.OPEN_WATER, "foxglove.RawImage", rec.raw_image(p.open_water.astype(np.float32), t, f"32FC{c}"), t)
         f.write_json(rec.RANGING, ranging_record(p, profile, processing), t)
         self._spend(SUMMARY_BYTES)
         if not self.config.results:

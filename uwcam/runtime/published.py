@@ -30,6 +30,12 @@ class Published:
     none was found; None when orientation is off or unavailable."""
     incidence_block: int = 0
     """Side of the pixel blocks of ``incidence``."""
+    water_source: str | None = None
+    """What the open-water light this frame was judged against came from (uwcam.water_light), or None."""
+    light_scale: tuple[float, ...] | None = None
+    """Per channel, this frame's exposure × gain over that of the backscatter model's light (None: 1)."""
+    open_water: NDArray[np.float32] | None = None
+    """The open-water frame the backscatter model was made with, when it was (raw DN less ambient)."""
 
     @property
     def latency_s(self) -> float:

@@ -92,8 +92,11 @@ def calibrate_simulated_water(rig: SimulatedRig) -> CalibrationProfile:
     water = water_preset(rig.water, [675.0, 575.0, 475.0])
     w, h = rig.size
     factor = max(1, -(-w // CALIBRATION_WIDTH))
+    # The plate's exposure is recorded (in the simulator's unit: electrons per unit radiance) so that
+    # :func:`simulated_calibration` can say it in the rig camera's µs: the water's light the
+    # calibration measured is then scaled to each frame's exposure, as for a real camera.
     return calibrate_in_simulation(water, Lamp(position=tuple(rig.lamp_offset)), (max(w // factor, 2), max(h // factor, 2)),
-                                   CameraModel(bits=rig.bits), seed_base=11, frames_per_distance=4)
+                                   CameraModel(bits=rig.bits), seed_base=11, frames_per_distance=4, record_exposure=True)
 
 
 def ship_simulated_calibration(config: DaemonConfig) -> str:
@@ -136,8 +139,28 @@ def simulated_calibration(rig: SimulatedRig) -> CalibrationProfile:
                     os.remove(old)
             except OSError as exc:  # a read-only home: calibrate at every start, as before
                 log.info("cannot keep the simulated calibration in %s (%s)", path, exc.strerror)
-    intr = rig.world.intrinsics
-    return profile.model_copy(update={"intrinsics": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy}})
+    world = rig.world
+    intr = world.intrinsics
+    return profile.model_copy(update={"intrinsics": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy},
+                                      "channels": rig_exposures(profile, world.exposure)})
+
+
+def rig_exposures(profile: CalibrationProfile, world_exposure: float) -> list:
+    """The channels of a simulated calibration with their exposure said in the simulated camera's µs.
+
+    The simulated camera reports NOMINAL_EXPOSURE_US at its world's own auto-exposure
+    (``world_exposure``, electrons per unit radiance, set by the scene), and the calibration recorded
+    the plate's exposure in that unit: the plate was exposed NOMINAL_EXPOSURE_US × plate / world µs.
+    Without it a frame's light could not be compared with the light the calibration measured (the
+    water's own light, judged and subtracted per frame): the seabed at 2 m is exposed 4.7 times the
+    plate, a scene with the bright patch bracket 0.69 times. A profile that did not record its
+    exposure (calibrated before it was) is returned as it is."""
+    from uwcam.drivers.sim import NOMINAL_EXPOSURE_US
+
+    if any(c.exposure_us is None for c in profile.channels):
+        return list(profile.channels)
+    return [c.model_copy(update={"exposure_us": NOMINAL_EXPOSURE_US * c.exposure_us / world_exposure})
+            for c in profile.channels]
 
 
 def simulated_patch(rig: SimulatedRig) -> PatchConfig:

@@ -45,6 +45,12 @@ class SimulationOptions(BaseModel):
     """Survey: lowest and highest altitude above the smooth seabed, m."""
     altitude_period: Annotated[float, Field(ge=10, le=3600)] = 120.0
     """Survey: seconds from the lowest altitude to the highest and back."""
+    drift: tuple[Annotated[float, Field(ge=-1, le=1)], Annotated[float, Field(ge=-1, le=1)],
+                  Annotated[float, Field(ge=-1, le=1)]] | None = None
+    """Static scenes: change of the water's attenuation per channel (R, G, B), 1/m, over half a
+    drift_period and back (a tide, a plume, a temperature front); None: still water."""
+    drift_period: Annotated[float, Field(ge=1, le=86400)] = 300.0
+    """Seconds of one drift cycle."""
     plate_rig: str | None = None
     """Scene ``plate``: a built-in calibration rig to draw (e.g. charuco-plate); None: the grey plate."""
 
@@ -103,6 +109,8 @@ class SimulationOptions(BaseModel):
             given = [k for k in SURVEY_KEYS if k in self.model_fields_set]
             if given:
                 raise ValueError(f"'{given[0]}' applies only to scene: survey (this scene is static)")
+        elif "drift" in self.model_fields_set or "drift_period" in self.model_fields_set:
+            raise ValueError("'drift' applies only to static scenes; the survey's water stays as it is")
         elif "distance" in self.model_fields_set:
             raise ValueError("'distance' applies only to static scenes; the survey's range follows its 'altitude'")
         return self

@@ -1,0 +1,142 @@
+"""One ranging path: ``uwcam range``, the daemon's frame loop and ``uwcam reprocess`` give the same
+frame, with the same profile and settings, bit-identical range, variance and reasons — with
+backscatter compensated (the command line used to leave out the model's uncertainty the loop has)
+and with the water's own light judged per pixel (an open-water frame's)."""
+
+from __future__ import annotations
+
+import collections
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from tests.waiting import wait_for
+from uwcam import recording as rec
+from uwcam.cli import main
+from uwcam.config import BackscatterConfig, ProcessingConfig, RecordingConfig
+from uwcam.drivers.base import Frame
+from uwcam.outputs.recorder import Recorder
+from uwcam.pipeline import FramePipeline
+from uwcam.profile import save_profile
+from uwcam.reprocess import reprocess
+from uwcam.simulation import CameraModel, Lamp, SimulatedWorld, water_preset
+from uwcam.simulation.tank import calibrate_in_simulation
+
+SIZE = (80, 60)
+WATER = water_preset("jerlov-II", [675.0, 575.0, 475.0])
+LAMP = Lamp(position=(0.3, 0.0, 0.0))
+
+
+@pytest.fixture(scope="module")
+def setting():
+    """A profile calibrated in jerlov-II with the lamp 0.3 m aside, a seabed 4 m away and an open-water frame."""
+    profile = calibrate_in_simulation(WATER, LAMP, SIZE, CameraModel(), frames_per_distance=2)
+    scene = SimulatedWorld(scene="seabed", distance=4.0, size=SIZE, water=WATER, lamp=LAMP, camera=CameraModel(),
+                           material="grey", seed=5)
+    water = SimulatedWorld(scene="open-water", distance=4.0, size=SIZE, water=WATER, lamp=LAMP, camera=CameraModel(),
+                           fixed_exposure=scene.exposure, seed=6)
+    return profile, scene.frame(0), water.frame(0), water.frame(1)
+
+
+class QueuedCamera:
+    def __init__(self) -> None:
+        self.queue: collections.deque[Frame] = collections.deque()
+        self.lock = threading.Lock()
+
+    def get(self, timeout_s: float) -> Frame | None:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            with self.lock:
+                if self.queue:
+                    return self.queue.popleft()
+            if time.monotonic() >= deadline:
+                return None
+            time.sleep(0.002)
+
+
+def image(msg):
+    """A foxglove.RawImage decoded from its documented layout."""
+    dtype = {"32FC1": "<f4", "mono8": "u1"}[msg.encoding]
+    return np.frombuffer(msg.data, dtype=dtype).reshape(msg.height, msg.width)
+
+
+def decoded(path, topic):
+    with open(path, "rb") as fh:
+        reader = rec.open_reader(fh)
+        return [(m.log_time, d) for _s, _c, m, d in reader.iter_decoded_messages(topics=[topic])]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("compensate", [False, True], ids=["plain", "compensated"])
+def test_cli_loop_and_reprocess_give_bit_identical_results(setting, tmp_path, compensate, capsys):
+    profile, frame, open_water, _ = setting
+    save_profile(profile, tmp_path / "p.yaml")
+    np.save(tmp_path / "f.npy", frame)
+    np.save(tmp_path / "ow.npy", open_water)
+    args = ["range", str(tmp_path / "p.yaml"), str(tmp_path / "f.npy"), "-o", str(tmp_path / "r.npy"),
+            "--variance", str(tmp_path / "v.npy"), "--reasons", str(tmp_path / "c.npy"), "--open-water", str(tmp_path / "ow.npy")]
+    assert main(args + (["--compensate-backscatter"] if compensate else [])) == 0, capsys.readouterr().err
+    cli = [np.load(tmp_path / n) for n in ("r.npy", "v.npy", "c.npy")]
+
+    camera = QueuedCamera()
+    processing = ProcessingConfig(backscatter=BackscatterConfig() if compensate else None)
+    pipeline = FramePipeline(camera, profile, processing)
+    pipeline.set_open_water(open_water.astype(np.float32))  # raw, no ambient light here
+    published = []
+    pipeline.subscribe(published.append)
+    # results: true, so the live depth, variance and reasons are in the file to compare with.
+    recorder = Recorder(pipeline, RecordingConfig(folder=str(tmp_path / "rec"), chunk_kb=64, results=True))
+    path = str(tmp_path / "dive.mcap")
+    recorder.start(path)
+    pipeline.start()
+    try:
+        with camera.lock:
+            camera.queue.extend(Frame(data=frame.copy(), sequence=k, host_monotonic_ns=time.monotonic_ns(),
+                                      wall_time=time.time() + k * 1e-3, lamp_on=True) for k in range(2))
+        assert wait_for(lambda: len(published) == 2, 60.0)
+    finally:
+        pipeline.stop()
+        recorder.stop()
+    loop = published[-1].result
+    assert published[-1].water_source == "open-water frame"
+    for a, b in zip(cli, (loop.range, loop.variance, loop.reasons)):
+        assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=True)
+    assert np.isfinite(loop.range).mean() > 0.5
+
+    out = str(tmp_path / "again.mcap")
+    reprocess([path], out, progress=False)
+    for topic in (rec.DEPTH, rec.VARIANCE, rec.REASONS):
+        live, again = decoded(path, topic), decoded(out, topic)
+        assert len(live) == 2 and [t for t, _ in live] == [t for t, _ in again]
+        for (_, a), (_, b) in zip(live, again):
+            assert np.array_equal(image(a), image(b), equal_nan=True)
+    reasons = image(decoded(out, rec.REASONS)[-1][1])
+    assert np.array_equal(reasons, cli[2])
+
+
+def test_range_fuses_several_images_and_refuses_mismatched_ones(setting, tmp_path, capsys):
+    """`uwcam range PROFILE A B C`: one map from the frames' mean; the same frame given three times
+    is that frame with a third of its temporal noise variance (the fixed pattern's stays), so its
+    variance falls by less than 3; images of another size are refused with one line."""
+    profile, frame, _, _ = setting
+    save_profile(profile, tmp_path / "p.yaml")
+    np.save(tmp_path / "a.npy", frame)
+    np.save(tmp_path / "small.npy", frame[:-2])
+    out = [str(tmp_path / n) for n in ("r.npy", "v.npy")]
+    assert main(["range", str(tmp_path / "p.yaml"), str(tmp_path / "a.npy"), "-o", out[0], "--variance", out[1]]) == 0
+    one = [np.load(p) for p in out]
+    assert main(["range", str(tmp_path / "p.yaml"), *[str(tmp_path / "a.npy")] * 3, "-o", out[0], "--variance", out[1]]) == 0
+    three = [np.load(p) for p in out]
+    both = np.isfinite(one[0]) & np.isfinite(three[0])
+    assert both.mean() > 0.5
+    # The channels' weights shift (the fixed pattern's share differs by channel), so the fused range
+    # moves a little where the channels disagree (this water's light); the variance falls, by at most 3.
+    np.testing.assert_allclose(three[0][both], one[0][both], rtol=0.05)
+    ratio = one[1][both] / three[1][both]
+    assert np.all(ratio > 1.0) and np.all(ratio <= 3.0 * (1 + 1e-5)), (ratio.min(), ratio.max())
+    capsys.readouterr()
+    assert main(["range", str(tmp_path / "p.yaml"), str(tmp_path / "a.npy"), str(tmp_path / "small.npy"), "-o", out[0]]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "image 2 is 80×58" in err and "image 1 is 80×60" in err and len(err.splitlines()) == 1
