@@ -608,7 +608,14 @@ function renderBackscatter(b) {
   const water = b.open_water;
   const from = water ? `open-water frame ${water.source}${water.age_s !== undefined ? ` ${ago(water.age_s)} ago` : ""}`
     : "no open-water frame: the calibration's black-patch measurements alone";
-  const parts = [b.enabled ? `on · ${b.iterations} iterations${b.ms_per_frame !== null ? ` · ${b.ms_per_frame} ms per frame` : ""}` : "off", from];
+  // Where the calibration measured the water's light it is always subtracted (a range with it left
+  // in reads short): the box shows it ticked and cannot be unticked, and says why.
+  const box = $("backscatter-on");
+  const always = b.enabled && !b.configured;
+  box.checked = b.enabled;
+  box.disabled = always;
+  box.title = always ? "always on: this calibration measured the water's own light, and a range with it left in reads short" : "";
+  const parts = [b.enabled ? `on${always ? " (always, with this calibration)" : ""} · ${b.iterations} iterations${b.ms_per_frame !== null ? ` · ${b.ms_per_frame} ms per frame` : ""}` : "off", from];
   if (b.capture && b.capture !== "done") parts.push(b.capture);
   el.textContent = parts.join(" · ");
 }
@@ -671,7 +678,8 @@ async function loadConfig() {
   $("smoothing").value = c.smoothing;
   $("smoothing-stage").value = c.smoothing_stage;
   $("lamp-off-interval").value = c.lamp_off_interval;
-  $("backscatter-on").checked = c.backscatter !== null && c.backscatter !== undefined;
+  // Disabled: always on with this calibration (renderBackscatter), whatever the settings say.
+  $("backscatter-on").checked = (c.backscatter !== null && c.backscatter !== undefined) || $("backscatter-on").disabled;
   if (c.patch?.path_length_m) $("patch-path").value = c.patch.path_length_m;
 }
 
