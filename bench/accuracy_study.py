@@ -29,9 +29,9 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
-from uwcam.range_images import range_images  # noqa: E402
-from uwcam.range_smoothing import smooth_range_map  # noqa: E402
-from uwcam.ranging import RangeEstimator  # noqa: E402
+from uwcam.ranging.images import range_images  # noqa: E402
+from uwcam.ranging.smoothing import smooth_range_map  # noqa: E402
+from uwcam.ranging.estimator import RangeEstimator  # noqa: E402
 from uwcam.simulation import CameraModel, Lamp, SimulatedWorld, water_preset  # noqa: E402
 from uwcam.simulation.tank import calibrate_in_simulation  # noqa: E402
 

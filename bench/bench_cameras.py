@@ -30,7 +30,7 @@ from uwcam.drivers.replay import ReplayCamera  # noqa: E402
 from uwcam.drivers.sim import SimulatedCamera, SimulatedRig  # noqa: E402
 from uwcam.drivers.supervisor import SupervisedCamera  # noqa: E402
 from uwcam.drivers.v4l2 import V4L2Camera  # noqa: E402
-from uwcam.imageio import read_frame  # noqa: E402
+from uwcam.imaging.imageio import read_frame  # noqa: E402
 
 VIKY = os.path.join(os.path.dirname(genicam.__file__), "viky.cti")
 

@@ -74,7 +74,7 @@ def write_replay_rig(folder: str, size: tuple[int, int], fps: float, frames: int
     import yaml
 
     from tests.synthetic import make_profile
-    from uwcam.profile import save_profile
+    from uwcam.calibration.profile import save_profile
 
     w, h = size
     attenuation = np.array([0.46, 0.11, 0.06])

@@ -42,7 +42,7 @@ from uwcam.optics import (  # noqa: E402
     signal_variance,
 )
 from uwcam.optics import kernels  # noqa: E402
-from uwcam.ranging import RangeEstimator  # noqa: E402
+from uwcam.ranging.estimator import RangeEstimator  # noqa: E402
 from timing import best_time  # noqa: E402
 
 
@@ -175,7 +175,7 @@ def calibration_variance_cost(repeat: int) -> None:
     kernel, on 8×8 blocks. Its cost per 1280×720 frame beside the kernel's (goal ≤ 3 ms), and the
     error of the block computation against every pixel's own."""
     from uwcam.optics.geometry import Intrinsics
-    from uwcam.profile import CalibrationCovariance
+    from uwcam.calibration.profile import CalibrationCovariance
 
     w, h = 1280, 720
     rng = np.random.default_rng(1)

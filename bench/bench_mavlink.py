@@ -26,7 +26,7 @@ from uwcam.drivers.base import Frame  # noqa: E402
 from uwcam.optics.geometry import Intrinsics, pixel_rays  # noqa: E402
 from uwcam.outputs.mavlink_measure import PixelRays, measure  # noqa: E402
 from uwcam.runtime.published import Published  # noqa: E402
-from uwcam.range_result import RangeResult  # noqa: E402
+from uwcam.ranging.result import RangeResult  # noqa: E402
 
 
 class _Profile:

@@ -29,7 +29,7 @@ from timing import best_time  # noqa: E402
 from uwcam.config import OrientationConfig  # noqa: E402
 from uwcam.optics.orientation import beam_pattern, block_means  # noqa: E402
 from uwcam.runtime.stages.orientation import OrientationEstimator  # noqa: E402
-from uwcam.ranging import RangeEstimator, range_frame  # noqa: E402
+from uwcam.ranging.estimator import RangeEstimator, range_frame  # noqa: E402
 from uwcam.simulation.render import Lamp  # noqa: E402
 from uwcam.simulation.tank import calibrate_in_simulation  # noqa: E402
 from uwcam.simulation.water import water_preset  # noqa: E402

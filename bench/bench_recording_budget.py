@@ -23,8 +23,8 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
-from uwcam import recording as rec  # noqa: E402
-from uwcam.jit import set_threads  # noqa: E402
+from uwcam.recording import format as rec  # noqa: E402
+from uwcam.compute.jit import set_threads  # noqa: E402
 from uwcam.simulation import Lamp, water_preset  # noqa: E402
 from uwcam.simulation.survey import SurveyWorld  # noqa: E402
 

@@ -20,10 +20,10 @@ import time
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
-from uwcam import recording as rec  # noqa: E402
+from uwcam.recording import format as rec  # noqa: E402
 from uwcam.config import CameraConfig, DaemonConfig, DeviceConfig, RecordingConfig  # noqa: E402
-from uwcam.daemon import Daemon  # noqa: E402
-from uwcam.reprocess import plan, process_part, ranged_frame_count, reprocess  # noqa: E402
+from uwcam.runtime.daemon import Daemon  # noqa: E402
+from uwcam.recording.reprocess import plan, process_part, ranged_frame_count, reprocess  # noqa: E402
 
 
 def record_dive(path: str, size: tuple[int, int], frames: int) -> None:

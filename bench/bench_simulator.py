@@ -26,7 +26,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 
 from timing import best_time  # noqa: E402
 from uwcam.simulation import Lamp, SimulatedWorld, water_preset  # noqa: E402
-from uwcam.jit import HAVE_NUMBA, set_threads  # noqa: E402
+from uwcam.compute.jit import HAVE_NUMBA, set_threads  # noqa: E402
 from uwcam.simulation.survey import SurveyWorld  # noqa: E402
 from uwcam.simulation.survey_kernels import upsample  # noqa: E402
 

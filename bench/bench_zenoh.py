@@ -24,7 +24,7 @@ import numpy as np  # noqa: E402
 import zenoh  # noqa: E402
 
 from uwcam.config import CameraConfig, DaemonConfig, DeviceConfig, ZenohConfig  # noqa: E402
-from uwcam.daemon import Daemon  # noqa: E402
+from uwcam.runtime.daemon import Daemon  # noqa: E402
 from tests.ports import free_port  # noqa: E402
 
 PREFIX = "uwcam/bench"

@@ -26,7 +26,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
-from uwcam.ranging import RangeEstimator  # noqa: E402
+from uwcam.ranging.estimator import RangeEstimator  # noqa: E402
 from uwcam.simulation import CameraModel, Lamp, SimulatedWorld, water_preset  # noqa: E402
 from uwcam.simulation.tank import calibrate_in_simulation  # noqa: E402
 

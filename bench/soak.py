@@ -63,7 +63,7 @@ def serve(port: int, folder: str, record_mb_s: float) -> None:
 
     from uwcam.api import create_app
     from uwcam.config import default_config
-    from uwcam.daemon import Daemon
+    from uwcam.runtime.daemon import Daemon
 
     config = default_config()
     config.api.port = port
@@ -149,7 +149,7 @@ class SlowReader(threading.Thread):
 
 def recorded_sequences(paths: list[str]) -> list[int]:
     """Camera sequence numbers of every frame recorded (metadata record, raw image or not)."""
-    from uwcam import recording as rec
+    from uwcam.recording import format as rec
 
     sequences = []
     for path in paths:

@@ -20,8 +20,8 @@ the lamp barely reaches, is reported apart). The issue's goals are printed with 
 Every channel in range: the pairs B/R and G/R alone (red is the channel that leaves the sensor's
 range first), each with one exposure for all channels (the scene's auto-exposure, set by its
 brightest channel) and with per-channel exposure set by uwcam's exposure controller
-(:mod:`uwcam.exposure`, run on the scene's frames until it settles), ranged with each channel's
-exposure (:meth:`uwcam.ranging.RangeEstimator.set_exposure`). Exposures are in units where the
+(:mod:`uwcam.runtime.stages.exposure`, run on the scene's frames until it settles), ranged with each channel's
+exposure (:meth:`uwcam.ranging.estimator.RangeEstimator.set_exposure`). Exposures are in units where the
 calibration's is 100 µs.
 
     python3 bench/water_study.py [--quick] [--size 320x240] [--frames 4] [--waters jerlov-IB]
@@ -43,12 +43,12 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
-from uwcam.backscatter_loop import BackscatterCompensator  # noqa: E402
+from uwcam.water.frame_compensator import BackscatterCompensator  # noqa: E402
 from uwcam.config import ExposureConfig  # noqa: E402
-from uwcam.exposure import ExposureController  # noqa: E402
-from uwcam.range_images import range_images  # noqa: E402
-from uwcam.range_smoothing import smooth_range_map  # noqa: E402
-from uwcam.ranging import RangeEstimator  # noqa: E402
+from uwcam.runtime.stages.exposure import ExposureController  # noqa: E402
+from uwcam.ranging.images import range_images  # noqa: E402
+from uwcam.ranging.smoothing import smooth_range_map  # noqa: E402
+from uwcam.ranging.estimator import RangeEstimator  # noqa: E402
 from uwcam.simulation import CameraModel, Lamp, SimulatedWorld, water_preset  # noqa: E402
 from uwcam.simulation.tank import calibrate_in_simulation  # noqa: E402
 

@@ -29,7 +29,7 @@ from uwcam.drivers.base import (
     FrameTimeout,
 )
 from uwcam.fileio import UserInputError
-from uwcam.imageio import IMAGE_SUFFIXES, read_frame
+from uwcam.imaging.imageio import IMAGE_SUFFIXES, read_frame
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov")
 
@@ -121,7 +121,7 @@ class ReplayCamera(CameraDriver):
 
     def _mcap_frames(self):
         """Recorded frames one by one, the file reopened at the end when looping."""
-        from uwcam import recording
+        from uwcam.recording import format as recording
 
         while True:
             count = 0

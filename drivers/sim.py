@@ -31,9 +31,9 @@ from uwcam.drivers.base import (
 from uwcam.drivers.options import DriverOptions as _DriverOptions
 from uwcam.drivers.options import Flag as _Flag
 from uwcam.drivers.options import Real as _Real
-from uwcam.rig import builtin_rig_path, load_rig
+from uwcam.calibration.rig import builtin_rig_path, load_rig
 from uwcam.simulation import Ambient, CameraModel, Lamp, SimulatedWorld, water_preset
-from uwcam.jit import set_threads
+from uwcam.compute.jit import set_threads
 from uwcam.simulation.survey import SurveyWorld
 from uwcam.simulation.terrain import SurveyMotion
 

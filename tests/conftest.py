@@ -66,7 +66,7 @@ def warm_kernels():
 
     from tests.synthetic import make_profile
     from uwcam.drivers.sim import SimulatedCamera, SimulatedRig
-    from uwcam.ranging import RangeEstimator
+    from uwcam.ranging.estimator import RangeEstimator
 
     camera = SimulatedCamera(SimulatedRig(size=(16, 12), distance=2.0), fps=1000.0, serial_number="SIM-WARM-UP")
     camera.open()

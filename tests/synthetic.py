@@ -55,7 +55,7 @@ def make_profile(
     reference=0,
 ):
     """A CalibrationProfile with the given per-channel truths (scalars broadcast)."""
-    from uwcam.profile import CalibrationProfile, ChannelCalibration, Provenance
+    from uwcam.calibration.profile import CalibrationProfile, ChannelCalibration, Provenance
 
     c = np.asarray(attenuation, dtype=float)
     b = np.asarray(log_constant, dtype=float)

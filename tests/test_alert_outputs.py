@@ -146,7 +146,7 @@ def test_calibration_rules_read_a_running_daemons_profile_and_patch_tracking():
     tracker's drift against the profile's σ. Limits set so low that both must hold (any age,
     any drift), which shows the figures reach the rules."""
     from uwcam.config import CalibrationAlertConfig
-    from uwcam.daemon import Daemon
+    from uwcam.runtime.daemon import Daemon
 
     config = small_config().model_copy(update={"alerts": AlertsConfig(
         calibration=CalibrationAlertConfig(max_age_days=1e-9, drift_sigmas=1e-6, drift_for_s=0.0))})

@@ -1,11 +1,11 @@
-"""The alert rules and their evaluation (uwcam/alerts.py), on made-up observations and times:
+"""The alert rules and their evaluation (uwcam/runtime/alerts.py), on made-up observations and times:
 raised once after the rule's time, cleared once after ``clear_s``, no evidence changes nothing."""
 
 from datetime import datetime, timedelta, timezone
 
 import pytest
 
-from uwcam.alerts import (AlertEvaluator, DropWindow, calibration_conditions, device_conditions, disk_condition,
+from uwcam.runtime.alerts import (AlertEvaluator, DropWindow, calibration_conditions, device_conditions, disk_condition,
                           dropped_condition, range_condition)
 from uwcam.config import (AlertsConfig, CalibrationAlertConfig, DaemonConfig, DeviceAlertConfig,
                           FramesDroppedAlertConfig, RangeAlertConfig, load_config)

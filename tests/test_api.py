@@ -418,7 +418,7 @@ def test_lamp_comes_back_on_after_a_failed_switch():
 
     from uwcam.config import ProcessingConfig
     from uwcam.drivers.base import DeviceLost, Frame
-    from uwcam.pipeline import FramePipeline
+    from uwcam.runtime.pipeline import FramePipeline
     from tests.synthetic import make_profile
 
     calls = []

@@ -14,7 +14,7 @@ import pytest
 
 from tests.synthetic import RGB_ATTENUATION, make_profile
 from uwcam.optics import ChannelState, Reason, kernels
-from uwcam.ranging import RangeEstimator
+from uwcam.ranging.estimator import RangeEstimator
 
 B = np.log([0.7, 1.0, 0.8])
 D = 3.0  # path length of the surface (m); the lamp is at the camera

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from uwcam import backscatter
-from uwcam.backscatter import BackscatterModel
+from uwcam.water import backscatter
+from uwcam.water.backscatter import BackscatterModel
 
 
 def model(shares: np.ndarray, depths: np.ndarray, grid_step: int) -> BackscatterModel:

@@ -16,7 +16,7 @@ import pytest
 
 from tests.served import Server
 from tests.waiting import wait_for
-from uwcam.ranging import RangeEstimator
+from uwcam.ranging.estimator import RangeEstimator
 from uwcam.config import ApiConfig, CameraConfig, DaemonConfig, DeviceConfig
 
 SERIAL = "SIM-BACKSCATTER"
@@ -98,7 +98,7 @@ def test_switching_compensation_on_builds_it_in_the_requests_thread_not_the_loop
     for a new frame size."""
     import threading
 
-    from uwcam.pipeline import FramePipeline
+    from uwcam.runtime.pipeline import FramePipeline
 
     built_in = []
     make = FramePipeline._make_compensator
@@ -158,7 +158,7 @@ def test_a_settings_change_that_leaves_the_compensators_inputs_keeps_it(tmp_path
 def test_compensation_needs_a_profile_with_backscatter_measurements():
     from tests.synthetic import RGB_ATTENUATION, make_profile
     from uwcam.config import BackscatterConfig, ProcessingConfig
-    from uwcam.pipeline import FramePipeline
+    from uwcam.runtime.pipeline import FramePipeline
 
     profile = make_profile(RGB_ATTENUATION, [0.0, 0.1, 0.2])
     pipeline = FramePipeline.__new__(FramePipeline)

@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from uwcam.backscatter import pixel_response
-from uwcam.backscatter_loop import BackscatterCompensator
-from uwcam.range_smoothing import smooth_range_map
-from uwcam.ranging import RangeEstimator
+from uwcam.water.backscatter import pixel_response
+from uwcam.water.frame_compensator import BackscatterCompensator
+from uwcam.ranging.smoothing import smooth_range_map
+from uwcam.ranging.estimator import RangeEstimator
 from uwcam.simulation import CameraModel, Lamp, SimulatedWorld, water_preset
 from uwcam.simulation.tank import calibrate_in_simulation
 
@@ -98,7 +98,7 @@ def test_the_columns_share_in_front_of_the_seabed_matches_the_simulators():
     by the lamp's offset, puts F several per cent short in blue."""
     import dataclasses
 
-    from uwcam.backscatter import BackscatterModel
+    from uwcam.water.backscatter import BackscatterModel
 
     size = (160, 120)
     water, lamp, camera = water_preset("jerlov-II", WAVELENGTHS), Lamp(position=(0.6, 0.0, 0.0)), CameraModel(prnu=0.0)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from tests.synthetic import RGB_ATTENUATION, make_profile
-from uwcam.ranging import RangeEstimator
+from uwcam.ranging.estimator import RangeEstimator
 
 READ, GAIN, Q, DARK, FLOOR, SAT = 3.0, 0.4, 1.0, 60.0, 12.0, 4000.0
 B = np.log([0.7, 1.0, 0.8])

@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from uwcam import backscatter_loop
-from uwcam.backscatter_loop import MAX_RELATIVE_SD, drop_unresolved
+from uwcam.water import frame_compensator as backscatter_loop
+from uwcam.water.frame_compensator import MAX_RELATIVE_SD, drop_unresolved
 from uwcam.optics.validity import Reason
-from uwcam.range_result import RangeResult
+from uwcam.ranging.result import RangeResult
 
 
 def sample(seed: int = 3, shape=(37, 53)) -> RangeResult:

@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 
 from tests.synthetic import RGB_ATTENUATION, plate_frame
-from uwcam.calibration import CalibrationInputs, calibrate, project_plate_box
-from uwcam.calibration_lines import absolute_attenuation, fit_attenuation_differences
-from uwcam.calibration_noise import fit_noise_model
+from uwcam.calibration.fit import CalibrationInputs, calibrate, project_plate_box
+from uwcam.calibration.line_fit import absolute_attenuation, fit_attenuation_differences
+from uwcam.calibration.noise_fit import fit_noise_model
 from uwcam.fileio import UserInputError
 from uwcam.optics import Intrinsics, signal_variance, reflectance_ratio_from_range, surface_log_constant
-from uwcam.ranging import RangeEstimator
+from uwcam.ranging.estimator import RangeEstimator
 
 CONSTANT = np.array([0.7, 1.0, 0.85]) * 4e5
 PLATE = np.array([0.3, 0.25, 0.2])  # a plate that is not grey

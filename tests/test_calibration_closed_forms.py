@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from uwcam.calibration_lines import chi2_upper, fit_attenuation_differences, fit_lines
-from uwcam.calibration_noise import variance_floor
+from uwcam.calibration.line_fit import chi2_upper, fit_attenuation_differences, fit_lines
+from uwcam.calibration.noise_fit import variance_floor
 
 
 @pytest.mark.parametrize("dof, chi2_95", [(5, 11.070), (10, 18.307), (20, 31.410), (30, 43.773), (100, 124.342)])

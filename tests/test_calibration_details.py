@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from tests.test_calibration import INTR, PLATE, frames, inputs
-from uwcam.calibration import calibrate_with_details, project_plate_box
-from uwcam.calibration_black_patch import backscatter_at_black_patch
+from uwcam.calibration.fit import calibrate_with_details, project_plate_box
+from uwcam.calibration.black_patch import backscatter_at_black_patch
 
 
 def test_black_patch_floor_and_samples_are_those_of_the_measured_levels():
@@ -48,7 +48,7 @@ def test_black_patch_floor_and_samples_are_those_of_the_measured_levels():
 
 
 def test_exactly_one_percent_of_saturated_target_pixels_is_accepted_and_more_refused():
-    from uwcam.calibration import calibrate
+    from uwcam.calibration.fit import calibrate
     from uwcam.fileio import UserInputError
 
     box = (40, 30, 10, 10)  # 100 target pixels
@@ -62,7 +62,7 @@ def test_exactly_one_percent_of_saturated_target_pixels_is_accepted_and_more_ref
 
 
 def test_a_target_too_small_for_noise_is_named_by_its_image_or_by_its_distance():
-    from uwcam.calibration import calibrate
+    from uwcam.calibration.fit import calibrate
     from uwcam.fileio import UserInputError
 
     box = (40, 30, 2, 2)
@@ -99,7 +99,7 @@ def test_noise_free_frames_with_a_black_patch_and_no_backscatter_fit_the_whole_p
 
 def test_without_intrinsics_the_path_is_taken_along_the_optical_axis():
     """No intrinsics: every pixel on the axis, d_T = d + |(0, 0, d) − S| for a lamp at S."""
-    from uwcam.calibration import calibrate_with_details as details_of
+    from uwcam.calibration.fit import calibrate_with_details as details_of
 
     lamp = np.array(inputs().lamp_position_m)  # the frames' lamp, beside the camera
     assert np.any(lamp)
@@ -161,7 +161,7 @@ def test_noise_points_are_named_by_distance_and_brightness_level_and_clipped_pix
 
 
 def test_frames_without_channels_say_they_have_one():
-    from uwcam.calibration import calibrate
+    from uwcam.calibration.fit import calibrate
     from uwcam.fileio import UserInputError
 
     with pytest.raises(UserInputError, match=r"image 1 has 1 channel\(s\) but calibration expects 3"):

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from tests.synthetic import RGB_ATTENUATION, plate_frame
-from uwcam.calibration import CalibrationInputs, calibrate
+from uwcam.calibration.fit import CalibrationInputs, calibrate
 from uwcam.optics import Intrinsics
 
 CONSTANT = np.array([0.7, 1.0, 0.85]) * 3e7

@@ -1,6 +1,6 @@
 """Calibration behaviours the other calibration tests leave open (issue #14's mutation gaps).
 
-Each expected value comes from outside uwcam.calibration: a naive reference written here with
+Each expected value comes from outside uwcam.calibration.fit: a naive reference written here with
 plain loops and numpy (the pixel sets of the black-patch fit and of the noise points, the
 brightness bins, weighted least squares in closed form), the documented rules of
 docs/calibration.md (the 5σ and 0.1 % backscatter tests, the ring of plate pixels around the
@@ -12,9 +12,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from uwcam.calibration import CalibrationInputs, calibrate_with_details
-from uwcam.calibration_black_patch import backscatter_at_black_patch
-from uwcam.calibration_noise import NoisePoint, fit_noise, fit_noise_model, variance_floor
+from uwcam.calibration.fit import CalibrationInputs, calibrate_with_details
+from uwcam.calibration.black_patch import backscatter_at_black_patch
+from uwcam.calibration.noise_fit import NoisePoint, fit_noise, fit_noise_model, variance_floor
 from uwcam.fileio import UserInputError
 
 RHO_P = np.array([0.5, 0.4, 0.3])
@@ -454,7 +454,7 @@ class EqualToAnything:
 
 def test_a_chi2_exactly_at_its_bound_does_not_scale_the_covariance(monkeypatch):
     """Scaled by χ² only when χ² *exceeds* its 5 % bound (docs/calibration.md)."""
-    from uwcam import calibration_lines as calibration
+    from uwcam.calibration import line_fit as calibration
 
     d = np.array([1.0, 2.0, 3.0, 4.0])
     c = np.array([0.0, -0.3, -0.4])  # V of G and B against R
@@ -477,7 +477,7 @@ def test_backscatter_exactly_at_a_threshold_does_not_count_as_measured(rule, mon
     measurement is replaced by exactly representable values at one threshold, far beyond the other."""
     from dataclasses import replace
 
-    from uwcam import calibration
+    from uwcam.calibration import fit as calibration
 
     real = calibration.backscatter_at_black_patch
 

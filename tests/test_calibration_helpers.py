@@ -10,10 +10,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from uwcam.calibration import box_mask
-from uwcam.calibration_black_patch import dilate_mask
-from uwcam.calibration_lines import LineFit, fit_lines
-from uwcam.calibration_noise import NoiseFit, NoisePoint, mask_interior, fit_noise_model, noise_point, signal_variance_temporal
+from uwcam.calibration.fit import box_mask
+from uwcam.calibration.black_patch import dilate_mask
+from uwcam.calibration.line_fit import LineFit, fit_lines
+from uwcam.calibration.noise_fit import NoiseFit, NoisePoint, mask_interior, fit_noise_model, noise_point, signal_variance_temporal
 from uwcam.fileio import UserInputError
 
 
@@ -114,7 +114,7 @@ def test_results_are_immutable():
 
 
 def test_attenuation_fit_checks_its_shapes_and_needs_two_different_paths():
-    from uwcam.calibration_lines import fit_attenuation_differences
+    from uwcam.calibration.line_fit import fit_attenuation_differences
 
     ln_e = np.log(np.array([[900.0, 700.0, 400.0], [500.0, 450.0, 300.0]]))
     with pytest.raises(ValueError, match="n ≥ 2"):
@@ -132,7 +132,7 @@ def test_attenuation_fit_checks_its_shapes_and_needs_two_different_paths():
 
 def test_attenuation_fit_residuals_are_observed_minus_fitted_log_ratios():
     """Four channels, four distances, noisy: GLS; the residuals are ln(E_k/E_ref) − (b_k − V_k d)."""
-    from uwcam.calibration_lines import fit_attenuation_differences
+    from uwcam.calibration.line_fit import fit_attenuation_differences
 
     d = np.array([1.0, 2.0, 3.5, 5.0])
     c = np.array([0.46, 0.11, 0.06, 0.2])
@@ -166,7 +166,7 @@ def _plate(shape=(40, 48), patch=(16, 24, 14, 12)):
 
 def test_backscatter_at_the_black_patch_is_exact_for_a_smooth_lamp_field():
     """black = bs + ρb·X and plate = bs + ρp·X with X quadratic: the fit recovers bs and ln(ρp·X̄)."""
-    from uwcam.calibration_black_patch import backscatter_at_black_patch
+    from uwcam.calibration.black_patch import backscatter_at_black_patch
 
     light, plate_mask, black_mask = _plate()
     bs, rho_p, rho_b = np.array([40.0, 90.0]), np.array([0.8, 0.6]), np.array([0.05, 0.04])
@@ -187,7 +187,7 @@ def test_backscatter_variances_are_those_of_the_linear_estimate():
     """The level and the plate's light are linear in the pixel values: their variances for
     independent pixel noise σ² are σ²·Σ_p (∂/∂s_p)², the derivatives taken here by giving each
     pixel a unit value in its own channel (the estimate treats channels independently)."""
-    from uwcam.calibration_black_patch import backscatter_at_black_patch
+    from uwcam.calibration.black_patch import backscatter_at_black_patch
 
     light, plate_mask, black_mask = _plate()
     h, w = light.shape
@@ -221,7 +221,7 @@ def test_noise_fit_from_repeated_frames_is_weighted_by_one_over_variance_squared
     """Points off the model (±4 %): the fit is the weighted least-squares one, with weights
     1/t² for read and shot noise (t − q²/12 = read² + gain·E) and 1/s² for the fixed pattern
     (s − t_model/m = fpn²·mean(E²)); step 2 DN, so q²/12 = 1/3 DN²."""
-    from uwcam.calibration_noise import fit_noise
+    from uwcam.calibration.noise_fit import fit_noise
 
     q = 4.0 / 12.0
     e = np.array([60.0, 300.0, 1500.0, 6000.0])
@@ -240,7 +240,7 @@ def test_noise_fit_from_repeated_frames_is_weighted_by_one_over_variance_squared
 
 
 def test_noise_fit_from_single_frames_is_weighted_by_one_over_variance_squared():
-    from uwcam.calibration_noise import fit_noise
+    from uwcam.calibration.noise_fit import fit_noise
 
     e = np.array([50.0, 200.0, 900.0, 3000.0, 9000.0])
     e2 = e * e * 1.02
@@ -254,7 +254,7 @@ def test_noise_fit_from_single_frames_is_weighted_by_one_over_variance_squared()
 
 def test_noise_fit_of_tiny_variances_is_not_clipped_at_one():
     """Float data (step 0) with variances of 0.02–0.4 DN²: weights 1/t², not 1/max(t, 1)²."""
-    from uwcam.calibration_noise import fit_noise
+    from uwcam.calibration.noise_fit import fit_noise
 
     e = np.array([2.0, 10.0, 40.0])
     t = (0.01 + 0.009 * e) * np.array([1.1, 0.9, 1.05])
@@ -275,7 +275,7 @@ def test_noise_fit_of_tiny_variances_is_not_clipped_at_one():
 
 def test_non_negative_least_squares_keeps_a_small_positive_solution():
     """One parameter: p = max(0, Σwy/Σw). For y = (0.5, −0.4): p = 0.05, better than 0."""
-    from uwcam.calibration_noise import _nonnegative_least_squares
+    from uwcam.calibration.noise_fit import _nonnegative_least_squares
 
     p = _nonnegative_least_squares(np.ones((2, 1)), np.array([0.5, -0.4]), np.ones(2))
     assert p[0] == pytest.approx(0.05, rel=1e-12)
@@ -286,7 +286,7 @@ def test_non_negative_least_squares_keeps_a_small_positive_solution():
 def test_log_mean_variance_is_the_sum_over_pixels_of_their_share_squared():
     """Written out: each used pixel's 5×5 box spreads 1/(25·P) to every pixel in it; the variance of
     the mean of ln(box average) is Σ share² σ²/E² (E clipped at 1e-30 only, not at 1 DN)."""
-    from uwcam.calibration_lines import SMOOTHING, log_mean_variance
+    from uwcam.calibration.line_fit import SMOOTHING, log_mean_variance
 
     assert SMOOTHING == 5
     h, w = 12, 14
@@ -306,7 +306,7 @@ def test_log_mean_variance_is_the_sum_over_pixels_of_their_share_squared():
 
 
 def test_log_signal_leaves_out_pixels_without_signal_in_every_channel():
-    from uwcam.calibration_lines import smoothed_log_signal
+    from uwcam.calibration.line_fit import smoothed_log_signal
 
     frame = np.full((14, 14, 2), 100.0)
     frame[3:10, 3:10, 1] = 0.0  # a 7×7 block dark in one channel: its centre's 5×5 average is 0
@@ -316,7 +316,7 @@ def test_log_signal_leaves_out_pixels_without_signal_in_every_channel():
 
 
 def test_backscatter_log_variance_of_a_faint_plate_is_not_clipped_at_one():
-    from uwcam.calibration_black_patch import backscatter_at_black_patch
+    from uwcam.calibration.black_patch import backscatter_at_black_patch
 
     light, plate_mask, black_mask = _plate()
     light = light / 2000.0  # about 0.5: the plate gives under 1 DN more than the patch
@@ -333,8 +333,8 @@ def test_backscatter_log_variance_of_a_faint_plate_is_not_clipped_at_one():
 
 
 def test_more_results_are_immutable_and_image_size_errors_say_width_by_height():
-    from uwcam.calibration import CalibrationInputs, calibrate
-    from uwcam.calibration_black_patch import BackscatterEstimate
+    from uwcam.calibration.fit import CalibrationInputs, calibrate
+    from uwcam.calibration.black_patch import BackscatterEstimate
 
     est = BackscatterEstimate(np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1), np.zeros((2, 2), bool))
     with pytest.raises(dataclasses.FrozenInstanceError):
@@ -356,14 +356,14 @@ def test_noise_model_fit_with_fewer_points_than_channels():
 
 
 def test_variance_floor_of_float_values_under_one():
-    from uwcam.calibration_noise import variance_floor
+    from uwcam.calibration.noise_fit import variance_floor
 
     e = np.array([0.25, 3.0])
     np.testing.assert_allclose(variance_floor(e, 0.0), (e * 2.0**-23) ** 2 / 12, rtol=1e-12)
 
 
 def test_log_signal_takes_off_the_dark_level_keeps_dim_pixels_and_stays_inside_the_image():
-    from uwcam.calibration_lines import smoothed_log_signal
+    from uwcam.calibration.line_fit import smoothed_log_signal
 
     frame = np.full((10, 10, 2), [10.5, 40.0])
     logs, used = smoothed_log_signal(frame, np.ones((10, 10), bool), dark_level=[10.0, 20.0])
@@ -375,7 +375,7 @@ def test_log_signal_takes_off_the_dark_level_keeps_dim_pixels_and_stays_inside_t
 
 def test_calibration_results_are_immutable():
     from tests.test_calibration import frames, inputs
-    from uwcam.calibration import calibrate_with_details
+    from uwcam.calibration.fit import calibrate_with_details
 
     details = calibrate_with_details(frames([1.0, 2.0]), [1.0, 2.0], inputs())
     for obj, field in [(details, "profile"), (details.noise, "method"), (details.fit, "method"), (details.groups[0], "images")]:

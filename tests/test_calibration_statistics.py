@@ -13,14 +13,14 @@ import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from uwcam.calibration import CalibrationInputs, calibrate_with_details, project_plate_box
-from uwcam.calibration_lines import fit_attenuation_differences
-from uwcam.calibration_noise import fit_noise, noise_point
+from uwcam.calibration.fit import CalibrationInputs, calibrate_with_details, project_plate_box
+from uwcam.calibration.line_fit import fit_attenuation_differences
+from uwcam.calibration.noise_fit import fit_noise, noise_point
 from uwcam.cli import main
 from uwcam.optics.calibration_variance import calibration_path_variance
 from uwcam.optics.fusion import fused_path_length
-from uwcam.profile import load_profile
-from uwcam.rig import builtin_rig_path, load_rig
+from uwcam.calibration.profile import load_profile
+from uwcam.calibration.rig import builtin_rig_path, load_rig
 from uwcam.simulation import CameraModel, Lamp, SimulatedWorld, water_preset
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "bench"))
@@ -272,7 +272,7 @@ def test_a_bad_covariance_is_explained(tmp_path):
 def covariance_profile(lamp=(0.3, 0.0, 0.0), shape=(120, 160)):
     from tests.synthetic import make_profile
     from uwcam.optics import Intrinsics
-    from uwcam.profile import CalibrationCovariance
+    from uwcam.calibration.profile import CalibrationCovariance
 
     intr = Intrinsics.from_fov(shape[1], shape[0], 60.0)
     base = make_profile([0.46, 0.11, 0.06], [0.0, 0.0, 0.0], read_noise=5.0, shot_gain=0.3, lamp=lamp, intrinsics=intr)
@@ -289,8 +289,8 @@ def covariance_profile(lamp=(0.3, 0.0, 0.0), shape=(120, 160)):
 ])
 def test_ranging_adds_the_calibration_variance_and_smoothing_keeps_it(lamp, near, far, intrinsics):
     from uwcam.optics import Intrinsics
-    from uwcam.range_smoothing import smooth_range_map
-    from uwcam.ranging import RangeEstimator
+    from uwcam.ranging.smoothing import smooth_range_map
+    from uwcam.ranging.estimator import RangeEstimator
 
     shape = (120, 160)
     base, with_cov, intr = covariance_profile(lamp=lamp, shape=shape)
@@ -388,7 +388,7 @@ def test_black_patch_edges_do_not_leak_into_the_single_frame_noise_model():
 def test_calibration_variance_blocks_use_the_rays_through_their_centres():
     """The calibration's share is evaluated on 8×8 block averages: at each block's centre pixel
     position ((j + ½)·8 − ½, (i + ½)·8 − ½), whose ray is written out here from the pinhole."""
-    from uwcam.ranging import RangeEstimator
+    from uwcam.ranging.estimator import RangeEstimator
 
     fx, fy, cx, cy = 150.0, 118.0, 71.3, 66.8
     _, with_cov, _ = covariance_profile(lamp=(0.4, -0.35, 0.05))

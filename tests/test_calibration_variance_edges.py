@@ -12,7 +12,7 @@ import pytest
 from tests.test_calibration_statistics import covariance_profile
 from tests.synthetic import make_profile
 from uwcam.optics.validity import Reason
-from uwcam.ranging import RangeEstimator
+from uwcam.ranging.estimator import RangeEstimator
 
 C = np.array([0.46, 0.11, 0.06])
 READ2, GAIN = 25.0, 0.3  # covariance_profile's noise model: read 5 DN, 0.3 DN per electron
@@ -98,7 +98,7 @@ def test_a_lamp_beside_the_camera_without_intrinsics_uses_the_optical_axis():
     """No intrinsics: every block is taken on the axis, where S·u = S_z (here 0): the calibration
     share is that of a lamp at the camera's distance |S| aside, ∂d_c/∂d_T = ½(d² + s²)/d² at d_T = d."""
     from tests.synthetic import make_profile
-    from uwcam.profile import CalibrationCovariance
+    from uwcam.calibration.profile import CalibrationCovariance
 
     a = np.random.default_rng(3).normal(size=(4, 4)) * np.array([3e-4, 3e-4, 2e-3, 2e-3])
     base = make_profile(C, [0.0, 0.0, 0.0], read_noise=5.0, shot_gain=0.3, lamp=(0.3, 0.0, 0.0))
@@ -130,7 +130,7 @@ def test_a_share_beyond_float32_stays_the_largest_float32_not_its_neighbours(mon
     """A block whose ∂d_c/∂d_T is enormous (a path at the lamp's own distance) has an enormous
     calibration share: it must not become inf, which the filling of blocks without a range would
     replace with the neighbours' (small) share."""
-    import uwcam.ranging as ranging
+    import uwcam.ranging.estimator as ranging
 
     _, profile, _ = covariance_profile(lamp=(0.0, 0.0, 0.0))
     path = np.full((32, 32), 4.0)
@@ -154,7 +154,7 @@ def test_a_share_beyond_float32_stays_the_largest_float32_not_its_neighbours(mon
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32])
 @pytest.mark.parametrize("shape,size", [((64, 96, 3), (12, 8)), ((64, 96), (12, 8)), ((60, 90, 3), (11, 7)), ((32, 32, 3), (16, 16))])
 def test_block_means_are_the_mean_of_each_block(dtype, shape, size):
-    from uwcam.range_smoothing import block_means
+    from uwcam.ranging.smoothing import block_means
 
     rng = np.random.default_rng(5)
     top = 250 if dtype == np.uint8 else 60000

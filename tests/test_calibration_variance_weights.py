@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from tests.synthetic import make_profile
-from uwcam.profile import CalibrationCovariance
-from uwcam.ranging import RangeEstimator
+from uwcam.calibration.profile import CalibrationCovariance
+from uwcam.ranging.estimator import RangeEstimator
 
 C = np.array([0.46, 0.11, 0.06])
 B = np.array([0.0, 0.4, -0.3])  # log constants b_k (reference R)

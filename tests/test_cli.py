@@ -10,7 +10,7 @@ import tifffile
 
 from tests.synthetic import RGB_ATTENUATION, plate_frame
 from uwcam.cli import main
-from uwcam.imageio import read_frame, write_frame
+from uwcam.imaging.imageio import read_frame, write_frame
 from uwcam.optics import Intrinsics
 
 SHAPE = (90, 120)
@@ -144,8 +144,8 @@ def test_calibrate_errors_write_nothing(calibrated, capsys):
 
 def test_rig_with_black_patch_measures_a_floor(tmp_path):
     rng = np.random.default_rng(12)
-    from uwcam.calibration import project_plate_box
-    from uwcam.rig import builtin_rig_path, load_rig
+    from uwcam.calibration.fit import project_plate_box
+    from uwcam.calibration.rig import builtin_rig_path, load_rig
 
     rig = load_rig(builtin_rig_path("grey-plate"))
     patch = rig.plate.black_patch
@@ -161,7 +161,7 @@ def test_rig_with_black_patch_measures_a_floor(tmp_path):
     intr = f"{INTR.fx},{INTR.fy},{INTR.cx},{INTR.cy}"
     assert main(["calibrate", *map(str, paths), "--distance", "1", "--distance", "2", "--rig", str(builtin_rig_path()),
                  "--intrinsics", intr, "-o", str(profile)]) == 0
-    from uwcam.profile import load_profile
+    from uwcam.calibration.profile import load_profile
 
     loaded = load_profile(profile)
     assert np.all(loaded.array("noise_floor") > 20) and np.all(loaded.array("noise_floor") < 45)

@@ -5,10 +5,10 @@ import re
 import numpy as np
 import pytest
 
-from uwcam.range_images import range_images
+from uwcam.ranging.images import range_images
 from uwcam.cli import main
-from uwcam.ranging import RangeEstimator
-from uwcam.rig import resolve_reflectance
+from uwcam.ranging.estimator import RangeEstimator
+from uwcam.calibration.rig import resolve_reflectance
 from uwcam.simulation import CameraModel, Lamp, SimulatedWorld, water_preset
 from uwcam.simulation.scene import MATERIALS
 from uwcam.simulation.tank import calibrate_in_simulation
@@ -98,7 +98,7 @@ def test_simulated_frames_round_trip_through_files(tmp_path, capsys):
         out = tmp_path / f"f{suffix}"
         simulate(capsys, "--scene", "ball", "--range", "1.5", "--size", "64x48", "--bits", "8", "-o", str(out),
                  "--truth", str(tmp_path / "t.npy"))
-        from uwcam.imageio import read_frame
+        from uwcam.imaging.imageio import read_frame
 
         frame = read_frame(out)
         assert frame.shape == (48, 64, 3) and frame.dtype == np.uint8

@@ -17,7 +17,7 @@ from uwcam.optics import (
     pixel_rays,
     signal_variance,
 )
-from uwcam.ranging import RangeEstimator
+from uwcam.ranging.estimator import RangeEstimator
 
 
 def reference(profile, frame, backscatter=None, bounds=(0.0, np.inf), active=None):

@@ -11,9 +11,9 @@ from tests.synthetic import make_profile, plate_frame
 from uwcam.config import ExposureConfig, ProcessingConfig
 from uwcam.drivers.base import Frame
 from uwcam.drivers.sim import SimulatedCamera
-from uwcam.exposure import ExposureController, next_exposure, Metering
-from uwcam.profile import profile_from_mapping, profile_to_yaml
-from uwcam.ranging import RangeEstimator
+from uwcam.runtime.stages.exposure import ExposureController, next_exposure, Metering
+from uwcam.calibration.profile import profile_from_mapping, profile_to_yaml
+from uwcam.ranging.estimator import RangeEstimator
 from uwcam.simulation import CameraModel, Lamp, water_preset
 from uwcam.simulation.tank import calibrate_in_simulation
 
@@ -225,7 +225,7 @@ def test_a_multi_device_rig_sets_one_exposure_per_device():
 
 
 def test_hdr_takes_each_channel_from_its_longest_unsaturated_exposure():
-    from uwcam.hdr import merge_exposures
+    from uwcam.runtime.stages.hdr import merge_exposures
 
     short = np.full((10, 10, 3), 1000, np.uint16)
     long = np.full((10, 10, 3), 8000, np.uint16)
@@ -239,7 +239,7 @@ def test_hdr_takes_each_channel_from_its_longest_unsaturated_exposure():
 
 
 def test_a_merged_bracket_ranges_exactly():
-    from uwcam.hdr import HdrMerger
+    from uwcam.runtime.stages.hdr import HdrMerger
 
     profile = profile_with((1000.0,) * 3)
     light, truth = scene(6.0)
@@ -267,7 +267,7 @@ def replace_frame(frame: Frame, **changes) -> Frame:
 
 
 def test_one_exposure_cameras_bracket_and_a_weak_channel_comes_back(sim_profile):
-    from uwcam.hdr import HdrMerger
+    from uwcam.runtime.stages.hdr import HdrMerger
 
     camera = SimulatedCamera(fps=1000.0, size=(64, 48), scene="seabed", distance=5.0, water="jerlov-IB", material="grey",
                              one_exposure=True, serial_number="SIM-ONE")
@@ -392,7 +392,7 @@ def test_the_daemon_brackets_a_one_exposure_camera_and_ranges_the_merged_frames(
 def test_backscatter_compensation_follows_the_frames_exposure():
     """The open-water frame is taken at one exposure, the scene at another (red 4 times longer):
     the modelled backscatter, scaled by the ratio, is subtracted as if both were alike."""
-    from uwcam.backscatter_loop import BackscatterCompensator
+    from uwcam.water.frame_compensator import BackscatterCompensator
     from uwcam.simulation import SimulatedWorld
 
     water, lamp, size = water_preset("jerlov-II", [675.0, 575.0, 475.0]), Lamp(position=(0.3, 0.0, 0.0)), (96, 72)

@@ -9,7 +9,7 @@ import numpy as np
 
 from tests.test_exposure import DARK, READ, SHOT, C, profile_with, scene
 from uwcam.optics import ChannelState
-from uwcam.ranging import RangeEstimator
+from uwcam.ranging.estimator import RangeEstimator
 
 
 def test_gain_is_taken_relative_to_the_calibrations_own_gain():

@@ -55,7 +55,7 @@ def test_a_missing_extra_is_named_in_one_line(monkeypatch, extra, module):
 
 
 def test_reprocessing_on_a_cluster_without_distributed_says_what_to_install(monkeypatch):
-    from uwcam.reprocess import _in_order
+    from uwcam.recording.reprocess import _in_order
 
     monkeypatch.setitem(sys.modules, "distributed", None)
     with pytest.raises(UserInputError, match=r"uwcam\[cluster\]"):
@@ -63,8 +63,8 @@ def test_reprocessing_on_a_cluster_without_distributed_says_what_to_install(monk
 
 
 def test_plate_artwork_without_matplotlib_says_what_to_install(monkeypatch, tmp_path):
-    from uwcam.rig import builtin_rig_path, load_rig
-    from uwcam.rig_artwork import write_artwork
+    from uwcam.calibration.rig import builtin_rig_path, load_rig
+    from uwcam.calibration.artwork import write_artwork
 
     monkeypatch.setitem(sys.modules, "matplotlib", None)
     rig = load_rig(builtin_rig_path("grey-plate"))

@@ -13,8 +13,8 @@ from tests.synthetic import make_profile
 from tests.waiting import wait_for
 from uwcam.config import ProcessingConfig
 from uwcam.drivers.base import Frame
-from uwcam import pipeline as pipeline_module
-from uwcam.pipeline import QUEUED_FRAME_BUDGET_S, FramePipeline
+from uwcam.runtime import pipeline as pipeline_module
+from uwcam.runtime.pipeline import QUEUED_FRAME_BUDGET_S, FramePipeline
 
 BUDGET_S = 2.0
 """The budget the tests run with: far above any scheduling delay of a loaded test machine, so

@@ -529,7 +529,7 @@ def test_settings_profile_and_lamp_survive_a_kill(tmp_path):
 
 
 def test_a_corrupt_state_file_is_ignored_not_fatal(tmp_path):
-    from uwcam.state import STATE_FILE
+    from uwcam.runtime.state import STATE_FILE
 
     config = small_config()
     config.profiles_dir = str(tmp_path)
@@ -557,7 +557,7 @@ def test_simulated_serial_devices_leave_no_folders_behind(tmp_path, monkeypatch)
 
 FRAGMENT = """
 import ctypes, sys
-from uwcam.memory import release_free_memory
+from uwcam.runtime.memory import release_free_memory
 
 def rss_kb():
     with open("/proc/self/status") as handle:
@@ -586,7 +586,7 @@ print(kept)
 
 
 def test_frame_sized_blocks_freed_between_live_ones_leave_resident_memory_at_the_next_trim():
-    """Frame-sized blocks come from glibc's heaps (uwcam/memory.py); freed ones between small
+    """Frame-sized blocks come from glibc's heaps (uwcam/runtime/memory.py); freed ones between small
     live ones stay resident until the frame loop's once-a-second trim hands their pages back."""
     import subprocess
     import sys
@@ -602,7 +602,7 @@ def test_frame_sized_blocks_freed_between_live_ones_leave_resident_memory_at_the
 
 ARENAS = """
 import ctypes, re, sys, tempfile, threading
-from uwcam.memory import limit_malloc_arenas
+from uwcam.runtime.memory import limit_malloc_arenas
 
 if sys.argv[1] == "limited":
     assert limit_malloc_arenas()
@@ -634,7 +634,7 @@ with tempfile.NamedTemporaryFile(suffix=".xml") as out:
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's arenas")
 def test_threads_share_at_most_two_heaps():
-    """The daemon caps glibc's arenas at two (uwcam/memory.py): eight threads allocating at once
+    """The daemon caps glibc's arenas at two (uwcam/runtime/memory.py): eight threads allocating at once
     then share two heaps instead of making one each."""
     import subprocess
 
@@ -665,7 +665,7 @@ def test_an_off_acknowledged_while_frames_stay_lit_is_asked_again():
     from tests.synthetic import make_profile
     from uwcam.config import ProcessingConfig
     from uwcam.drivers.base import Frame
-    from uwcam.pipeline import FramePipeline
+    from uwcam.runtime.pipeline import FramePipeline
 
     calls = []
 

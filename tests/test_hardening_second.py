@@ -300,7 +300,7 @@ def test_a_profile_file_with_an_absurd_number_is_refused_on_load(server, tmp_pat
     import yaml
 
     from uwcam.fileio import UserInputError
-    from uwcam.profile import load_profile
+    from uwcam.calibration.profile import load_profile
 
     _, original = active_profile(server)
     path = tmp_path / "absurd.yaml"
@@ -365,7 +365,7 @@ def test_calibrate_refuses_unusable_images_and_numbers_in_one_line(calibration_i
 
 
 def test_calibrate_writes_a_profile_from_usable_images(calibration_images):
-    from uwcam.profile import load_profile
+    from uwcam.calibration.profile import load_profile
 
     result = run_cli("calibrate", "near.npy", "far.npy", "--distance", "1", "--distance", "2", "-o", "good.yaml",
                      cwd=calibration_images)
@@ -415,7 +415,7 @@ def damage(source: str, target, chunks: int) -> list[int]:
     other one from the second); returns the damaged chunks' offsets."""
     import shutil
 
-    from uwcam import recording as rec
+    from uwcam.recording import format as rec
 
     shutil.copy(source, target)
     with open(source, "rb") as fh:
@@ -433,7 +433,7 @@ def damage(source: str, target, chunks: int) -> list[int]:
 def depth_by_time(path: str) -> dict:
     from tests.test_recording import decoded, image
 
-    from uwcam import recording as rec
+    from uwcam.recording import format as rec
 
     return {t: image(m) for t, m in decoded(path, rec.DEPTH)}
 
@@ -442,7 +442,7 @@ def test_reprocess_refuses_damaged_chunks_unless_told_and_then_says_which_frames
     import numpy as np
 
     from uwcam.fileio import UserInputError
-    from uwcam.reprocess import ranged_frame_count, reprocess
+    from uwcam.recording.reprocess import ranged_frame_count, reprocess
 
     damaged = tmp_path / "damaged.mcap"
     assert len(damage(recorded, damaged, 3)) == 3

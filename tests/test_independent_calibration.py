@@ -12,8 +12,8 @@ import math
 import numpy as np
 import pytest
 
-from uwcam.calibration import CalibrationInputs, box_mask, calibrate, project_plate_box
-from uwcam.calibration_lines import absolute_attenuation, fit_attenuation_differences, fit_lines, spreading_log
+from uwcam.calibration.fit import CalibrationInputs, box_mask, calibrate, project_plate_box
+from uwcam.calibration.line_fit import absolute_attenuation, fit_attenuation_differences, fit_lines, spreading_log
 from uwcam.fileio import UserInputError
 from uwcam.optics import Intrinsics
 

@@ -15,7 +15,7 @@ from tests.synthetic import make_profile
 from uwcam.optics import fused_path_length, pair_path_length, pair_path_variance, surface_log_constant
 from uwcam.optics.reflectance import reflectance_ratio_from_range
 from uwcam.optics.validity import Reason
-from uwcam.ranging import RangeEstimator
+from uwcam.ranging.estimator import RangeEstimator
 
 C = np.array([0.46, 0.11, 0.06])  # 1/m
 B = np.array([9.0, 9.6, 9.3])  # ln(K_k ρ_k)

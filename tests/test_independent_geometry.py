@@ -24,7 +24,7 @@ from uwcam.optics import (
     plane_camera_range,
 )
 from uwcam.optics.validity import Reason
-from uwcam.ranging import RangeEstimator
+from uwcam.ranging.estimator import RangeEstimator
 
 H, W = 30, 44
 INTR = Intrinsics(fx=38.0, fy=26.0, cx=17.5, cy=11.0)  # wide, non-square, off-centre

@@ -13,7 +13,7 @@ import pytest
 
 from tests.synthetic import make_profile
 from uwcam.optics import ChannelState, Reason, channel_states, pixel_reasons
-from uwcam.ranging import RangeEstimator
+from uwcam.ranging.estimator import RangeEstimator
 
 USABLE, BELOW, SATURATED, BACKSCATTER = (ChannelState.USABLE, ChannelState.BELOW_NOISE_FLOOR, ChannelState.SATURATED,
                                          ChannelState.BACKSCATTER_ONLY)

@@ -22,7 +22,7 @@ import uwcam.optics
 from tests.synthetic import make_profile
 from uwcam.fileio import UserInputError
 from uwcam.optics import ChannelState, Reason, kernels
-from uwcam.ranging import RangeEstimator
+from uwcam.ranging.estimator import RangeEstimator
 
 USABLE, BELOW, SATURATED, BACKSCATTER = (ChannelState.USABLE, ChannelState.BELOW_NOISE_FLOOR,
                                          ChannelState.SATURATED, ChannelState.BACKSCATTER_ONLY)
@@ -235,8 +235,8 @@ def test_a_broken_numba_falls_back_to_numpy_with_a_warning(monkeypatch, caplog):
 def test_a_broken_uwcam_module_is_not_hidden_behind_the_numpy_path(monkeypatch):
     """An import inside uwcam that fails (here: a module the compiled kernels import) is a broken
     install of uwcam itself, not a missing numba: it is raised, not answered with the numpy path."""
-    exc = ModuleNotFoundError("No module named 'uwcam.parallel'", name="uwcam.parallel")
-    with pytest.raises(ModuleNotFoundError, match="uwcam.parallel"):
+    exc = ModuleNotFoundError("No module named 'uwcam.compute.parallel'", name="uwcam.compute.parallel")
+    with pytest.raises(ModuleNotFoundError, match="uwcam.compute.parallel"):
         _import_kernels_afresh(monkeypatch, exc)
 
 

@@ -52,7 +52,7 @@ def test_ln_at_the_seams_of_its_range_reduction():
 @pytest.mark.skipif(kernels.fuse_background is None, reason="numba is not installed: no compiled kernel to test")
 def test_a_strided_frame_with_a_background_ranges_as_its_contiguous_copy():
     from tests.synthetic import make_profile
-    from uwcam.ranging import RangeEstimator
+    from uwcam.ranging.estimator import RangeEstimator
 
     rng = np.random.default_rng(4)
     est = RangeEstimator(make_profile([0.46, 0.11, 0.06], [0.0, 0.3, 0.5], read_noise=3.0, shot_gain=0.2, noise_floor=5.0))

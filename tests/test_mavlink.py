@@ -19,7 +19,7 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 from tests.waiting import wait_for
 from uwcam.config import CameraConfig, DaemonConfig, DeviceConfig, MavlinkConfig, ProcessingConfig
-from uwcam.daemon import Daemon
+from uwcam.runtime.daemon import Daemon
 from uwcam.drivers.sim import SimulatedCamera
 from uwcam.fileio import UserInputError
 from uwcam.config import load_config

@@ -14,7 +14,7 @@ import pytest
 from tests.test_mavlink import SEABED_M, rig_config
 from tests.waiting import wait_for
 from uwcam.config import DeviceConfig, MavlinkConfig, load_config
-from uwcam.daemon import Daemon
+from uwcam.runtime.daemon import Daemon
 from uwcam.optics.orientation import channel_reach_m, measurable_range_m, transfer
 
 

@@ -9,7 +9,7 @@ import textwrap
 
 import pytest
 
-from uwcam.memory import read_only_mappings
+from uwcam.runtime.memory import read_only_mappings
 
 
 def test_read_only_mappings_are_parsed_from_a_maps_table(tmp_path):
@@ -30,7 +30,7 @@ def test_read_only_mappings_are_parsed_from_a_maps_table(tmp_path):
 PROBE = textwrap.dedent("""
     import json, numpy as np
     from numba import njit
-    from uwcam.memory import read_only_mappings, release_compiler_pages
+    from uwcam.runtime.memory import read_only_mappings, release_compiler_pages
 
     def resident_kb(part, field):
         # A field of /proc/self/smaps summed over this process's read-only mappings of the library

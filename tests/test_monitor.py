@@ -1,4 +1,4 @@
-"""The topside fleet view, ``uwcam monitor`` (uwcam/monitor.py): its key parsing and staleness on
+"""The topside fleet view, ``uwcam monitor`` (uwcam/fleet/monitor.py): its key parsing and staleness on
 made-up samples, its command-line checks, and end to end: three simulated daemons publishing on
 Zenoh and the monitor (the real command, in a process of its own) as Zenoh peers on loopback with
 explicit endpoints, its page in Debian's Chromium listing all three with live values; one vehicle
@@ -22,8 +22,8 @@ from tests.test_zenoh import free_port
 from tests.waiting import wait_for
 from uwcam.cli import main
 from uwcam.config import AlertsConfig, CameraConfig, RangeAlertConfig, ZenohConfig
-from uwcam.daemon import Daemon
-from uwcam.monitor import Fleet, split_key
+from uwcam.runtime.daemon import Daemon
+from uwcam.fleet.monitor import Fleet, split_key
 
 
 def test_keys_are_split_into_vehicle_and_topic():
@@ -199,7 +199,7 @@ def test_three_vehicles_on_one_fleet_page_stale_and_back_with_alerts(browser):  
 @pytest.mark.slow
 def test_a_vehicle_behind_nat_connects_to_a_listening_monitor():
     """The other direction (docs/deployment.md): the monitor listens, the vehicle connects to it."""
-    from uwcam.monitor import ZenohListener
+    from uwcam.fleet.monitor import ZenohListener
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     fleet = Fleet(stale_s=5.0)

@@ -16,7 +16,7 @@ import pytest
 from tests.synthetic import RGB_ATTENUATION, make_profile, plate_frame, to_counts
 from tests.test_estimator import random_frame, reference
 from uwcam.optics import Intrinsics, Reason, kernels
-from uwcam.ranging import RangeEstimator
+from uwcam.ranging.estimator import RangeEstimator
 
 needs_numba = pytest.mark.skipif(kernels.BACKEND != "numba", reason="numba is not installed here")
 
@@ -124,7 +124,7 @@ def without_numba(tmp_path):
 
 def test_blocker_really_hides_numba(without_numba):
     """The daemon and its API (a real rig's `uwcam run`) import without numba, on the numpy path."""
-    probe = ("import uwcam.api, uwcam.daemon, uwcam.optics.kernels as k, sys\n"
+    probe = ("import uwcam.api, uwcam.runtime.daemon, uwcam.optics.kernels as k, sys\n"
              "try:\n import numba\nexcept ImportError:\n print(k.BACKEND, 'numba' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", probe], env=without_numba, capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["numpy", "False"]
@@ -133,7 +133,7 @@ def test_blocker_really_hides_numba(without_numba):
 def test_range_command_without_numba(tmp_path, without_numba):
     """Calibrate and range with the command line in a process without numba; the maps equal
     those of this process's estimator (compiled where numba is installed)."""
-    from uwcam.profile import load_profile
+    from uwcam.calibration.profile import load_profile
 
     consts = np.exp(-np.array([0.0, 0.3, 0.5])) * 1.5e5
     rng = np.random.default_rng(2)

@@ -13,14 +13,14 @@ import numpy as np
 import pytest
 
 from tests.waiting import wait_for
-from uwcam import recording as rec
+from uwcam.recording import format as rec
 from uwcam.cli import main
 from uwcam.config import BackscatterConfig, ProcessingConfig, RecordingConfig
 from uwcam.drivers.base import Frame
-from uwcam.outputs.recorder import Recorder
-from uwcam.pipeline import FramePipeline
-from uwcam.profile import save_profile
-from uwcam.reprocess import reprocess
+from uwcam.recording.recorder import Recorder
+from uwcam.runtime.pipeline import FramePipeline
+from uwcam.calibration.profile import save_profile
+from uwcam.recording.reprocess import reprocess
 from uwcam.simulation import CameraModel, Lamp, SimulatedWorld, water_preset
 from uwcam.simulation.tank import calibrate_in_simulation
 

@@ -51,7 +51,7 @@ def test_numpy_path_with_non_square_pixels_and_an_off_centre_principal_point(dty
     principal point off centre, a lamp beside the camera: every pixel's own ray must be used."""
     from tests.synthetic import make_profile
     from uwcam.optics import kernels
-    from uwcam.ranging import RangeEstimator
+    from uwcam.ranging.estimator import RangeEstimator
 
     intr = Intrinsics(60.0, 41.0, 30.3, 14.2)
     profile = make_profile([0.46, 0.11, 0.06], [9.0, 9.6, 9.3], read_noise=2.0, shot_gain=0.3,

@@ -68,13 +68,13 @@ def work():
 def test_uwcam_kernels_take_turns_there_and_give_the_same_ranges():
     code = WITHOUT_THREADSAFE_POOLS + """
 import numpy as np
-import uwcam.parallel
+import uwcam.compute.parallel
 from numba import threading_layer
 from tests.synthetic import RGB_ATTENUATION, make_profile
-from uwcam.ranging import RangeEstimator
+from uwcam.ranging.estimator import RangeEstimator
 from uwcam.simulation.camera import CameraModel
 
-assert uwcam.parallel.SERIALISED
+assert uwcam.compute.parallel.SERIALISED
 est = RangeEstimator(make_profile(RGB_ATTENUATION, [0.0, 0.1, 0.2], read_noise=3.0, shot_gain=0.2))
 frame = np.random.default_rng(1).integers(500, 3000, (720, 1280, 3)).astype(np.uint16)
 expected = est(frame).range
@@ -95,12 +95,12 @@ def work():
 def test_where_openmp_is_there_the_kernels_run_concurrently_on_it():
     done = run("""
 import numpy as np
-import uwcam.parallel
+import uwcam.compute.parallel
 from numba import threading_layer
 from tests.synthetic import RGB_ATTENUATION, make_profile
-from uwcam.ranging import RangeEstimator
+from uwcam.ranging.estimator import RangeEstimator
 RangeEstimator(make_profile(RGB_ATTENUATION, [0.0, 0.1, 0.2]))(np.ones((4, 4, 3), np.uint16))
-print(uwcam.parallel.SERIALISED, uwcam.parallel.threadsafe_layers(), threading_layer())
+print(uwcam.compute.parallel.SERIALISED, uwcam.compute.parallel.threadsafe_layers(), threading_layer())
 """)
     assert done.returncode == 0, done.stderr[-3000:]
     serialised, layers, layer = done.stdout.split(maxsplit=1)[0], done.stdout, done.stdout.split()[-1]
@@ -120,7 +120,7 @@ def _openmp_wait_policy(preset: str | None) -> str:
         import numpy as np
         import uwcam.cli  # what `uwcam run` imports first
         from tests.synthetic import make_profile
-        from uwcam.ranging import RangeEstimator
+        from uwcam.ranging.estimator import RangeEstimator
         RangeEstimator(make_profile([0.46, 0.11, 0.06], [0.0, 0.3, 0.5]))(np.full((16, 16, 3), 900, np.uint16))
     """)
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)

@@ -17,9 +17,9 @@ from uwcam.config import PatchConfig, ProcessingConfig
 from uwcam.drivers.base import Frame
 from uwcam.drivers.sim import RigState, SimulatedRig
 from uwcam.optics.geometry import pixel_rays
-from uwcam.recording_records import ranging_record
-from uwcam.pipeline import FramePipeline
-from uwcam.ranging import RangeEstimator
+from uwcam.recording.records import ranging_record
+from uwcam.runtime.pipeline import FramePipeline
+from uwcam.ranging.estimator import RangeEstimator
 from uwcam.simulation import CameraModel, Lamp, water_preset
 from uwcam.simulation.options import check_simulation_options
 from uwcam.simulation.tank import calibrate_in_simulation
@@ -110,10 +110,10 @@ def test_tracked_values_reach_the_estimator_on_their_frame_and_its_record(drifti
     tracked = run(profile, frames, processing)
     still = run(profile, frames, ProcessingConfig())
 
-    # The profile knows the water's light: the loop subtracts it (uwcam.backscatter_loop), so the
+    # The profile knows the water's light: the loop subtracts it (uwcam.water.frame_compensator), so the
     # range these values give is the compensated one.
-    from uwcam.backscatter_loop import BackscatterCompensator, compensation
-    from uwcam.ranging import range_frame
+    from uwcam.water.frame_compensator import BackscatterCompensator, compensation
+    from uwcam.ranging.estimator import range_frame
 
     comp = BackscatterCompensator(profile, frames[0].shape[:2], 2)
     for p, data in zip(tracked, frames):

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from uwcam.optics.geometry import Intrinsics
-from uwcam.plate import MIN_MARKERS, sight_plate
-from uwcam.rig import builtin_rig_path, load_rig
+from uwcam.calibration.plate import MIN_MARKERS, sight_plate
+from uwcam.calibration.rig import builtin_rig_path, load_rig
 from uwcam.simulation import Lamp, SimulatedWorld
 from uwcam.simulation.scene import MARKER_ID
 

@@ -6,8 +6,8 @@ import yaml
 
 from tests.synthetic import make_profile
 from uwcam.fileio import UserInputError
-from uwcam.profile import load_profile, profile_from_mapping, save_profile
-from uwcam.rig import Spectrum, builtin_rig_path, load_rig, resolve_reflectance
+from uwcam.calibration.profile import load_profile, profile_from_mapping, save_profile
+from uwcam.calibration.rig import Spectrum, builtin_rig_path, load_rig, resolve_reflectance
 
 
 @pytest.fixture
@@ -66,7 +66,7 @@ def test_unreadable_and_non_yaml_profiles(tmp_path):
 
 def test_saving_over_a_profile_never_leaves_a_partial_file(profile_file, monkeypatch):
     before = profile_file.read_text()
-    import uwcam.profile as prof
+    import uwcam.calibration.profile as prof
 
     def boom(_):
         raise RuntimeError("disk full")

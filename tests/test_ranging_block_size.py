@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from tests.test_calibration_variance_weights import C, covariance_profile
-from uwcam.ranging import RangeEstimator
+from uwcam.ranging.estimator import RangeEstimator
 
 
 def test_the_frames_share_is_computed_on_the_documented_8_pixel_blocks():

@@ -17,8 +17,8 @@ from tests.synthetic import make_profile
 from uwcam.fileio import UserInputError
 from uwcam.optics import kernels
 from uwcam.optics.validity import ChannelState
-from uwcam.range_smoothing import smooth_frame, smooth_range_map
-from uwcam.ranging import RangeEstimator, range_frame
+from uwcam.ranging.smoothing import smooth_frame, smooth_range_map
+from uwcam.ranging.estimator import RangeEstimator, range_frame
 
 C = np.array([0.46, 0.11, 0.06])  # 1/m
 B = np.array([9.0, 9.6, 9.3])  # ln(K_k ρ_k)

@@ -1,4 +1,4 @@
-"""Rules of uwcam/ranging.py that only particular inputs show, each against a reference written
+"""Rules of uwcam/ranging/estimator.py that only particular inputs show, each against a reference written
 here: block means of integer frames (exact 2×2 means rounded half up, one halving at a time, for
 blocks of a power of two pixels; one area average otherwise), and the exposure correction where
 the channels were calibrated at different exposures, or where the profile records no exposure
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from tests.test_exposure import DARK, profile_with, scene
-from uwcam.range_smoothing import block_means
-from uwcam.ranging import RangeEstimator
+from uwcam.ranging.smoothing import block_means
+from uwcam.ranging.estimator import RangeEstimator
 
 
 def halvings(image: np.ndarray, times: int) -> np.ndarray:

@@ -19,14 +19,14 @@ from mcap_protobuf.decoder import DecoderFactory
 
 from tests.test_api import small_config
 from tests.waiting import wait_for
-from uwcam import recording as rec
+from uwcam.recording import format as rec
 from uwcam.config import CameraConfig, DaemonConfig, RecordingConfig, load_config
-from uwcam.daemon import Daemon
+from uwcam.runtime.daemon import Daemon
 from uwcam.fileio import UserInputError
 from uwcam.optics.geometry import pixel_rays
-from uwcam.outputs.recorder import repair_folder
-from uwcam.profile import profile_from_mapping, save_profile
-from uwcam.reprocess import plan, reprocess
+from uwcam.recording.recorder import repair_folder
+from uwcam.calibration.profile import profile_from_mapping, save_profile
+from uwcam.recording.reprocess import plan, reprocess
 
 SEABED_Z_M = 2.0  # the simulated seabed is a plane square to the optical axis at this distance
 

@@ -11,10 +11,10 @@ from mcap.reader import make_reader
 
 from tests.test_recording import recording_config, running
 from tests.waiting import wait_for
-from uwcam import recording as rec
-from uwcam.recording_disk import DiskBudget
-from uwcam.recording_records import BUDGET
-from uwcam.reprocess import ranged_frame_count, reprocess
+from uwcam.recording import format as rec
+from uwcam.recording.disk import DiskBudget
+from uwcam.recording.records import BUDGET
+from uwcam.recording.reprocess import ranged_frame_count, reprocess
 
 RAW_FRAME_BYTES = 160 * 120 * 3 * 2  # the test rig's 16-bit RGB frames
 

@@ -13,10 +13,10 @@ from pydantic import ValidationError
 
 from tests.test_recording import decoded, recording_config, running
 from tests.waiting import wait_for
-from uwcam import recording as rec
+from uwcam.recording import format as rec
 from uwcam.config import RecordingConfig
 from uwcam.drivers.base import Frame
-from uwcam.outputs.recorder import WRITER_NICENESS, Recorder, lower_this_threads_priority
+from uwcam.recording.recorder import WRITER_NICENESS, Recorder, lower_this_threads_priority
 
 
 def sdk_encoding(data: np.ndarray, log_time_ns: int, encoding: str | None) -> bytes:

@@ -15,9 +15,9 @@ from mcap.reader import make_reader
 
 from tests.test_recording import recording_config, running
 from tests.waiting import wait_for
-from uwcam import recording as rec
+from uwcam.recording import format as rec
 from uwcam.config import MountingConfig
-from uwcam.recording import quaternion_from_rpy_deg
+from uwcam.recording.format import quaternion_from_rpy_deg
 
 FOXGLOVE_IMAGE_FORMATS = {"jpeg", "png", "webp", "avif"}  # foxglove.CompressedImage's documented formats
 

@@ -1,7 +1,7 @@
 """Response curves of 8-bit gamma cameras: standards, recovery from a bracket, the profile, ranging.
 
 Expected values come from the standards' own formulas and tables (IEC 61966-2-1 for sRGB,
-ITU-R BT.709) and from the simulator's ground truth, not from uwcam.response.
+ITU-R BT.709) and from the simulator's ground truth, not from uwcam.imaging.response.
 """
 
 from __future__ import annotations
@@ -12,10 +12,10 @@ import yaml
 
 from uwcam.cli import main
 from uwcam.fileio import UserInputError
-from uwcam.imageio import read_frame
-from uwcam.profile import load_profile, profile_from_mapping, profile_to_yaml
-from uwcam.ranging import RangeEstimator
-from uwcam.response import ResponseCurve, encode, recover
+from uwcam.imaging.imageio import read_frame
+from uwcam.calibration.profile import load_profile, profile_from_mapping, profile_to_yaml
+from uwcam.ranging.estimator import RangeEstimator
+from uwcam.imaging.response import ResponseCurve, encode, recover
 from uwcam.simulation import CameraModel, Lamp, SimulatedWorld, water_preset
 from uwcam.simulation.tank import calibrate_in_simulation
 
@@ -136,7 +136,7 @@ def test_cli_response_writes_a_curve_calibrate_accepts(tmp_path, capsys):
     camera = CameraModel(bits=8, response="srgb")
     base = SimulatedWorld(scene="seabed", distance=1.5, size=(120, 90), water=water, lamp=Lamp(), camera=camera, seed=3)
     names = []
-    from uwcam.imageio import write_frame
+    from uwcam.imaging.imageio import write_frame
 
     factors = (0.25, 0.5, 1.0, 2.0)
     for f in factors:
@@ -147,7 +147,7 @@ def test_cli_response_writes_a_curve_calibrate_accepts(tmp_path, capsys):
     out = tmp_path / "cam.yaml"
     assert main(["response", *names, "--exposure-ms", ",".join(str(10 * f) for f in factors), "-o", str(out)]) == 0
     assert "code 128 is" in capsys.readouterr().out
-    from uwcam.response import load_response
+    from uwcam.imaging.response import load_response
 
     curve = load_response(str(out), 3)
     assert curve.kind == "table" and curve.table.shape == (3, 256)
@@ -171,7 +171,7 @@ def test_the_daemon_pipeline_ranges_a_gamma_camera_through_its_curve(gamma_rig):
     from tests.waiting import wait_for
     from uwcam.config import ProcessingConfig
     from uwcam.drivers.base import Frame
-    from uwcam.pipeline import FramePipeline
+    from uwcam.runtime.pipeline import FramePipeline
 
     right, _, world = gamma_rig
     data = world.frame(1)

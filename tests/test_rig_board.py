@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from uwcam.cli import main
-from uwcam.plate import locate_plate
-from uwcam.rig import builtin_rig_path, load_rig
-from uwcam.rig_artwork import write_artwork
+from uwcam.calibration.plate import locate_plate
+from uwcam.calibration.rig import builtin_rig_path, load_rig
+from uwcam.calibration.artwork import write_artwork
 from uwcam.simulation import Lamp, SimulatedWorld
 
 

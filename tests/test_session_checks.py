@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from tests.synthetic import make_profile
-from uwcam.calibration import MAX_SATURATED_FRACTION
-from uwcam.calibration_session import CalibrationSession, SessionError
-from uwcam.rig import builtin_rig_path, load_rig
+from uwcam.calibration.fit import MAX_SATURATED_FRACTION
+from uwcam.calibration.session import CalibrationSession, SessionError
+from uwcam.calibration.rig import builtin_rig_path, load_rig
 from uwcam.simulation import Lamp, SimulatedWorld
 
 LEVEL = 65535.0
@@ -93,7 +93,7 @@ def test_a_plate_cut_by_the_edge_is_refused_by_both(scene):
 
 
 def test_a_kept_session_comes_back_whole_and_a_foreign_or_damaged_one_is_set_aside(scene, tmp_path):
-    from uwcam.calibration_session_store import load_session, save_session
+    from uwcam.calibration.session_store import load_session, save_session
 
     rig, world = scene
     s = session(scene)

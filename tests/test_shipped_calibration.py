@@ -11,7 +11,7 @@ import pytest
 from uwcam.config import default_config
 from uwcam.runtime.simulated_rig import calibrate_simulated_water, shipped_calibration_path, simulated_calibration
 from uwcam.drivers.sim import SimulatedRig
-from uwcam.profile import load_profile
+from uwcam.calibration.profile import load_profile
 from uwcam.simulation import tank
 
 REGENERATE = ("regenerate it: .venv/bin/python -c 'from uwcam.config import default_config; "

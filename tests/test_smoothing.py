@@ -1,7 +1,7 @@
 """3×3 smoothing of range maps: values, variances and invalid pixels against a naive reference.
 
 The reference below is a plain double loop over windows, written apart from
-``uwcam.range_smoothing.smooth_range_map``: the mean of the valid neighbours, and the variance of that
+``uwcam.ranging.smoothing.smooth_range_map``: the mean of the valid neighbours, and the variance of that
 mean for independent neighbours, Var(Σ r_k / n) = Σ σ_k² / n² (σ² / n when all are equal).
 """
 
@@ -12,8 +12,8 @@ import pytest
 
 from uwcam.fileio import UserInputError
 from uwcam.optics.validity import Reason
-from uwcam.range_result import RangeResult
-from uwcam.range_smoothing import smooth_range_map
+from uwcam.ranging.result import RangeResult
+from uwcam.ranging.smoothing import smooth_range_map
 
 
 def naive(range_map: np.ndarray, variance: np.ndarray, kind: str) -> tuple[np.ndarray, np.ndarray]:
@@ -154,7 +154,7 @@ def naive_frame(raw: np.ndarray, kind: str, saturation: float) -> tuple[np.ndarr
 
 @pytest.mark.parametrize("kind", ["mean", "median"])
 def test_image_smoothing_leaves_saturated_values_out_and_keeps_them_saturated(kind):
-    from uwcam.range_smoothing import smooth_frame
+    from uwcam.ranging.smoothing import smooth_frame
 
     rng = np.random.default_rng(3)
     raw = rng.integers(100, 4000, (7, 9, 3)).astype(np.uint16)
@@ -172,7 +172,7 @@ def test_mean_of_the_image_divides_the_noise_variance_by_the_samples_and_the_err
     the stated model): averaging 3×3 pixels before the transform must cut the reported variance
     ninefold inside the image, and the reported σ must match the scatter of the ranges."""
     from tests.synthetic import RGB_ATTENUATION, make_profile
-    from uwcam.ranging import RangeEstimator, range_frame
+    from uwcam.ranging.estimator import RangeEstimator, range_frame
 
     read, gain = 4.0, 0.5  # DN rms, DN per electron: σ² = read² + gain·E (+ 1/12 quantisation)
     b = np.log([0.6, 1.0, 0.9])
@@ -198,7 +198,7 @@ def test_mean_of_the_image_divides_the_noise_variance_by_the_samples_and_the_err
 
 def test_a_saturated_pixel_is_not_given_a_range_by_smoothing_before_the_transform():
     from tests.synthetic import RGB_ATTENUATION, make_profile
-    from uwcam.ranging import RangeEstimator, range_frame
+    from uwcam.ranging.estimator import RangeEstimator, range_frame
 
     profile = make_profile(RGB_ATTENUATION, np.log([0.6, 1.0, 0.9]), read_noise=2.0, shot_gain=0.2,
                            saturation_level=4095.0)

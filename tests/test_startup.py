@@ -9,9 +9,9 @@ import yaml
 
 from tests.synthetic import make_profile
 from uwcam.config import load_config
-from uwcam.daemon import Daemon
+from uwcam.runtime.daemon import Daemon
 from uwcam.optics import kernels
-from uwcam.profile import save_profile
+from uwcam.calibration.profile import save_profile
 
 
 @pytest.mark.skipif(kernels.BACKEND != "numba", reason="nothing is compiled without numba")

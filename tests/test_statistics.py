@@ -8,7 +8,7 @@ import pytest
 
 from tests.synthetic import make_profile
 from uwcam.optics import fused_path_length, pair_path_length
-from uwcam.ranging import RangeEstimator
+from uwcam.ranging.estimator import RangeEstimator
 
 ATTENUATION = np.array([0.46, 0.11, 0.06])
 SAMPLES = (500, 400)

@@ -20,7 +20,7 @@ from tests.waiting import wait_for
 from uwcam.drivers.base import CameraSettings, HealthState
 from uwcam.drivers.stream import StreamCamera
 from uwcam.drivers.supervisor import SupervisedCamera
-from uwcam.ranging import RangeEstimator
+from uwcam.ranging.estimator import RangeEstimator
 from uwcam.simulation import CameraModel, Lamp, SimulatedWorld, water_preset
 from uwcam.simulation.tank import calibrate_in_simulation
 from tests.ports import free_port

@@ -7,7 +7,7 @@ import numpy as np
 from uwcam.api import HEADER, encode_range, range_millimetres
 from uwcam.drivers.base import Frame
 from uwcam.runtime.published import Published
-from uwcam.range_result import RangeResult
+from uwcam.ranging.result import RangeResult
 
 
 def published(number: int, range_m: np.ndarray) -> Published:

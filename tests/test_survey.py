@@ -9,7 +9,7 @@ import pytest
 from uwcam.config import DaemonConfig, default_config
 from uwcam.drivers import registry
 from uwcam.drivers.sim import SimulatedCamera, SimulatedRig
-from uwcam.ranging import RangeEstimator
+from uwcam.ranging.estimator import RangeEstimator
 from uwcam.simulation import CameraModel, Lamp, water_preset
 from uwcam.simulation.survey import SurveyWorld
 from uwcam.simulation.terrain import CELL_M, SurveyMotion, Terrain, build_terrain
@@ -314,7 +314,7 @@ def test_marker_locates_the_patch_on_survey_frames(terrain):
 @pytest.mark.slow
 def test_daemon_on_the_survey_tracks_the_patch_and_ranges_the_moving_seabed():
     from uwcam.config import CameraConfig, DeviceConfig
-    from uwcam.daemon import Daemon
+    from uwcam.runtime.daemon import Daemon
 
     config = DaemonConfig(
         camera=CameraConfig(driver="sim", options={"fps": 15.0, "serial_number": "SIM-SURVEY-DAEMON"}),
@@ -361,7 +361,7 @@ def test_without_numba_the_simulator_gives_the_same_frames(tmp_path):
         "import sys; sys.modules['numba'] = None\n"
         "import numpy as np\n"
         "from uwcam.simulation import SimulatedWorld, Lamp, water_preset\n"
-        "from uwcam.jit import HAVE_NUMBA\n"
+        "from uwcam.compute.jit import HAVE_NUMBA\n"
         "from uwcam.simulation.survey import SurveyWorld\n"
         "assert not HAVE_NUMBA\n"
         "water = water_preset('jerlov-II', [675.0, 575.0, 475.0])\n"

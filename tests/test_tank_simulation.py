@@ -89,7 +89,7 @@ def test_the_rail_moves_the_plate_and_refuses_numbers_outside_it(tmp_path):
 def test_no_rail_without_the_simulated_tank(tmp_path):
     from tests.synthetic import make_profile
     from uwcam.config import default_config
-    from uwcam.profile import save_profile
+    from uwcam.calibration.profile import save_profile
 
     # A real camera (frames replayed from files), a calibration profile from a file.
     frames = tmp_path / "frames"

@@ -4,7 +4,7 @@ import numpy as np
 
 from tests.synthetic import make_profile
 from uwcam.optics import ChannelState, Reason, channel_states, pixel_reasons
-from uwcam.ranging import RangeEstimator
+from uwcam.ranging.estimator import RangeEstimator
 
 
 def test_each_reason_arises_where_expected():

@@ -15,10 +15,10 @@ from pydantic import ValidationError
 from tests.test_mavlink import SEABED_M, Listener, rig_config
 from tests.waiting import wait_for
 from uwcam.config import ProcessingConfig
-from uwcam.daemon import Daemon
+from uwcam.runtime.daemon import Daemon
 from uwcam.optics.validity import Reason
-from uwcam.range_result import RangeResult
-from uwcam.ranging import mask_vehicle
+from uwcam.ranging.result import RangeResult
+from uwcam.ranging.estimator import mask_vehicle
 
 
 def test_mask_marks_its_boxes_clipped_to_the_image_and_nothing_else():
@@ -72,7 +72,7 @@ def test_default_rig_masks_the_bracket_so_minimum_distance_is_the_seabed():
 
 def test_range_frame_masks_before_smoothing_so_the_vehicle_lends_no_range():
     from tests.synthetic import RGB_ATTENUATION, make_profile
-    from uwcam.ranging import RangeEstimator, range_frame
+    from uwcam.ranging.estimator import RangeEstimator, range_frame
 
     def light(path_m):  # a grey surface at this lamp → surface → camera path
         e = np.exp(np.log([0.6, 1.0, 0.9]) - RGB_ATTENUATION * path_m)

@@ -6,13 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from uwcam.backscatter import _column_shares
+from uwcam.water.backscatter import _column_shares
 from uwcam.optics.validity import Reason
-from uwcam.range_images import range_images
-from uwcam.ranging import RangeEstimator
+from uwcam.ranging.images import range_images
+from uwcam.ranging.estimator import RangeEstimator
 from uwcam.simulation import CameraModel, Lamp, SimulatedWorld, water_preset
 from uwcam.simulation.tank import calibrate_in_simulation
-from uwcam.water_light import WaterLight
+from uwcam.water.water_light import WaterLight
 from tests.synthetic import make_profile
 
 SIZE = (96, 72)
@@ -76,7 +76,7 @@ def test_without_an_open_water_frame_the_model_follows_the_lamps_pattern():
 
 
 def test_the_compiled_judge_and_its_numpy_twin_agree(monkeypatch):
-    from uwcam import water_light
+    from uwcam.water import water_light
 
     profile = make_profile([0.46, 0.11, 0.06], [0, 0, 0])
     est = RangeEstimator(profile)

@@ -17,12 +17,12 @@ import zenoh
 from tests.test_api import small_config
 from tests.waiting import wait_for
 from uwcam.config import ZenohConfig, load_config
-from uwcam.daemon import Daemon
+from uwcam.runtime.daemon import Daemon
 from uwcam.drivers.base import Frame
 from uwcam.fileio import UserInputError
 from uwcam.outputs.zenoh_publisher import QUEUE_FRAMES, ByteBucket, ByteRates, area_mean, next_preview_width, range_summary
 from uwcam.runtime.published import Published
-from uwcam.range_result import RangeResult
+from uwcam.ranging.result import RangeResult
 from tests.ports import free_port
 
 PREFIX = "uwcam/test-rov"

@@ -3,7 +3,7 @@
 Without a file, ``uwcam run`` uses :func:`default_config`: a simulated camera, lamp and Ping1D
 on one simulated vehicle surveying a varied seabed, with a calibration patch in view.
 
-One module on purpose, although it is over 500 lines: it is the whole schema of the YAML a user
+One module, over 500 lines on purpose: it is the whole schema of the YAML a user
 writes, section by section, so that every key, its bounds and its default read in one place
 (docs/deployment.md shows the file these models validate).
 """
@@ -147,7 +147,7 @@ class OrientationConfig(Strict):
 
 
 class ExposureConfig(Strict):
-    """The radiometric exposure controller (uwcam.exposure; docs/exposure.md): per channel where
+    """The radiometric exposure controller (uwcam.runtime.stages.exposure; docs/exposure.md): per channel where
     the camera allows, one exposure otherwise. Never the camera's own auto-exposure."""
 
     target: Annotated[Real, Field(gt=0.05, le=0.98)] = 0.8
@@ -165,7 +165,7 @@ class ExposureConfig(Strict):
     """Dead band: a wanted change smaller than this fraction is not made."""
     hdr: Flag = True
     """On a camera with one exposure for all channels: alternate a short and a long exposure and
-    merge consecutive frames per channel (uwcam.hdr); false: one exposure, the strongest channel's."""
+    merge consecutive frames per channel (uwcam.runtime.stages.hdr); false: one exposure, the strongest channel's."""
 
     @model_validator(mode="after")
     def _limits(self) -> "ExposureConfig":

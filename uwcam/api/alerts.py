@@ -3,7 +3,7 @@
 from fastapi import APIRouter, Depends
 
 from uwcam.api.common import get_daemon
-from uwcam.daemon import Daemon
+from uwcam.runtime.daemon import Daemon
 
 router = APIRouter(prefix="/api/v1", tags=["alerts"])
 

@@ -32,7 +32,7 @@ from uwcam.api.limits import BodyLimit
 from uwcam.api.security import SAFE_METHODS, SESSION_COOKIE, SESSION_PATH, Guard, required_token
 from uwcam.api.view import ViewEncoder
 from uwcam.config import DaemonConfig
-from uwcam.daemon import Daemon
+from uwcam.runtime.daemon import Daemon
 from uwcam.fileio import UserInputError
 
 def openapi_with_bearer(app: FastAPI) -> dict:

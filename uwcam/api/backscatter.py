@@ -13,7 +13,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from uwcam.api.common import get_daemon
 from uwcam.config import Whole
-from uwcam.daemon import Daemon
+from uwcam.runtime.daemon import Daemon
 
 router = APIRouter(prefix="/api/v1/backscatter", tags=["backscatter"])
 

@@ -1,9 +1,9 @@
 """/api/v1/calibration/session: a guided tank calibration (start, live feedback, captures, fit with
 plots and report, held-back validation, accept or cancel). The session's logic is in
-:mod:`uwcam.calibration_session`; here only HTTP. Every handler is sync (threadpool): marker
+:mod:`uwcam.calibration.session`; here only HTTP. Every handler is sync (threadpool): marker
 detection, waiting for frames, fitting and writing captures never run on the event loop.
 
-The session is kept on disk (:mod:`uwcam.calibration_session_store`) in
+The session is kept on disk (:mod:`uwcam.calibration.session_store`) in
 ``<state_dir>/calibration-session`` (or ``$XDG_STATE_HOME/uwcam/calibration-session``, default
 ``~/.local/state/uwcam/…``, when no state folder is configured) from its start until it is
 accepted or cancelled; a daemon that restarts resumes it at the first request.
@@ -24,10 +24,10 @@ from fastapi.responses import HTMLResponse, Response
 from pydantic import BaseModel, ConfigDict, Field
 
 from uwcam.api.common import get_daemon, latest
-from uwcam.calibration_session import CalibrationSession, SessionError
-from uwcam.calibration_session_store import load_session, remove_session, save_session
+from uwcam.calibration.session import CalibrationSession, SessionError
+from uwcam.calibration.session_store import load_session, remove_session, save_session
 from uwcam.config import Flag, Real, Whole  # numbers are numbers: "1" and true are refused, as docs/api.md says
-from uwcam.daemon import Daemon
+from uwcam.runtime.daemon import Daemon
 from uwcam.fileio import UserInputError
 from uwcam.optics.geometry import Intrinsics
 
@@ -170,7 +170,7 @@ def _exposure_lock(d: Daemon) -> dict:
 def start(body: Start, request: Request, d: Daemon = Depends(get_daemon)) -> dict:
     """Start a session (one at a time). The active profile gives channels, dark level, noise floor
     and lamp position; the exposure is locked where the camera allows."""
-    from uwcam.rig import builtin_rig_path, load_rig
+    from uwcam.calibration.rig import builtin_rig_path, load_rig
 
     try:
         rig = load_rig(builtin_rig_path(body.rig))

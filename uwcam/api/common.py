@@ -7,7 +7,7 @@ import asyncio
 from fastapi import HTTPException, Request
 from starlette.requests import HTTPConnection
 
-from uwcam.daemon import Daemon
+from uwcam.runtime.daemon import Daemon
 from uwcam.runtime.published import Published
 
 

@@ -9,7 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from uwcam.api.common import get_daemon
 from uwcam.config import Flag, Real
-from uwcam.daemon import Daemon
+from uwcam.runtime.daemon import Daemon
 from uwcam.drivers.base import DriverError
 
 router = APIRouter(prefix="/api/v1/lamp", tags=["lamp"])

@@ -33,7 +33,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from prometheus_client.registry import Collector
 
 from uwcam.api.common import get_daemon
-from uwcam.daemon import Daemon
+from uwcam.runtime.daemon import Daemon
 from uwcam.optics.validity import Reason
 from uwcam.runtime.published import Published
 
@@ -165,7 +165,7 @@ def range_metrics(published: Published) -> Iterator[Metric]:
 
 
 def alert_metrics(alerts: dict | None) -> Iterator[Metric]:
-    """1 per alert uwcam itself holds raised (its own rules, uwcam.alerts)."""
+    """1 per alert uwcam itself holds raised (its own rules, uwcam.runtime.alerts)."""
     if alerts is None:
         return
     family = GaugeMetricFamily("uwcam_alert_active", "1 for each alert raised by uwcam's own rules and not cleared.",

@@ -8,9 +8,9 @@ import re
 from fastapi import APIRouter, Depends, HTTPException, Request
 
 from uwcam.api.common import get_daemon
-from uwcam.daemon import Daemon
+from uwcam.runtime.daemon import Daemon
 from uwcam.fileio import UserInputError
-from uwcam.profile import CalibrationProfile
+from uwcam.calibration.profile import CalibrationProfile
 
 router = APIRouter(prefix="/api/v1/calibration/profiles", tags=["calibration"])
 MAX_PROFILE_BYTES = 1 << 20
@@ -98,7 +98,7 @@ async def parse_yaml(body: bytes) -> object:
 
 def profile_from_upload(data: object, name: str) -> CalibrationProfile:
     """Parsed values → a validated profile; HTTPException 422 saying what is wrong."""
-    from uwcam.profile import profile_from_mapping
+    from uwcam.calibration.profile import profile_from_mapping
 
     if not isinstance(data, dict):
         raise HTTPException(status_code=422, detail="profile must be a mapping of keys to values")

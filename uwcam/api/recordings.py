@@ -11,9 +11,9 @@ import os
 from fastapi import APIRouter, Depends, HTTPException
 from fastapi.responses import FileResponse
 
-from uwcam import recording as rec
+from uwcam.recording import format as rec
 from uwcam.api.common import get_daemon
-from uwcam.daemon import Daemon
+from uwcam.runtime.daemon import Daemon
 from uwcam.fileio import UserInputError
 
 router = APIRouter(prefix="/api/v1/recordings", tags=["recordings"])

@@ -9,7 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from uwcam.api.common import get_daemon
 from uwcam.config import BackscatterConfig, Box, ExposureConfig, Flag, OrientationConfig, PatchConfig, ProcessingConfig, Real, Whole
-from uwcam.daemon import Daemon
+from uwcam.runtime.daemon import Daemon
 
 router = APIRouter(prefix="/api/v1/config", tags=["config"])
 

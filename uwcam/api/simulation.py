@@ -17,7 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from uwcam.api.common import get_daemon
 from uwcam.config import TANK_RAIL_M
-from uwcam.daemon import Daemon
+from uwcam.runtime.daemon import Daemon
 
 router = APIRouter(prefix="/api/v1/simulation", tags=["simulation"])
 log = logging.getLogger(__name__)

@@ -11,7 +11,7 @@ from fastapi import APIRouter, Depends, HTTPException, Query
 from fastapi.responses import Response
 
 from uwcam.api.common import get_daemon, latest
-from uwcam.daemon import Daemon
+from uwcam.runtime.daemon import Daemon
 from uwcam.optics.geometry import pixel_rays
 from uwcam.optics.orientation import normals_from_range
 

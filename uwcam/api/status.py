@@ -4,7 +4,7 @@ from fastapi import APIRouter, Depends, Request
 
 from uwcam.api.calibration_session import open_session
 from uwcam.api.common import get_daemon
-from uwcam.daemon import Daemon
+from uwcam.runtime.daemon import Daemon
 
 router = APIRouter(prefix="/api/v1", tags=["status"])
 

@@ -22,7 +22,7 @@ from uwcam import __version__
 from uwcam.api.backpressure import SCOPE_KEY, Pace, unsent_bytes
 from uwcam.api.common import Broadcaster
 from uwcam.api.snapshots import range_millimetres
-from uwcam.daemon import Daemon
+from uwcam.runtime.daemon import Daemon
 from uwcam.runtime.published import Published
 
 router = APIRouter(prefix="/api/v1", tags=["stream"])

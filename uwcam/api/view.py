@@ -43,7 +43,7 @@ from numpy.typing import NDArray
 
 from uwcam import __version__
 from uwcam.api.common import Broadcaster
-from uwcam.daemon import Daemon
+from uwcam.runtime.daemon import Daemon
 from uwcam.optics.validity import Reason
 from uwcam.runtime.published import Published
 

@@ -81,7 +81,7 @@ def checked_output(path: str | Path, suffixes: tuple[str, ...], wrong_suffix: st
 
 def resolve_rig_path(text: str) -> Path:
     """A rig file path, or the name of a rig shipped with uwcam (e.g. grey-plate)."""
-    from uwcam.rig import builtin_rig_path
+    from uwcam.calibration.rig import builtin_rig_path
 
     path = Path(text)
     if path.exists() or path.suffix in (".yaml", ".yml") or "/" in text:

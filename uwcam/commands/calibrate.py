@@ -39,13 +39,13 @@ def check_calibration_frames(paths: list, frames: list[np.ndarray], distances: l
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from uwcam.calibration import CalibrationInputs, calibrate_with_details, project_plate_box
+    from uwcam.calibration.fit import CalibrationInputs, calibrate_with_details, project_plate_box
     from pydantic import ValidationError
 
     from uwcam.fileio import explain_validation_error
-    from uwcam.imageio import read_frame
-    from uwcam.profile import MAX_DISTANCE_M, MAX_LAMP_OFFSET_M, check_intrinsics_fit, save_profile
-    from uwcam.rig import load_rig, resolve_reflectance
+    from uwcam.imaging.imageio import read_frame
+    from uwcam.calibration.profile import MAX_DISTANCE_M, MAX_LAMP_OFFSET_M, check_intrinsics_fit, save_profile
+    from uwcam.calibration.rig import load_rig, resolve_reflectance
 
     out = checked_output(args.output, (".yaml", ".yml"), "the profile {path} must be a .yaml file")
     distances = args.distance or []
@@ -65,7 +65,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     names, wavelengths = parse_channels(args.channels, n)
     curve = None
     if args.response:
-        from uwcam.response import load_response
+        from uwcam.imaging.response import load_response
 
         if not np.issubdtype(frames[0].dtype, np.integer):
             raise UserInputError("--response applies to a camera's integer codes; these images are float (already linear?)")
@@ -180,12 +180,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
                              "holds finite, lit values in every image") from None
     profile = details.profile
     if curve is not None:
-        from uwcam.profile import ResponseRecord
+        from uwcam.calibration.profile import ResponseRecord
 
         profile = profile.model_copy(update={"response": ResponseRecord(**curve.to_record())})
     save_profile(profile, out)
     if report is not None:
-        from uwcam.calibration_report import html_report
+        from uwcam.calibration.report import html_report
         from uwcam.fileio import atomic_write
 
         with atomic_write(report, "w") as fh:
@@ -198,8 +198,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def cmd_response(args: argparse.Namespace) -> int:
-    from uwcam.imageio import read_frame
-    from uwcam.response import recover, save_response
+    from uwcam.imaging.imageio import read_frame
+    from uwcam.imaging.response import recover, save_response
 
     out = checked_output(args.output, (".yaml", ".yml"), "the response file {path} must be a .yaml file")
     exposures = parse_floats(args.exposure_ms, "--exposure-ms", len(args.images))
@@ -215,8 +215,8 @@ def cmd_response(args: argparse.Namespace) -> int:
 
 
 def cmd_rig_print(args: argparse.Namespace) -> int:
-    from uwcam.rig import load_rig
-    from uwcam.rig_artwork import write_artwork
+    from uwcam.calibration.rig import load_rig
+    from uwcam.calibration.artwork import write_artwork
 
     out = checked_output(args.output, (".pdf",), "the artwork {path} must be a .pdf file")
     rig = load_rig(resolve_rig_path(args.rig))

@@ -57,9 +57,9 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     require_websocket_support()
 
-    from uwcam.memory import limit_malloc_arenas
+    from uwcam.runtime.memory import limit_malloc_arenas
 
-    limit_malloc_arenas()  # before any thread allocates: see uwcam/memory.py
+    limit_malloc_arenas()  # before any thread allocates: see uwcam/runtime/memory.py
 
     import socket
 
@@ -68,7 +68,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     from uwcam.api import create_app
     from uwcam.config import SIMULATED_SETUPS, DaemonConfig, load_config
-    from uwcam.daemon import Daemon, check_devices
+    from uwcam.runtime.daemon import Daemon, check_devices
     from uwcam.fileio import explain_validation_error
 
     if args.config and args.simulate:
@@ -130,7 +130,7 @@ def cmd_warmup(args: argparse.Namespace) -> int:
     import time
 
     from uwcam.config import default_config
-    from uwcam.daemon import Daemon
+    from uwcam.runtime.daemon import Daemon
     from uwcam.optics import kernels
 
     if not 1.0 <= args.timeout <= 86400.0:  # also refuses nan
@@ -157,7 +157,7 @@ def cmd_warmup(args: argparse.Namespace) -> int:
 def cmd_config_check(args: argparse.Namespace) -> int:
     from uwcam.api import required_token
     from uwcam.config import load_config
-    from uwcam.daemon import check_devices
+    from uwcam.runtime.daemon import check_devices
 
     config = load_config(args.file)
     check_devices(config)

@@ -8,7 +8,7 @@ from uwcam.fileio import UserInputError
 
 
 def cmd_monitor(args: argparse.Namespace) -> int:
-    """The topside fleet view (uwcam.monitor): subscribe to every vehicle on Zenoh, serve the page."""
+    """The topside fleet view (uwcam.fleet.monitor): subscribe to every vehicle on Zenoh, serve the page."""
     import math
     import re
     import socket
@@ -32,7 +32,7 @@ def cmd_monitor(args: argparse.Namespace) -> int:
             pass
     except OSError as exc:
         raise UserInputError(f"cannot listen on {args.host}:{args.port}: {exc.strerror or exc}; choose another --port") from None
-    from uwcam.monitor import run_monitor
+    from uwcam.fleet.monitor import run_monitor
     from uwcam.outputs.zenoh_publisher import require_zenoh
 
     require_zenoh()

@@ -18,10 +18,10 @@ from uwcam.commands.arguments import (
 
 
 def cmd_range(args: argparse.Namespace) -> int:
-    from uwcam.imageio import MAP_SUFFIXES, read_frame, write_map
+    from uwcam.imaging.imageio import MAP_SUFFIXES, read_frame, write_map
     from uwcam.config import BackscatterConfig
-    from uwcam.profile import load_profile
-    from uwcam.range_images import range_images
+    from uwcam.calibration.profile import load_profile
+    from uwcam.ranging.images import range_images
 
     outputs = [(args.output, "-o")] + [(p, f) for p, f in ((args.variance, "--variance"), (args.reasons, "--reasons")) if p]
     for path, flag in outputs:
@@ -63,8 +63,8 @@ def cmd_range(args: argparse.Namespace) -> int:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from uwcam.imageio import IMAGE_SUFFIXES, write_frame
-    from uwcam.rig import load_rig
+    from uwcam.imaging.imageio import IMAGE_SUFFIXES, write_frame
+    from uwcam.calibration.rig import load_rig
     from uwcam.simulation import SCENES, WATER_PRESETS, Ambient, CameraModel, Channels, Lamp, SimulatedWorld, water_preset
 
     if args.list:
@@ -126,7 +126,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         raise UserInputError("a --noise-free frame is float32: write it as .npy or .tif")
     write_frame(out, frame)
     if args.truth:
-        from uwcam.imageio import write_map
+        from uwcam.imaging.imageio import write_map
 
         write_map(args.truth, world.camera_range.astype(np.float32))
     intr = world.intrinsics

@@ -10,7 +10,7 @@ from uwcam.fileio import UserInputError
 
 
 def cmd_reprocess(args: argparse.Namespace) -> int:
-    from uwcam.reprocess import reprocess
+    from uwcam.recording.reprocess import reprocess
 
     if args.workers is not None and not 1 <= args.workers <= 1024:
         raise UserInputError(f"--workers must be 1 to 1024, got {args.workers}")
@@ -26,7 +26,7 @@ def cmd_reprocess(args: argparse.Namespace) -> int:
 
 
 def cmd_repair(args: argparse.Namespace) -> int:
-    from uwcam import recording as rec
+    from uwcam.recording import format as rec
 
     for path in args.recordings:
         if not Path(path).is_file():

@@ -28,7 +28,7 @@ How a frame flows:
   a small buffer (scalar loads: LLVM will not emit AVX-512 gathers for AMD CPUs), then fuse the
   row in a branch-free loop that LLVM vectorises. They release the GIL (the camera, the loop and
   the API share one process) and are cached on disk (``cache=True``) so that a restart loads
-  them instead of compiling; :meth:`uwcam.ranging.RangeEstimator.warm_up` does that before the
+  them instead of compiling; :meth:`uwcam.ranging.estimator.RangeEstimator.warm_up` does that before the
   frame loop starts.
 * Without numba (e.g. 32-bit ARM, where no wheels exist) the numpy functions below compute the
   same float32 operations in the same order, a block of rows at a time so that temporaries stay

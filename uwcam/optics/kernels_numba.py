@@ -39,7 +39,7 @@ from uwcam.optics.kernels import (
     LAMP_ON_AXIS_RAY,
     LAMP_PIXEL_RAYS,
 )
-from uwcam.parallel import parallel
+from uwcam.compute.parallel import parallel
 
 
 @njit(cache=True, nogil=True, error_model="numpy")

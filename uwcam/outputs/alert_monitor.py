@@ -1,4 +1,4 @@
-"""The alert monitor: feeds :mod:`uwcam.alerts` from the frame loop and the daemon's status, in a
+"""The alert monitor: feeds :mod:`uwcam.runtime.alerts` from the frame loop and the daemon's status, in a
 thread of its own, and hands each event to the alert outputs (the REST API reads
 :meth:`AlertMonitor.snapshot`; Zenoh ``alerts`` and MAVLink STATUSTEXT get a callback).
 
@@ -14,7 +14,7 @@ import threading
 import time
 from collections.abc import Callable
 
-from uwcam.alerts import (AlertEvaluator, AlertEvent, DropWindow, calibration_conditions, device_conditions,
+from uwcam.runtime.alerts import (AlertEvaluator, AlertEvent, DropWindow, calibration_conditions, device_conditions,
                           disk_condition, dropped_condition, range_condition)
 from uwcam.config import AlertsConfig
 from uwcam.runtime.published import Published

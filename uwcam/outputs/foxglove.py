@@ -1,5 +1,5 @@
 """Live view in Foxglove: a Foxglove WebSocket server (``foxglove-sdk``) on its own port carrying
-the recorder's topics (:mod:`uwcam.recording`) plus an 8-bit colour preview and a point cloud.
+the recorder's topics (:mod:`uwcam.recording.format`) plus an 8-bit colour preview and a point cloud.
 
 A user opens Foxglove, connects to ``ws://HOST:PORT`` and sees colour, depth and points; no uwcam
 code on their side. An output of the frame loop: the loop's callback only replaces the newest
@@ -16,13 +16,13 @@ from collections.abc import Callable
 
 import numpy as np
 
-from uwcam import recording as rec
+from uwcam.recording import format as rec
 from uwcam.config import FoxgloveConfig
 from uwcam.fileio import UserInputError
 from uwcam.outputs.foxglove_gateway import FoxgloveGateway
 from uwcam.optics.geometry import pixel_rays
-from uwcam.recording_records import to_depth
-from uwcam.pipeline import FramePipeline
+from uwcam.recording.records import to_depth
+from uwcam.runtime.pipeline import FramePipeline
 from uwcam.runtime.published import Published
 from uwcam.outputs.subscriber import ThreadedOutput
 

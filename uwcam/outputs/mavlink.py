@@ -25,7 +25,7 @@ Field semantics follow MAVLink's common.xml:
   FRD, clockwise positive, ``angle_offset`` the centre of sector 0), each the robust minimum
   horizontal distance of its valid pixels in cm; UINT16_MAX where unknown, ``max_distance +
   1`` where the sector's pixels saw only lit water (no obstacle within range).
-* STATUSTEXT for each alert raised or cleared (uwcam.alerts), with the alert's MAV_SEVERITY
+* STATUSTEXT for each alert raised or cleared (uwcam.runtime.alerts), with the alert's MAV_SEVERITY
   (cleared: INFO), its text cut to the message's 50 characters; queued while the link is down
   (the newest 16 kept).
 * HEARTBEAT at 1 Hz as an onboard controller, so the autopilot and ground station see the
@@ -82,7 +82,7 @@ class MavlinkStats:
 class MavlinkOutput:
     """Sends the newest frame's distance to an autopilot; start/stop it with the frame loop.
 
-    ``pipeline``: the :class:`uwcam.pipeline.FramePipeline` (its ``profile`` and ``processing``
+    ``pipeline``: the :class:`uwcam.runtime.pipeline.FramePipeline` (its ``profile`` and ``processing``
     are read for intrinsics, lamp position and path-length bounds at every frame).
     """
 
@@ -125,7 +125,7 @@ class MavlinkOutput:
     def offer_statustext(self, severity: str, text: str) -> None:
         """Queue a STATUSTEXT (severity: a MAV_SEVERITY name such as "critical"; text: cut to 50
         bytes of UTF-8) for this output's thread; any thread may call it."""
-        from uwcam.alerts import SEVERITIES
+        from uwcam.runtime.alerts import SEVERITIES
 
         data = text.encode("utf-8")[:STATUSTEXT_BYTES].decode("utf-8", "ignore").encode("utf-8")
         with self._slot_lock:

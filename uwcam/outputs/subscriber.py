@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import threading
 
-from uwcam.pipeline import FramePipeline
+from uwcam.runtime.pipeline import FramePipeline
 
 
 class ThreadedOutput:

@@ -28,7 +28,7 @@ from uwcam.extras import require_extra
 from uwcam.fileio import UserInputError
 from uwcam.outputs.foxglove import preview_rgb8
 from uwcam.outputs.mavlink_measure import region_statistic
-from uwcam.pipeline import FramePipeline
+from uwcam.runtime.pipeline import FramePipeline
 from uwcam.runtime.published import Published
 from uwcam.outputs.subscriber import ThreadedOutput
 
@@ -254,7 +254,7 @@ class ZenohOutput(ThreadedOutput):
             self._ready.notify()
 
     def offer_alerts(self, event, active: list) -> None:
-        """An alert raised or cleared (:class:`uwcam.alerts.AlertEvent`) and those active after
+        """An alert raised or cleared (:class:`uwcam.runtime.alerts.AlertEvent`) and those active after
         it: queued for this output's thread to publish on ``alerts``."""
         with self._lock:
             self._alerts.append(alerts_document(event, active))

@@ -9,7 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from uwcam.drivers.base import Frame
-from uwcam.range_result import RangeResult
+from uwcam.ranging.result import RangeResult
 
 
 @dataclass(frozen=True)
@@ -31,7 +31,7 @@ class Published:
     incidence_block: int = 0
     """Side of the pixel blocks of ``incidence``."""
     water_source: str | None = None
-    """What the open-water light this frame was judged against came from (uwcam.water_light), or None."""
+    """What the open-water light this frame was judged against came from (uwcam.water.water_light), or None."""
     light_scale: tuple[float, ...] | None = None
     """Per channel, this frame's exposure × gain over that of the backscatter model's light (None: 1)."""
     open_water: NDArray[np.float32] | None = None

@@ -12,10 +12,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from uwcam.calibration import project_plate_box
+from uwcam.calibration.fit import project_plate_box
 from uwcam.config import DaemonConfig, PatchConfig
 from uwcam.fileio import UserInputError
-from uwcam.profile import CalibrationProfile, load_profile, save_profile
+from uwcam.calibration.profile import CalibrationProfile, load_profile, save_profile
 
 # The simulation (renderer, water models) is imported only where a simulated device is
 # configured, so that a real rig does not carry it in memory.
@@ -60,7 +60,7 @@ def simulated_calibration_key(rig: SimulatedRig) -> str:
     import hashlib
 
     import uwcam
-    from uwcam.rig import builtin_rig_path
+    from uwcam.calibration.rig import builtin_rig_path
 
     digest = hashlib.sha256(simulated_calibration_conditions(rig).encode())
     package = os.path.dirname(os.path.abspath(uwcam.__file__))

@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from uwcam.fileio import UserInputError
-from uwcam.jit import HAVE_NUMBA, njit, prange
+from uwcam.compute.jit import HAVE_NUMBA, njit, prange
 
 if HAVE_NUMBA:
     from numba import uint64
@@ -51,7 +51,7 @@ class CameraModel:
     """Auto-exposure target for the brightest pixel's expected value, DN (None: TARGET_CODE)."""
     response: str = "linear"
     """Tone curve applied to the sensor's linear signal before it is quantised: linear, srgb or
-    rec709 (an ordinary USB camera's 8-bit output; see uwcam.response)."""
+    rec709 (an ordinary USB camera's 8-bit output; see uwcam.imaging.response)."""
     jpeg_quality: int | None = None
     """JPEG-compress each frame at this quality (1–100), as an MJPEG camera or stream does; None: not."""
 
@@ -123,7 +123,7 @@ class CameraModel:
         if self.response == "linear":
             coded = np.rint(linear).astype(np.uint8)
         else:
-            from uwcam.response import encode
+            from uwcam.imaging.response import encode
 
             coded = encode(linear, self.response, 8)
         if self.jpeg_quality is not None:

@@ -58,7 +58,7 @@ class SimulationOptions(BaseModel):
     @classmethod
     def _known_rig(cls, v: str | None) -> str | None:
         if v is not None:
-            from uwcam.rig import builtin_rig_path
+            from uwcam.calibration.rig import builtin_rig_path
 
             try:
                 builtin_rig_path(v)

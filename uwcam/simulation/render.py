@@ -31,7 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from uwcam.optics.geometry import Intrinsics
-from uwcam.jit import HAVE_NUMBA, njit, prange
+from uwcam.compute.jit import HAVE_NUMBA, njit, prange
 from uwcam.simulation.scene import Hit
 from uwcam.simulation.water import Water
 

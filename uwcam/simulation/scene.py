@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from uwcam.fileio import UserInputError
-from uwcam.rig import Rig, Spectrum, resolve_reflectance
+from uwcam.calibration.rig import Rig, Spectrum, resolve_reflectance
 
 # Reflectance spectra (sampled 400–700 nm) of the surfaces in the scenes.
 _WL = [400.0, 450.0, 500.0, 550.0, 600.0, 650.0, 700.0]
@@ -379,7 +379,7 @@ def _build_scene(name: str, distance: float, rig: Rig | None) -> Scene:
         return Scene(name, (Plane((0.0, 0.0, z), (0.0, float(np.sin(a)), float(-np.cos(a))), "grey"),), textured=())
     if name == "plate":
         if rig is None:
-            from uwcam.rig import builtin_rig_path, load_rig
+            from uwcam.calibration.rig import builtin_rig_path, load_rig
 
             rig = load_rig(builtin_rig_path("grey-plate"))
         patches = ()

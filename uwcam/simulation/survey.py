@@ -41,7 +41,7 @@ from numpy.typing import NDArray
 
 from uwcam.fileio import UserInputError
 from uwcam.optics.geometry import Intrinsics
-from uwcam.jit import HAVE_NUMBA
+from uwcam.compute.jit import HAVE_NUMBA
 from uwcam.simulation.camera import CameraModel, frame_key
 from uwcam.simulation.render import PORT_DISTANCE, Ambient, Lamp, KERNELS, slab_edges
 from uwcam.simulation.scene import (

@@ -10,7 +10,7 @@ from functools import lru_cache
 import numpy as np
 from numpy.typing import NDArray
 
-from uwcam.jit import HAVE_NUMBA, njit, prange
+from uwcam.compute.jit import HAVE_NUMBA, njit, prange
 from uwcam.simulation.camera import frame_key, inverse_normal_table, splitmix
 
 if HAVE_NUMBA:

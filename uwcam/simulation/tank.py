@@ -7,9 +7,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from uwcam.calibration import CalibrationInputs, calibrate, project_plate_box
-from uwcam.profile import CalibrationProfile
-from uwcam.rig import builtin_rig_path, load_rig
+from uwcam.calibration.fit import CalibrationInputs, calibrate, project_plate_box
+from uwcam.calibration.profile import CalibrationProfile
+from uwcam.calibration.rig import builtin_rig_path, load_rig
 from uwcam.simulation.camera import CameraModel
 from uwcam.simulation.render import Lamp
 from uwcam.simulation.water import Water
@@ -63,8 +63,8 @@ def calibrate_in_simulation(
     intr, patch = world.intrinsics, plate.plate.black_patch
     n = len(channels.names)
     curve = None
-    if camera.response != "linear" and linearise:  # a gamma camera is calibrated on linearised frames (uwcam.response)
-        from uwcam.response import ResponseCurve
+    if camera.response != "linear" and linearise:  # a gamma camera is calibrated on linearised frames (uwcam.imaging.response)
+        from uwcam.imaging.response import ResponseCurve
 
         curve = ResponseCurve.standard(camera.response, camera.bits, n)
         frames = [f if noise_free else curve.linearise(f) for f in frames]
@@ -79,7 +79,7 @@ def calibrate_in_simulation(
         quantisation_step=0.0 if curve is not None else 1.0,
     ))
     if curve is not None:
-        from uwcam.profile import ResponseRecord
+        from uwcam.calibration.profile import ResponseRecord
 
         profile = profile.model_copy(update={"response": ResponseRecord(**curve.to_record())})
     if not record_exposure:

@@ -10,7 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from uwcam.fileio import UserInputError
-from uwcam.rig import resolve_reflectance
+from uwcam.calibration.rig import resolve_reflectance
 from uwcam.simulation.scene import MATERIALS
 
 

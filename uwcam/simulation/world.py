@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 
 from uwcam.fileio import UserInputError
 from uwcam.optics.geometry import Intrinsics, pixel_rays
-from uwcam.rig import Rig
+from uwcam.calibration.rig import Rig
 from uwcam.simulation.camera import CameraModel
 from uwcam.simulation.render import Ambient, Components, Lamp, render
 from uwcam.simulation.scene import Hit, build_scene

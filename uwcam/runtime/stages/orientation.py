@@ -13,8 +13,8 @@ from numpy.typing import NDArray
 from uwcam.config import OrientationConfig
 from uwcam.optics.geometry import Intrinsics, pixel_rays
 from uwcam.optics.orientation import beam_pattern, block_irradiance, block_means, incidence_from_blocks
-from uwcam.profile import CalibrationProfile
-from uwcam.range_result import RangeResult
+from uwcam.calibration.profile import CalibrationProfile
+from uwcam.ranging.result import RangeResult
 from uwcam.runtime.stages.reflectance import ReflectanceCorrector
 
 

@@ -9,7 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from uwcam.config import PatchConfig
-from uwcam.profile import CalibrationProfile
+from uwcam.calibration.profile import CalibrationProfile
 
 
 @dataclass

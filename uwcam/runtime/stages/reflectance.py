@@ -13,7 +13,7 @@ from uwcam.drivers.base import Frame
 from uwcam.optics.geometry import Intrinsics, path_length_from_camera_range, pixel_rays
 from uwcam.optics.orientation import beam_pattern, normals_from_range, surface_scale
 from uwcam.optics.reflectance import surface_log_constant
-from uwcam.profile import CalibrationProfile
+from uwcam.calibration.profile import CalibrationProfile
 
 
 @dataclass

@@ -1,0 +1,108 @@
+"""The water's own light at the calibration plate's black patch: backscatter level and its
+variance, and the plate's own light beside it (docs/physics.md §7)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from uwcam.fileio import UserInputError
+
+from uwcam.calibration.noise_fit import mask_interior
+
+# Pixels kept clear of a region's edges (blur, partial pixels) when measuring noise or backscatter.
+EDGE = 2
+
+
+def dilate_mask(mask: NDArray[np.bool_], radius: int) -> NDArray[np.bool_]:
+    if radius <= 0:
+        return mask
+    kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+    return cv2.dilate(mask.astype(np.uint8), kernel).astype(bool)
+
+
+@dataclass(frozen=True)
+class BackscatterEstimate:
+    level: NDArray[np.float64]
+    """(N,) backscatter in DN (dark-corrected) at the black patch; may be slightly negative from noise."""
+    variance: NDArray[np.float64]
+    """(N,) its variance from pixel noise, DN²."""
+    black_mean: NDArray[np.float64]
+    """(N,) mean signal of the black patch, DN."""
+    plate_log: NDArray[np.float64]
+    """(N,) ln of the plate's own light (backscatter excluded pixel by pixel) at the patch's pixels."""
+    plate_log_variance: NDArray[np.float64]
+    """(N,) its variance from pixel noise."""
+    pixels: NDArray[np.bool_]
+    """(H, W) the patch pixels used."""
+
+
+def backscatter_at_black_patch(
+    signal: NDArray,
+    black_mask: NDArray[np.bool_],
+    plate_mask: NDArray[np.bool_],
+    black_reflectance: ArrayLike,
+    plate_reflectance: ArrayLike,
+    pixel_variance: NDArray | None = None,
+) -> BackscatterEstimate:
+    """Backscatter (DN, dark-corrected) in front of a plate, per channel, from its black patch.
+
+    signal: (H, W, N) dark-corrected average of the distance's frames; masks (H, W). At each patch
+    pixel, black = bs + ρ_black·X and the plate would read bs + ρ_plate·X, where X (lamp light ×
+    geometry) is *that pixel's own*: the lamp lights patch and surrounding plate differently
+    (spreading, beam pattern, incidence), so X is not the surround's mean. The plate's signal is
+    interpolated across the patch by a quadratic surface fitted to a ring of plate pixels around
+    it, then X = (plate − black)/(ρ_plate − ρ_black) and bs = black − ρ_black·X per pixel, averaged.
+    Edge pixels of patch and plate are left out (blur, partial pixels). ``pixel_variance``
+    (H, W, N): each pixel's noise variance, for the estimate's variance (0 without it).
+    """
+    rho_b = np.asarray(black_reflectance, dtype=np.float64)
+    rho_p = np.asarray(plate_reflectance, dtype=np.float64)
+    if not black_mask.any():
+        raise UserInputError("the black patch region holds no pixels; check the regions")
+    patch = mask_interior(black_mask, EDGE)
+    edge = EDGE
+    if patch.sum() < 4:
+        patch, edge = black_mask, 0  # a patch a few pixels wide (small or far): keep every pixel of it
+    ys, xs = np.nonzero(black_mask)
+    size = max(int(min(np.ptp(ys), np.ptp(xs)) + 1), 4)
+    ring = dilate_mask(black_mask, max(size // 2, 4)) & ~dilate_mask(black_mask, edge) & mask_interior(plate_mask, edge)
+    ring &= ~black_mask
+    if ring.sum() < 6:
+        raise UserInputError("the black patch is not surrounded by enough plate pixels to interpolate the plate's light across it; "
+                             "check the regions (the patch must lie inside the plate, away from its edges)")
+    cy, cx, scale = ys.mean(), xs.mean(), float(size)
+    quadratic = ring.sum() >= 24  # a few ring pixels only support a plane
+
+    def design(mask: NDArray[np.bool_]) -> NDArray:
+        yy, xx = np.nonzero(mask)
+        u, v = (xx - cx) / scale, (yy - cy) / scale
+        terms = [np.ones_like(u), u, v] + ([u * u, u * v, v * v] if quadratic else [])
+        return np.stack(terms, axis=1)
+
+    a_ring, a_patch = design(ring), design(patch)
+    plate_values = signal[ring]
+    coef, *_ = np.linalg.lstsq(a_ring, plate_values, rcond=None)
+    plate_at_patch = a_patch @ coef
+    black = signal[patch]
+    lit = (plate_at_patch - black) / (rho_p - rho_b)
+    level = (black - rho_b * lit).mean(axis=0)
+    # The plate's own light at these pixels, ρp·X, free of backscatter pixel by pixel whatever
+    # its spatial pattern (it cancels in plate − black).
+    difference = (plate_at_patch - black).mean(axis=0)
+    plate_log = np.log(np.maximum(difference, 1e-30)) + np.log(rho_p / (rho_p - rho_b))
+    variance = np.zeros(signal.shape[-1])
+    log_variance = np.zeros(signal.shape[-1])
+    if pixel_variance is not None:
+        # bs = α·mean(black) − β·mean(plate fit), α = ρp/(ρp−ρb), β = ρb/(ρp−ρb).
+        alpha, beta = rho_p / (rho_p - rho_b), rho_b / (rho_p - rho_b)
+        var_black = pixel_variance[patch].mean(axis=0) / patch.sum()
+        mean_row = a_patch.mean(axis=0)
+        leverage = float(mean_row @ np.linalg.pinv(a_ring.T @ a_ring) @ mean_row)
+        var_plate = pixel_variance[ring].mean(axis=0) * leverage
+        variance = alpha**2 * var_black + beta**2 * var_plate
+        log_variance = (var_black + var_plate) / np.maximum(difference, 1e-30) ** 2
+    return BackscatterEstimate(level, variance, black.mean(axis=0), plate_log, log_variance, patch)

@@ -1,0 +1,100 @@
+"""Ranging images offline (``uwcam range``), through the frame loop's own path.
+
+The frame loop, ``uwcam reprocess`` and this module all range through
+:func:`uwcam.ranging.estimator.range_frame` with the same pieces: a :class:`~uwcam.ranging.estimator.RangeEstimator`,
+the backscatter compensation of :class:`~uwcam.water.frame_compensator.BackscatterCompensator` (with its
+model's uncertainty) when asked for, and the open water's light that every pixel is judged against
+(:mod:`uwcam.water.water_light`). So one frame with one profile and the same settings gives the same
+range, variance and reasons, bit for bit, whichever way it is ranged.
+
+Several frames of one static scene are fused before ranging: their per-pixel mean, whose noise is
+that of the noise model with the temporal part (read, shot, quantisation) divided by the number of
+frames and the fixed pattern (each pixel's own response, the same in every frame) not.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from uwcam.fileio import UserInputError
+from uwcam.optics.noise import signal_variance, temporal_variance
+from uwcam.calibration.profile import CalibrationProfile
+from uwcam.ranging.result import RangeResult
+from uwcam.ranging.estimator import RangeEstimator, range_frame
+
+
+def fuse_frames(estimator: RangeEstimator, frames: Sequence[NDArray]) -> tuple[NDArray, NDArray | None]:
+    """(the frame to range, samples) for K frames (H, W, N) of one static scene: one frame as it is
+    (samples None); several, their mean (float32) and, per value, the number of single-pixel
+    noises its variance is equal to: σ²(E) / (σ_t²(E)/K + (f·E)²), σ_t² the temporal variance and
+    f the fixed pattern of the noise model (see :meth:`RangeEstimator.channel_terms`'s ``samples``)."""
+    if len(frames) == 0:
+        raise UserInputError("give at least one image to range")
+    first = frames[0]
+    for k, f in enumerate(frames[1:], start=2):
+        if f.shape != first.shape or f.dtype != first.dtype:
+            raise UserInputError(f"image {k} is {f.shape[1]}×{f.shape[0]}×{f.shape[2] if f.ndim == 3 else 1} {f.dtype} "
+                                 f"but image 1 is {first.shape[1]}×{first.shape[0]}×{first.shape[2] if first.ndim == 3 else 1} "
+                                 f"{first.dtype}; fuse only frames of one camera and scene")
+    if len(frames) == 1:
+        return first, None
+    k = len(frames)
+    response = getattr(estimator, "response", None)
+    if response is not None and np.issubdtype(first.dtype, np.integer):
+        frames = [response.linearise(f) for f in frames]  # a gamma camera: average light, not codes
+    mean = np.mean(np.stack(frames).astype(np.float64), axis=0)
+    e = mean - estimator.dark
+    q = estimator.profile.quantisation_step
+    total = signal_variance(e, estimator.read_noise, estimator.shot_gain, q, estimator.fixed_pattern)
+    fused = temporal_variance(e, estimator.read_noise, estimator.shot_gain, q) / k + (estimator.fixed_pattern * np.maximum(e, 0.0)) ** 2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        samples = np.where(fused > 0, total / fused, float(k))
+    # A saturated mean stays at or above the level: the estimator marks it as it would one frame.
+    return mean.astype(np.float32), samples.astype(np.float32)
+
+
+def range_images(
+    profile: CalibrationProfile,
+    frames: Sequence[NDArray],
+    *,
+    pair: tuple[str, str] | None = None,
+    surface_reflectance: Sequence[float] | None = None,
+    path_length_bounds: tuple[float, float] = (0.0, np.inf),
+    smoothing: str = "none",
+    compensate: bool = False,
+    iterations: int = 2,
+    open_water: NDArray | None = None,
+) -> RangeResult:
+    """Range, variance and reasons of a static scene seen in ``frames`` (K ≥ 1 raw frames (H, W, N)).
+
+    compensate: subtract modelled backscatter (``iterations`` passes, as the frame loop's
+    ``backscatter.iterations``); it is subtracted all the same wherever the profile has backscatter
+    measurements (:func:`uwcam.water.frame_compensator.compensation_iterations`: a range with the water's
+    light left in reads short), so the flag only refuses a profile without them; open_water: a lamp-lit frame of open water (H, W, N) raw, or several
+    (K, H, W, N), for the backscatter's pattern and the per-pixel open-water light. Whenever the
+    profile has backscatter measurements, a pixel not clearly above the open water's light has no
+    range (reason 3). smoothing: "none", "mean" or "median", of the range map (as the loop's
+    smoothing stage "after")."""
+    from uwcam.water.frame_compensator import BackscatterCompensator, compensation, compensation_iterations
+
+    options = dict(pair=pair, surface_reflectance=surface_reflectance, path_length_bounds=path_length_bounds)
+    estimator = RangeEstimator(profile, **options)
+    frame, samples = fuse_frames(estimator, list(frames))
+    if frame.ndim != 3 or frame.shape[-1] != len(profile.channels):
+        got = frame.shape[-1] if frame.ndim == 3 else 1
+        raise UserInputError(f"the image has {got} channel(s) but the calibration profile has {len(profile.channels)} "
+                             f"({','.join(profile.channel_names)}); use a profile made with this camera")
+    if open_water is not None and open_water.shape[-3:] != frame.shape:
+        raise UserInputError(f"the open-water frame is {open_water.shape[-2]}×{open_water.shape[-3]}×{open_water.shape[-1]} "
+                             f"but the image is {frame.shape[1]}×{frame.shape[0]}×{frame.shape[2]}; "
+                             "take it with the same camera and settings")
+    shape = frame.shape[:2]
+    transform, water = None, None
+    passes = compensation_iterations(iterations if compensate else None, profile)
+    if compensate or passes is not None:
+        comp = BackscatterCompensator(profile, shape, passes or iterations, open_water, **options)
+        transform, water = compensation(comp, estimator), comp.water
+    return range_frame(estimator, frame, smoothing, "after", None, (), transform, water, None, samples)

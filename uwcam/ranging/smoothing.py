@@ -1,0 +1,120 @@
+"""Smoothing for ranging: area means, a frame smoothed before the transform (its variance
+divided by the window's count), and the range map smoothed after it, weighted by its σ."""
+
+from __future__ import annotations
+
+import warnings
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from uwcam.fileio import UserInputError
+
+from uwcam.ranging.result import RangeResult
+
+
+def block_means(image: NDArray, size: tuple[int, int]) -> NDArray:
+    """``image`` (H, W) or (H, W, N) reduced to ``size`` = (w, h) by area averaging (OpenCV's
+    INTER_AREA), the type kept. An integer image whose sides are ``size`` times a power of two is
+    halved step by step instead: each step the exact 2×2 mean, rounded (½ DN at most), so a block of
+    8 is within 1.5 DN of its exact mean (against ½ DN in one reduction) and 2–3× faster than one
+    reduction by 8 (OpenCV's general path): 0.5 against 1.4 ms for a 1080p frame."""
+    w, h = size
+    height, width = image.shape[:2]
+    if np.issubdtype(image.dtype, np.integer) and w > 0 and h > 0 and height % h == 0 and width % w == 0:
+        fy, fx = height // h, width // w
+        if fy == fx and fy > 2 and fy & (fy - 1) == 0:
+            while image.shape[0] > h:
+                image = cv2.resize(image, (image.shape[1] // 2, image.shape[0] // 2), interpolation=cv2.INTER_AREA)
+            return image
+    return cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)
+
+
+def smooth_frame(frame: NDArray, kind: str, saturation_level: float) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """3×3 smoothing of a raw frame (H, W, N) before the transform (docs/physics.md §7).
+
+    Each channel of each pixel becomes the mean ("mean") or median ("median") of the unsaturated
+    values of that channel in its 3×3 window (clipped at the image border): a clipped value says
+    only "at least this bright" and would bias its neighbours. A pixel whose own value is
+    saturated stays saturated (its neighbours do not lend it a value). Returns the smoothed frame
+    (float32) and, per value, the number of independent samples its noise is averaged over:
+    n for the mean of n values (variance σ²/n); 1 for the median, whose variance is left at a
+    single pixel's (a conservative bound: 1.7 to 6 times the true one for 9 to 3 samples).
+    """
+    if kind not in ("mean", "median"):
+        raise UserInputError(f"smoothing must be 'mean' or 'median', got '{kind}'")
+    raw = np.asarray(frame)
+    saturated = raw >= saturation_level
+    values = raw.astype(np.float32)
+    usable = (~saturated).astype(np.float32)
+    box = dict(ddepth=-1, ksize=(3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    count = np.rint(cv2.boxFilter(usable, **box)).reshape(raw.shape)
+    if kind == "mean":
+        total = cv2.boxFilter(values * usable, **box).reshape(raw.shape)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            smoothed = np.where(count > 0, total / count, values)
+        samples = count
+    else:
+        smoothed = np.empty_like(values)
+        for k in range(raw.shape[-1]):
+            smoothed[..., k] = cv2.medianBlur(np.ascontiguousarray(values[..., k]), 3)
+        # The border and windows holding a saturated value: the median of the usable values alone.
+        redo = count < 9
+        if redo.any():
+            h, w = raw.shape[:2]
+            padded = np.pad(np.where(saturated, np.nan, values), ((1, 1), (1, 1), (0, 0)), constant_values=np.nan)
+            ii, jj, kk = np.nonzero(redo)
+            windows = np.stack([padded[ii + di, jj + dj, kk] for di in range(3) for dj in range(3)])
+            with np.errstate(all="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows: kept below
+                smoothed[ii, jj, kk] = np.nanmedian(windows, axis=0)
+        samples = np.ones(raw.shape, np.float32)
+    # A saturated value stays as it was: the estimator then marks that channel saturated.
+    smoothed = np.where(saturated, values, smoothed).astype(np.float32)
+    return smoothed, np.where(saturated, 1.0, samples).astype(np.float32)
+
+
+def smooth_range_map(result: RangeResult, kind: str = "mean") -> RangeResult:
+    """3×3 smoothing of a range map over valid neighbours only (docs/physics.md §7).
+
+    kind "mean": average of the n valid pixels in each 3×3 window, with the variance of that
+    average for independent neighbours, Σσ_k²/n² (σ²/n when all are equal), plus the
+    calibration's share of the variance, which neighbours have in common; "median": their
+    median, variance kept.
+    Invalid pixels stay invalid with their reasons, and never leak into valid ones.
+    """
+    if kind not in ("mean", "median"):
+        raise UserInputError(f"smoothing must be 'mean' or 'median', got '{kind}'")
+    r = result.range
+    valid = np.isfinite(r)
+    # The calibration's share is common to neighbouring pixels: averaging does not reduce it.
+    cal = 0.0 if result.calibration_variance is None else result.calibration_variance
+    if kind == "mean":
+        # Window sums as box filters (outside the image and at invalid pixels: 0, not counted),
+        # in float32 like the maps themselves (sums of nine: within 3 units in the last place):
+        # ~10× faster at 720p than over nine shifted float64 copies, so it can be on by default.
+        def window_sum(a: NDArray[np.float32]) -> NDArray[np.float32]:
+            return cv2.boxFilter(a, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
+
+        zero = np.float32(0)
+        count = window_sum(valid.astype(np.float32))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            smoothed = window_sum(np.where(valid, r, zero)) / count
+        # The noise of independent neighbours averages as Σσ_k²/n²; the calibration's share does not.
+        noise = np.where(valid, result.variance.astype(np.float32) - np.float32(cal), zero)
+        variance = window_sum(noise) / np.maximum(count, np.float32(1)) ** 2 + np.float32(cal)
+    else:
+        padded = np.pad(np.where(valid, r.astype(np.float64), np.nan), 1, constant_values=np.nan)
+        h, w = r.shape
+        windows = np.stack([padded[dy : dy + h, dx : dx + w] for dy in range(3) for dx in range(3)])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows
+            smoothed = np.nanmedian(windows, axis=0)
+        variance = result.variance
+    return RangeResult(
+        np.where(valid, smoothed, np.nan).astype(np.float32),
+        np.where(valid, variance, np.nan).astype(np.float32),
+        result.reasons.copy(),
+        result.calibration_variance,
+    )

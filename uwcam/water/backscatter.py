@@ -1,0 +1,335 @@
+"""Backscatter compensation: subtract the water's own light before ranging, iteratively.
+
+Backscatter adds light that never reached the surface, more of it the farther the surface
+(the lit water column in front of it is longer) and most where lamp beam and view overlap.
+Its spectrum is not the surface's, so it biases the colour ratio toward the water's colour.
+
+Model:
+  bs_k(p, z) = S_k(p) · F_k(p, z)
+* F_k(p, z): the share of pixel p's open-water backscatter that comes from water closer than
+  depth z. When the profile knows the absolute attenuation c_k and the lamp's effective radius
+  r (calibrate with --lamp-radius), F follows the physics of the lit column along the pixel's
+  ray: ∫ (r/(d_s + r))² exp(−c_k (d_s + t)) dt up to z, over the same integral to infinity
+  (the beam pattern is taken as even across the view; its shape is in S). Otherwise F is
+  interpolated between the backscatter measured at the calibration plate's black patch at
+  each plate distance (0 at the camera) and held beyond the last.
+* S_k(p): the open-water backscatter, from a lamp-lit frame of open water (nothing in range)
+  smoothed; without one, the patch measurements scaled by F. Given several open-water frames,
+  also each pixel's own response relative to its neighbours (the sensor's photo-response
+  non-uniformity, 1 % or so, which a smoothed pattern loses: 1 % of a backscatter twenty times the
+  surface's light is a fifth of that light), estimated from their mean and shrunk by the noise
+  that their spread shows (see :func:`pixel_response`).
+
+Ranging then iterates: range → backscatter at that range → subtract → range, starting from the
+uncompensated range. Pixels still without a range use the open-water (or plateau) level.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from uwcam.fileio import UserInputError
+from uwcam.optics.geometry import pixel_rays
+from uwcam.calibration.profile import CalibrationProfile
+from uwcam.compute.jit import HAVE_NUMBA, njit
+
+
+def _interpolate_table_py(flat, index, spatial, i0, f, out):
+    """out[p, k] = Σ_q spatial[q, p] · ((1 − f[p]) · flat[index[q, p] + i0[p], k] + f[p] · flat[… + 1, k]):
+    F of :meth:`BackscatterModel.fraction` for P pixels, four grid nodes each (compiled: one pass,
+    no temporaries; the numpy gather it replaces cost ~2 ms per 720p frame, twice a frame)."""
+    for p in range(out.shape[0]):
+        g = f[p]
+        for k in range(out.shape[1]):
+            acc = 0.0
+            for q in range(4):
+                row = index[q, p] + i0[p]
+                acc += spatial[q, p] * ((1.0 - g) * flat[row, k] + g * flat[row + 1, k])
+            out[p, k] = acc
+
+
+_interpolate_table = njit(cache=True, nogil=True)(_interpolate_table_py) if HAVE_NUMBA else None
+
+# Side of the box average that takes the noise out of an open-water frame (pixels).
+OPEN_WATER_SMOOTHING = 15
+
+
+# Depth samples of the physical model and the coarse pixel grid it is evaluated on.
+_DEPTH_SAMPLES = 96
+_GRID_STEP = 16
+_PORT = 0.05  # water starts at the camera port, metres
+
+
+def pixel_response(frames: NDArray, smooth: NDArray) -> NDArray[np.float64]:
+    """Each pixel's response relative to the smoothed level, from K ≥ 2 frames of a smooth scene.
+
+    frames: (K, H, W, N) dark-corrected DN; smooth: (H, W, N) the smoothed mean. The relative
+    residual q = mean/smooth − 1 of each pixel holds its response g − 1 (variance σ_g², one value
+    per channel) and the noise of a K-frame mean (variance σ_n²/K, from the frames' spread about
+    their mean); the estimate is the shrunk q · σ_g²/(σ_g² + σ_n²/K) (the Wiener weight, with
+    σ_g² = var q − σ_n²/K, 0 when negative). Returns (H, W, N) g ≥ 0, 1 on average.
+    """
+    k = frames.shape[0]
+    mean = frames.mean(axis=0)
+    safe = np.where(smooth > 0, smooth, 1.0)
+    q = np.where(smooth > 0, mean / safe - 1.0, 0.0)
+    noise = np.where(smooth > 0, frames.var(axis=0, ddof=1) / safe**2, 0.0) / k  # (H, W, N) variance of q's noise
+    noise_var = noise.reshape(-1, noise.shape[-1]).mean(axis=0)
+    total_var = (q**2).reshape(-1, q.shape[-1]).mean(axis=0)
+    response_var = np.maximum(total_var - noise_var, 0.0)
+    weight = np.where(total_var > 0, response_var / np.where(total_var > 0, total_var, 1.0), 0.0)
+    return np.maximum(1.0 + q * weight, 0.0)
+
+
+# The column's attenuation and the lamp's beam, fitted to an open-water frame: the grids searched.
+_FIT_ATTENUATIONS = np.geomspace(0.01, 2.0, 64)  # 1/m
+_FIT_BEAM_SCALES = np.linspace(0.0, 8.0, 33)  # k in the beam pattern exp(−k·(1 − cos θ))
+_FIT_DEPTH_SAMPLES = 160
+_FIT_MARGIN = 2 * OPEN_WATER_SMOOTHING  # pixels kept clear of the image border (the smoothing's edge)
+FIT_TOLERANCE = 0.002
+"""rms in log level (0.2 %) within which column shapes are not told apart: the model's own
+simplifications (one c for the light's way out and back, forward scatter folded into it) depart
+from real columns by about that much."""
+
+
+def _column_geometry(rays: NDArray, lamp: NDArray, radius: float, z: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+    """Along each ray (P, 3) at depths z (Z,): the light path ds + t (m), the cosine of the angle
+    off the beam's axis (camera z) as seen from the lamp, and the spreading × dt (P, Z) each."""
+    t = z[None, :] / rays[:, 2:3]  # (P, Z) distance along each ray
+    offset = t[..., None] * rays[:, None, :] - lamp
+    ds = np.linalg.norm(offset, axis=-1)
+    # Irradiance falls as (r/(d_s + r))²: up to the constant r², which no use of the column's shape
+    # keeps, 1/(d_s + r)², so a point lamp (r = 0) spreads as 1/d_s² instead of vanishing.
+    spread = np.gradient(t, axis=1) / np.maximum(ds + radius, 1e-3) ** 2
+    return ds + t, offset[..., 2] / np.maximum(ds, 1e-12), spread
+
+
+def fit_column(level: NDArray, rays: NDArray, lamp: NDArray, radius: float,
+               prior: NDArray | None = None) -> tuple[NDArray, NDArray]:
+    """The column attenuation c (1/m) and beam k of :func:`_column_shares` that best give the
+    open-water backscatter's shape across the view.
+
+    level: (P, N) smoothed open-water backscatter (DN) along rays (P, 3). The open-water level of a
+    ray is ∫ exp(−k(1 − cos θ)) (r/(d_s + r))² exp(−c (d_s + t)) dt: how it changes across the view
+    (toward the lamp and away from it, toward the beam's edge) depends on c and k, its scale not.
+    Least squares in log level, up to a constant per channel, over grids of c and k. Where the shape
+    does not tell c (a lamp at the camera: every ray's column is lit alike), every c whose best
+    fit is within :data:`FIT_TOLERANCE` of the best is as good: then the one nearest (in log) to
+    ``prior`` (N,), the calibration's c. Returns (N,), (N,).
+    """
+    z = np.geomspace(_PORT, 200.0, _FIT_DEPTH_SAMPLES)
+    path, cos_beam, spread = _column_geometry(rays, lamp, radius, z)
+    decay = np.exp(-_FIT_ATTENUATIONS[:, None, None] * path[None])  # (C, P, Z)
+    target = np.log(np.maximum(level, 1e-30))  # (P, N)
+    target = target - target.mean(axis=0)
+    costs = []
+    for k in _FIT_BEAM_SCALES:
+        model = np.log(np.einsum("cpz,pz->cp", decay, spread * np.exp(-k * (1.0 - cos_beam))))  # (C, P)
+        model -= model.mean(axis=1, keepdims=True)
+        costs.append(((model[:, :, None] - target[None]) ** 2).mean(axis=1))  # (C, N)
+    cost = np.array(costs)  # (K, C, N)
+    profile = cost.min(axis=0)  # (C, N): each c with its best beam
+    n = level.shape[1]
+    if prior is None:
+        pick = profile.argmin(axis=0)
+    else:
+        allowed = profile <= profile.min(axis=0) + FIT_TOLERANCE**2
+        distance = np.abs(np.log(_FIT_ATTENUATIONS)[:, None] - np.log(np.maximum(np.asarray(prior, np.float64), _FIT_ATTENUATIONS[0])))
+        pick = np.where(allowed, distance, np.inf).argmin(axis=0)
+    beam = cost[:, pick, np.arange(n)].argmin(axis=0)
+    return _FIT_ATTENUATIONS[pick], _FIT_BEAM_SCALES[beam]
+
+
+def _column_shares(rays: NDArray, lamp: NDArray, radius: float, attenuation: NDArray, depths: NDArray,
+                   beam: NDArray | None = None) -> NDArray:
+    """(P, T, N) share of each ray's lit-column backscatter closer than each depth (T,); beam: (N,)
+    k of the beam pattern exp(−k(1 − cos θ)) per channel (None: an even beam)."""
+    z = np.geomspace(_PORT, max(depths[-1], _PORT * 2), _DEPTH_SAMPLES * 4)
+    path, cos_beam, spread = _column_geometry(rays, lamp, radius, z)
+    shares = []
+    for j, c in enumerate(attenuation):
+        f = spread * np.exp(-c * path)
+        if beam is not None:
+            f = f * np.exp(-beam[j] * (1.0 - cos_beam))
+        cum = np.cumsum(f, axis=1)
+        cum /= cum[:, -1:]
+        shares.append(np.stack([np.interp(depths, z, row) for row in cum]))
+    return np.stack(shares, axis=-1)
+
+
+def _column_totals(rays: NDArray, lamp: NDArray, radius: float, attenuation: NDArray) -> NDArray:
+    """(P, N) each ray's whole lit-column backscatter ∫ exp(−c(d_s + t))/(d_s + r)² dt, up to a
+    constant, with an even beam: how open water's light changes across the view with the lamp's
+    place (brighter toward the lamp's side)."""
+    z = np.geomspace(_PORT, 200.0, _DEPTH_SAMPLES * 4)
+    path, _, spread = _column_geometry(rays, lamp, radius, z)
+    return np.stack([np.sum(spread * np.exp(-c * path), axis=1) for c in attenuation], axis=-1)
+
+
+_PATTERN_STEP = 8  # pixels between the rays the physical open-water pattern is evaluated on
+
+
+@dataclass(frozen=True)
+class BackscatterModel:
+    """bs_k(p, z) = pattern[p, k] · F_k(p, z); F tabulated over depths on a coarse grid."""
+
+    depths: NDArray[np.float64]
+    """(T,) depth samples, metres."""
+    shares: NDArray[np.float64]
+    """(gh, gw, T, N) F at the grid points, or (1, 1, T, N) when uniform over the image."""
+    pattern: NDArray[np.float64]
+    """(H, W, N) open-water backscatter in DN, smoothed, or (1, 1, N)."""
+    grid_step: int
+    response: NDArray[np.float64] | None = None
+    """(H, W, N) each pixel's response relative to the smoothed pattern (from several open-water
+    frames), or None (1 everywhere)."""
+
+    @classmethod
+    def from_profile(cls, profile: CalibrationProfile, open_water: NDArray | None = None,
+                     shape: tuple[int, int] | None = None) -> "BackscatterModel":
+        """From the profile's backscatter measurements and an optional lamp-lit open-water frame (H, W, N) raw,
+        or several of them (K, H, W, N): their mean is the frame, and with K ≥ 2 each pixel's own response
+        is estimated too (:func:`pixel_response`). shape: (H, W) of the frames to be ranged, when no
+        open-water frame gives it."""
+        if profile.backscatter is None:
+            raise UserInputError(
+                "the calibration profile has no backscatter measurements; calibrate with a rig that has a black patch "
+                "(e.g. --rig grey-plate) to compensate backscatter"
+            )
+        bs = profile.backscatter
+        if open_water is not None and profile.response is not None and np.issubdtype(np.asarray(open_water).dtype,
+                                                                                      np.integer):
+            open_water = profile.response_curve().linearise(np.asarray(open_water))  # a gamma camera's codes
+        names = profile.channel_names
+        n = len(names)
+        measured_depths = np.array(bs.distances_m)
+        levels = np.array([bs.levels[k] for k in names]).T  # (n, N)
+        order = np.argsort(measured_depths)
+        measured_depths, levels = measured_depths[order], levels[order]
+        patches = np.array(bs.patch_pixels)[order]
+        c = profile.array("attenuation") if all(ch.attenuation is not None for ch in profile.channels) else None
+        intr = profile.camera_intrinsics()
+        physical = c is not None and profile.lamp_radius_m is not None and intr is not None
+        if open_water is not None:
+            if open_water.ndim not in (3, 4) or open_water.shape[-1] != n or open_water.shape[0] == 0:
+                raise UserInputError(f"the open-water frame must have {n} channels like the profile")
+            shape = open_water.shape[-3:-1]
+        depths = np.geomspace(_PORT, 200.0, _DEPTH_SAMPLES)
+        pattern = None
+        if open_water is not None:
+            frames = open_water.astype(np.float64).reshape(-1, *open_water.shape[-3:]) - profile.array("dark_level")
+            water = frames.mean(axis=0)
+            pattern = np.maximum(cv2.blur(water, (OPEN_WATER_SMOOTHING, OPEN_WATER_SMOOTHING), borderType=cv2.BORDER_REFLECT), 0.0)
+        beam = None
+        if physical and pattern is not None:
+            # The open-water frame's shape across the view gives the column's attenuation and the
+            # beam (the calibration's c is that of the plate's light, which a lamp beside the
+            # camera biases: each pixel sees the plate at another angle off the beam at each distance).
+            h, w = shape
+            m = min(_FIT_MARGIN, (h - 1) // 2, (w - 1) // 2)
+            fy = np.unique(np.linspace(m, h - 1 - m, 12).round().astype(int))
+            fx = np.unique(np.linspace(m, w - 1 - m, 16).round().astype(int))
+            fit_rays = pixel_rays(intr, h, w)[np.ix_(fy, fx)].reshape(-1, 3)
+            fit_level = pattern[np.ix_(fy, fx)].reshape(-1, n)
+            usable = np.all(fit_level > 0, axis=0)
+            if usable.any():
+                c_fit, k_fit = fit_column(fit_level[:, usable], fit_rays, np.array(profile.lamp_position_m),
+                                          profile.lamp_radius_m, prior=c[usable])
+                c = c.copy()
+                c[usable] = c_fit
+                beam = np.zeros(n)
+                beam[usable] = k_fit
+        if physical:
+            h, w = shape if shape is not None else (int(2 * intr.cy + 1), int(2 * intr.cx + 1))
+            gy = np.minimum(np.arange(0, h + _GRID_STEP, _GRID_STEP), h - 1)
+            gx = np.minimum(np.arange(0, w + _GRID_STEP, _GRID_STEP), w - 1)
+            rays = pixel_rays(intr, h, w)[np.ix_(gy, gx)].reshape(-1, 3)
+            lamp = np.array(profile.lamp_position_m)
+            shares = _column_shares(rays, lamp, profile.lamp_radius_m, c, depths, beam).reshape(len(gy), len(gx), len(depths), n)
+            step = _GRID_STEP
+        else:
+            at = np.concatenate([[0.0], measured_depths])
+            shares = np.stack([np.interp(depths, at, np.concatenate([[0.0], levels[:, k] / levels[-1, k]]))
+                               if levels[-1, k] > 0 else np.zeros_like(depths) for k in range(n)], axis=-1)[None, None]
+            step = 0
+        model = cls(depths, shares, np.ones((1, 1, n)), step)
+        if pattern is not None:
+            response = pixel_response(frames, pattern) if frames.shape[0] >= 2 else None
+            return cls(depths, shares, pattern, step, response)
+        # No open-water frame: scale F so the model meets the last patch measurement; uniform in
+        # space, or, with the physics of the column, following the lamp's place across the view.
+        x, y = patches[-1]
+        at_patch = model.fraction(np.array([[measured_depths[-1]]]), np.array([[y]]), np.array([[x]]))[0, 0]
+        shape_across = np.ones((1, 1, n))
+        if physical:
+            h, w = shape if shape is not None else (int(2 * intr.cy + 1), int(2 * intr.cx + 1))
+            gh, gw = max(h // _PATTERN_STEP, 2), max(w // _PATTERN_STEP, 2)
+            rows = np.linspace(0, h - 1, gh).round().astype(int)
+            cols = np.linspace(0, w - 1, gw).round().astype(int)
+            rays = pixel_rays(intr, h, w)[np.ix_(rows, cols)].reshape(-1, 3)
+            totals = _column_totals(rays, np.array(profile.lamp_position_m), profile.lamp_radius_m, c).reshape(gh, gw, n)
+            totals = totals / totals.max(axis=(0, 1))
+            shape_across = cv2.resize(totals.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR).reshape(h, w, n)
+            at_patch = at_patch * shape_across[int(round(min(max(y, 0), h - 1))), int(round(min(max(x, 0), w - 1)))]
+        scale = np.where(at_patch > 0, levels[-1] / np.where(at_patch > 0, at_patch, 1.0), 0.0)
+        return cls(depths, shares, (shape_across * scale).astype(np.float64), step)
+
+    def corners(self, rows: NDArray, cols: NDArray) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """For pixels at (rows, cols) (any shape S, full-resolution coordinates): the rows of the
+        flattened table ``shares.reshape(-1, N)`` at the first depth sample of the four grid nodes
+        around each pixel, and their bilinear weights; (4, *S) each. They do not depend on depth:
+        a caller that asks for F at the same pixels again and again computes them once
+        (:meth:`fraction`'s ``corners``). Only for a model with a grid (grid_step > 0)."""
+        gh, gw, n_depths, _ = self.shares.shape
+        gy, gx = np.asarray(rows, np.float64) / self.grid_step, np.asarray(cols, np.float64) / self.grid_step
+        y0 = np.minimum(gy.astype(int), gh - 2)
+        x0 = np.minimum(gx.astype(int), gw - 2)
+        fy, fx = gy - y0, gx - x0
+        index = np.stack([((y0 + dy) * gw + (x0 + dx)) * n_depths for dy in (0, 1) for dx in (0, 1)])
+        weight = np.stack([wy * wx for wy in (1 - fy, fy) for wx in (1 - fx, fx)])
+        return index.astype(np.int64), weight
+
+    def fraction(self, depth: NDArray, rows: NDArray | None = None, cols: NDArray | None = None,
+                 corners: tuple[NDArray, NDArray] | None = None) -> NDArray[np.float64]:
+        """F at surface depths (H, W) metres → (H, W, N); NaN depth (no range) counts as open water.
+        rows, cols: the pixels' full-resolution coordinates (default: the pixel grid of ``depth``);
+        corners: :meth:`corners` of those pixels, computed beforehand (then rows and cols are not read)."""
+        z = np.asarray(depth, dtype=np.float64)
+        z = np.where(np.isnan(z), self.depths[-1], np.clip(z, self.depths[0], self.depths[-1]))
+        pos = np.interp(np.log(z), np.log(self.depths), np.arange(len(self.depths)))
+        i0 = np.minimum(pos.astype(int), len(self.depths) - 2)
+        f = pos - i0
+        if self.grid_step == 0:
+            table = self.shares[0, 0]
+            return table[i0] * (1 - f)[..., None] + table[i0 + 1] * f[..., None]
+        if corners is None:
+            if rows is None:
+                rows, cols = np.mgrid[0:z.shape[0], 0:z.shape[1]]
+            corners = self.corners(rows, cols)
+        index, spatial = corners
+        flat = self.shares.reshape(-1, self.shares.shape[-1])
+        if _interpolate_table is not None:
+            out = np.empty(z.shape + (flat.shape[1],))
+            _interpolate_table(np.ascontiguousarray(flat), index.reshape(4, -1), spatial.reshape(4, -1),
+                               i0.reshape(-1), f.reshape(-1), out.reshape(-1, flat.shape[1]))
+            return out
+        # Bilinear in the pixel grid, linear in log depth: eight table rows per pixel, taken in one
+        # gather (one numpy call rather than eight: the grid is small, the calls were the cost).
+        rows_at = index + i0
+        both = np.concatenate([rows_at, rows_at + 1])
+        weight = np.concatenate([spatial * (1 - f), spatial * f])
+        return np.einsum("q...,q...n->...n", weight, flat[both])
+
+    def open_water_level(self, shape: tuple[int, int]) -> NDArray[np.float64]:
+        """(H, W, N) backscatter (DN, dark-corrected) of open water, nothing in range, at every pixel of
+        frames of ``shape`` (H, W): the light a pixel must be clearly above to carry a surface's."""
+        return self.level(np.full(shape, np.nan))
+
+    def level(self, depth: NDArray) -> NDArray[np.float64]:
+        """Backscatter (DN, dark-corrected) for surfaces at ``depth`` (H, W) metres → (H, W, N)."""
+        level = self.pattern * self.fraction(depth)
+        return level if self.response is None else level * self.response
