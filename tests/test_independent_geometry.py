@@ -190,3 +190,16 @@ def test_paths_shorter_than_the_lamp_offset_or_out_of_bounds_have_no_range():
     assert np.isnan(out.range[0, 0]) and np.isnan(out.variance[0, 2]) and np.isfinite(out.range[0, 1])
     low = RangeEstimator(make_profile(C, B), path_length_bounds=(2.5, 20.0))(e)
     assert list(low.reasons[0]) == [Reason.PATH_OUT_OF_BOUNDS, Reason.PATH_OUT_OF_BOUNDS, Reason.VALID]
+
+
+def test_reduced_intrinsics_point_at_the_centres_of_the_blocks_they_average():
+    """A 4×3-reduced image's pixel (i, j) averages full pixels 4j..4j+3 across and 3i..3i+2 down:
+    its ray is the ray of the block's centre (4j + 1.5, 3i + 1), written out here."""
+    from uwcam.optics.geometry import Intrinsics
+
+    full = Intrinsics(800.0, 790.0, 639.5, 359.5)
+    small = full.reduced(4, 3)
+    for i, j in ((0, 0), (5, 7), (119, 159)):
+        u, v = 4 * j + 1.5, 3 * i + 1.0
+        assert (j - small.cx) / small.fx == pytest.approx((u - full.cx) / full.fx, rel=1e-12, abs=1e-15)
+        assert (i - small.cy) / small.fy == pytest.approx((v - full.cy) / full.fy, rel=1e-12, abs=1e-15)

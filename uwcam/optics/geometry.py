@@ -33,6 +33,12 @@ class Intrinsics:
         fx = (width / 2.0) / np.tan(np.radians(horizontal_fov_deg) / 2.0)
         return cls(fx, fx, (width - 1) / 2.0, (height - 1) / 2.0)
 
+    def reduced(self, sx: float, sy: float) -> "Intrinsics":
+        """The intrinsics of the image reduced ``sx`` times across and ``sy`` times down by area
+        averaging: pixel (i, j) of the reduced image is the block centred at full-image pixel
+        ((j + 0.5)·sx − 0.5, (i + 0.5)·sy − 0.5)."""
+        return Intrinsics(self.fx / sx, self.fy / sy, (self.cx + 0.5) / sx - 0.5, (self.cy + 0.5) / sy - 0.5)
+
 
 def pixel_rays(intrinsics: Intrinsics, height: int, width: int) -> NDArray[np.float64]:
     """Unit ray u of every pixel centre, shape (height, width, 3)."""

@@ -18,7 +18,7 @@ from uwcam.fileio import UserInputError
 
 from uwcam.optics import kernels
 from uwcam.optics.calibration_variance import calibration_path_variance
-from uwcam.optics.geometry import Intrinsics, camera_range_derivative, pixel_rays
+from uwcam.optics.geometry import camera_range_derivative, pixel_rays
 from uwcam.optics.noise import signal_variance
 from uwcam.optics.validity import ChannelState, Reason, channel_states
 from uwcam.calibration.profile import CalibrationProfile
@@ -391,9 +391,7 @@ class RangeEstimator:
             intr = self.profile.camera_intrinsics()
             rays = None
             if intr is not None and np.any(self.profile.lamp_position_m):
-                sx, sy = w / gw, h / gh  # block (i, j) centres at ((j + 0.5)·sx − 0.5, (i + 0.5)·sy − 0.5)
-                rays = pixel_rays(Intrinsics(intr.fx / sx, intr.fy / sy, (intr.cx + 0.5) / sx - 0.5,
-                                             (intr.cy + 0.5) / sy - 0.5), gh, gw)
+                rays = pixel_rays(intr.reduced(w / gw, h / gh), gh, gw)
             self._low_res_rays[key] = rays
         return self._low_res_rays[key]
 

@@ -168,9 +168,9 @@ class BackscatterCompensator:
         # whose pixel rays are those of the full frame's COARSE×COARSE block centres.
         coarse_profile = compensated
         if intr is not None:
-            f = COARSE
+            reduced = intr.reduced(COARSE, COARSE)
             coarse_profile = compensated.model_copy(update={"intrinsics": {
-                "fx": intr.fx / f, "fy": intr.fy / f, "cx": (intr.cx + 0.5) / f - 0.5, "cy": (intr.cy + 0.5) / f - 0.5}})
+                "fx": reduced.fx, "fy": reduced.fy, "cx": reduced.cx, "cy": reduced.cy}})
         self._coarse = RangeEstimator(coarse_profile, calibration_variance=False, **options)
         self._axis_cos_coarse = cv2.resize(self._axis_cos, coarse, interpolation=cv2.INTER_AREA)
         for est in (self.estimator, self._coarse):  # compiled (or loaded from the cache) now, not mid-frame
