@@ -74,7 +74,9 @@ def test_the_rail_moves_the_plate_and_refuses_numbers_outside_it(tmp_path):
         started_session = s.http.post(URL, json={}).json()
         assert s.http.get("/api/v1/status").json()["calibration_session"] == {"id": started_session["id"],
                                                                              "state": "positioning", "captures": 0}
-        assert live(s, 1.5)["marker_distance_m"] == pytest.approx(1.5, abs=0.02)
+        # Frames rendered before the rail arrived may still be the newest for a moment (the loop's
+        # latency on a loaded machine): the feedback follows the plate within the next frames.
+        assert wait_for(lambda: abs(live(s, 1.5)["marker_distance_m"] - 1.5) <= 0.02, 30.0, 0.2), live(s, 1.5)
         for body in ({"distance_m": 0.49}, {"distance_m": 4.01}, {"distance_m": -1}, {"distance_m": "near"}, {},
                      {"distance_m": 2.0, "tilt_deg": 3}, {"distance_m": 1e308}):
             r = s.http.put(RAIL, json=body)
