@@ -54,6 +54,9 @@ def test_guided_calibration_validated_accepted_and_activated(tank):
     assert tank.http.post(URL, json={}).status_code == 409  # one session at a time
 
     move_plate(tank, 1.0)
+    # The simulated sonar answers at its own pace: its first reading of the moved plate may take
+    # a moment on a loaded machine (the feedback says None until then, never a stale range).
+    assert wait_for(lambda: tank.http.get(URL, params={"distance": 1.0}).json()["live"]["rangefinder_m"] is not None, 20.0, 0.2)
     status = tank.http.get(URL, params={"distance": 1.0}).json()
     live = status["live"]
     assert live["plate_found"] and live["typed_agrees"] and live["tilt_deg"] < 3

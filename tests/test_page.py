@@ -606,7 +606,8 @@ def test_backscatter_compensation_and_its_open_water_frame_from_the_page(server,
         # whatever the settings say, and the box shows it ticked, not to be unticked, and why.
         assert wait_for(lambda: displayed(page) > 0 and "on (always" in page.inner_text("#backscatter-state"), 15.0)
         box = page.locator("#backscatter-on")
-        assert box.is_checked() and box.is_disabled() and "always on" in box.get_attribute("title")
+        assert wait_for(lambda: box.is_checked() and box.is_disabled(), 10.0)
+        assert "always on" in box.get_attribute("title")
         assert server.daemon.pipeline.processing.backscatter is None  # not asked for: known
         assert wait_for(lambda: "no open-water frame" in page.inner_text("#backscatter-state"), 10.0)
         rig.show("open-water")  # the vehicle turned to open water
