@@ -16,7 +16,7 @@ from tests.served import Server
 from tests.waiting import wait_for
 from uwcam.config import ApiConfig, CameraConfig, DaemonConfig, DeviceConfig
 from uwcam.optics.orientation import (beam_pattern, block_irradiance, block_means, incidence_from_blocks, kirlin_estimate,
-                                      surface_scale)
+                                      plane_normal, surface_scale)
 
 ALPHA = np.array([0.46, 0.11, 0.06])  # 1/m, Jerlov II-like red, green, blue
 
@@ -125,6 +125,35 @@ def test_block_irradiance_masks_dark_saturated_and_unranged_pixels_alike_on_both
                 np.testing.assert_allclose(fast[i, j], e[i * b:(i + 1) * b, j * b:(j + 1) * b][m].mean(axis=0), rtol=1e-5)
     np.testing.assert_allclose(fast[0, 0], 1000 - dark, rtol=1e-6)
     assert share[1, 0] == 0 and np.isnan(fast[1, 0]).all()  # saturated in one channel
+
+
+@pytest.mark.parametrize("tilt_deg", [0.0, 30.0, 60.0])
+def test_plane_normal_of_noisy_ranges_is_unbiased(tilt_deg):
+    """A plane at 2 m tilted about x, seen through a 25 × 25-pixel patch, ranges with 2.5 % noise
+    along the rays (the noise of one frame): the fitted normal's angle to the truth stays small on
+    average, with no drift toward steeper angles (a fit of the points' least spread tilts it by
+    several degrees at this noise)."""
+    t = np.radians(tilt_deg)
+    normal = np.array([0.0, np.sin(t), -np.cos(t)])  # facing the camera (z forward)
+    gx, gy = np.meshgrid(np.arange(25) - 12.0, np.arange(25) - 12.0)
+    rays = np.stack([gx / 300.0, gy / 300.0, np.ones_like(gx)], axis=-1).reshape(-1, 3)
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    exact = -2.0 / (rays @ normal)  # n·P = −2 m: the plane crosses the axis at 2/cos t
+    rng = np.random.default_rng(7)
+    angles, tilts = [], []
+    for _ in range(200):
+        r = exact * (1 + rng.normal(0, 0.025, exact.shape))
+        r[rng.uniform(size=r.shape) < 0.1] = np.nan  # pixels without a range
+        n = plane_normal(r, rays)
+        angles.append(np.degrees(np.arccos(np.clip(n @ normal, -1, 1))))
+        tilts.append(np.degrees(np.arctan2(n[1], -n[2])))
+        assert abs(np.linalg.norm(n) - 1) < 1e-12
+    assert np.mean(angles) < 6.0 and np.median(angles) < 6.0, np.mean(angles)
+    assert abs(np.mean(tilts) - tilt_deg) < 1.0, np.mean(tilts)  # neither steeper nor shallower
+    exact_n = plane_normal(exact, rays)
+    np.testing.assert_allclose(exact_n, normal, atol=1e-12)
+    assert plane_normal(exact[:2], rays[:2]) is None
+    assert plane_normal(np.full(5, np.nan), rays[:5]) is None
 
 
 def test_beam_pattern_halves_at_the_half_angle():

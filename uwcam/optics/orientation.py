@@ -144,6 +144,28 @@ def normals_from_range(range_m: ArrayLike, intrinsics: Intrinsics, window: int =
     return n.astype(np.float32)
 
 
+def plane_normal(range_m: ArrayLike, rays: ArrayLike) -> NDArray[np.float64] | None:
+    """Unit normal (3,) in the camera frame, facing the camera, of the plane that best fits ranges
+    (N,) metres along unit rays (N, 3); pixels with a NaN are left out. None with fewer than three
+    ranges or a degenerate fit.
+
+    A plane n·P = d meets the ray u at r = d / (n·u), so 1/r = (n/d)·u is linear in the ray and
+    the fit is ordinary least squares with the noise where it is, in the range. (A fit of the
+    points' least spread would count the range noise, which runs along the line of sight, as
+    spread of the surface and tilt the plane away from the camera.) Far steadier than averaging
+    per-pixel normals, each of which differentiates noise over a few pixels."""
+    r = np.asarray(range_m, dtype=np.float64).reshape(-1)
+    u = np.asarray(rays, dtype=np.float64).reshape(-1, 3)
+    ok = np.isfinite(r) & (r > 0) & np.all(np.isfinite(u), axis=1)
+    if ok.sum() < 3:
+        return None
+    p, _, rank, _ = np.linalg.lstsq(u[ok], 1.0 / r[ok], rcond=None)
+    norm = float(np.linalg.norm(p))
+    if rank < 3 or not np.isfinite(norm) or norm == 0.0:
+        return None
+    return -p / norm  # p = n/d points away from the camera
+
+
 def beam_pattern(rays: ArrayLike, half_angle_deg: float | None) -> NDArray[np.float64]:
     """Relative lamp intensity exp(−k(1 − cos θ)) toward unit rays (..., 3), θ off the camera's z
     axis, half power at ``half_angle_deg`` (k = ln 2 / (1 − cos θ½)); 1 everywhere for None."""

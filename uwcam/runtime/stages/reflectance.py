@@ -11,7 +11,7 @@ from numpy.typing import NDArray
 from uwcam.config import ReflectanceConfig
 from uwcam.drivers.base import Frame
 from uwcam.optics.geometry import Intrinsics, path_length_from_camera_range, pixel_rays
-from uwcam.optics.orientation import beam_pattern, normals_from_range, surface_scale
+from uwcam.optics.orientation import beam_pattern, plane_normal, surface_scale
 from uwcam.optics.reflectance import surface_log_constant
 from uwcam.calibration.profile import CalibrationProfile
 
@@ -52,27 +52,32 @@ class ReflectanceCorrector:
         self.attenuation = None if any(a is None for a in attenuation) else np.array(attenuation, np.float64)
 
     def observe(self, range_map: NDArray) -> None:
-        """The surface normal at the footprint from a range map (H, W), metres: the mean of the
-        range-map normals (:func:`normals_from_range`) over the footprint; None where it has none."""
+        """The surface normal at the footprint from a range map (H, W), metres: the least-squares
+        plane (:func:`plane_normal`) through the surface points of the footprint and a margin
+        around it, smoothed over frames as the log constants are (``config.smoothing``); None
+        where too few pixels there have a range."""
         intr = self.profile.camera_intrinsics()
         if intr is None:
             return
         x, y, w, h = self.config.footprint
-        margin = 8  # the normals' 7-pixel window, and a pixel to spare
+        margin = 8  # pixels around the footprint: a single frame's range is noisy pixel to pixel
         x0, y0 = max(x - margin, 0), max(y - margin, 0)
         x1, y1 = min(x + w + margin, range_map.shape[1]), min(y + h + margin, range_map.shape[0])
         crop = np.asarray(range_map[y0:y1, x0:x1], dtype=np.float64)
-        if crop.shape[0] < 3 or crop.shape[1] < 3:
+        valid = np.isfinite(crop)
+        if valid.sum() < max(16, crop.size // 4):
             self.normal = None
             return
-        n = normals_from_range(crop, Intrinsics(intr.fx, intr.fy, intr.cx - x0, intr.cy - y0), window=min(7, 2 * (min(crop.shape) // 2) - 1))
-        inside = n[y - y0 : y - y0 + h, x - x0 : x - x0 + w].reshape(-1, 3)
-        inside = inside[np.all(np.isfinite(inside), axis=1)]
-        if len(inside) < max(4, (w * h) // 4):
+        rays = pixel_rays(Intrinsics(intr.fx, intr.fy, intr.cx - x0, intr.cy - y0), *crop.shape)
+        normal = plane_normal(crop[valid], rays[valid])
+        if normal is None:
             self.normal = None
             return
-        mean = inside.astype(np.float64).mean(axis=0)
-        self.normal = mean / np.linalg.norm(mean)
+        if self.normal is not None:
+            a = self.config.smoothing
+            normal = (1 - a) * self.normal + a * normal
+            normal /= np.linalg.norm(normal)
+        self.normal = normal
 
     def update(self, frame: Frame, attenuation_differences: NDArray, background: NDArray | None = None,
                exposure_shift: NDArray | None = None) -> NDArray[np.float64] | None:
