@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import collections
-import threading
 import time
 
 import numpy as np
@@ -11,6 +9,7 @@ import pytest
 
 from tests.synthetic import make_profile
 from tests.waiting import wait_for
+from tests.queued_camera import QueuedCamera
 from uwcam.config import ProcessingConfig
 from uwcam.drivers.base import Frame
 from uwcam.runtime import pipeline as pipeline_module
@@ -19,24 +18,6 @@ from uwcam.runtime.pipeline import QUEUED_FRAME_BUDGET_S, FramePipeline
 BUDGET_S = 2.0
 """The budget the tests run with: far above any scheduling delay of a loaded test machine, so
 "fresh" and "stale" are decided by the ages the tests give, not by how busy the machine is."""
-
-
-class QueuedCamera:
-    """Hands out frames put in its queue, oldest first, as SupervisedCamera.get does."""
-
-    def __init__(self) -> None:
-        self.queue: collections.deque[Frame] = collections.deque()
-        self.lock = threading.Lock()
-
-    def get(self, timeout_s: float) -> Frame | None:
-        deadline = time.monotonic() + timeout_s
-        while True:
-            with self.lock:
-                if self.queue:
-                    return self.queue.popleft()
-            if time.monotonic() >= deadline:
-                return None
-            time.sleep(0.002)
 
 
 def frame(sequence: int, age_s: float) -> Frame:
@@ -53,8 +34,7 @@ def run_with(ages_s: list[float]) -> tuple[list[int], list[tuple[int, str]]]:
     pipeline.subscribe(lambda p: ranged.append(p.frame.sequence))
     pipeline.subscribe_unranged(lambda f, why: unranged.append((f.sequence, why)))
     frames = [frame(k, age) for k, age in enumerate(ages_s, start=1)]  # made after the set-up's compilation
-    with camera.lock:
-        camera.queue.extend(frames)
+    camera.put(*frames)
     pipeline.start()
     try:
         assert wait_for(lambda: len(ranged) + len(unranged) == len(frames), 10.0)

@@ -5,14 +5,13 @@ and with the water's own light judged per pixel (an open-water frame's)."""
 
 from __future__ import annotations
 
-import collections
-import threading
 import time
 
 import numpy as np
 import pytest
 
 from tests.waiting import wait_for
+from tests.queued_camera import QueuedCamera
 from uwcam.recording import format as rec
 from uwcam.cli import main
 from uwcam.config import BackscatterConfig, ProcessingConfig, RecordingConfig
@@ -38,22 +37,6 @@ def setting():
     water = SimulatedWorld(scene="open-water", distance=4.0, size=SIZE, water=WATER, lamp=LAMP, camera=CameraModel(),
                            fixed_exposure=scene.exposure, seed=6)
     return profile, scene.frame(0), water.frame(0), water.frame(1)
-
-
-class QueuedCamera:
-    def __init__(self) -> None:
-        self.queue: collections.deque[Frame] = collections.deque()
-        self.lock = threading.Lock()
-
-    def get(self, timeout_s: float) -> Frame | None:
-        deadline = time.monotonic() + timeout_s
-        while True:
-            with self.lock:
-                if self.queue:
-                    return self.queue.popleft()
-            if time.monotonic() >= deadline:
-                return None
-            time.sleep(0.002)
 
 
 def image(msg):
@@ -92,9 +75,8 @@ def test_cli_loop_and_reprocess_give_bit_identical_results(setting, tmp_path, co
     recorder.start(path)
     pipeline.start()
     try:
-        with camera.lock:
-            camera.queue.extend(Frame(data=frame.copy(), sequence=k, host_monotonic_ns=time.monotonic_ns(),
-                                      wall_time=time.time() + k * 1e-3, lamp_on=True) for k in range(2))
+        camera.put(*(Frame(data=frame.copy(), sequence=k, host_monotonic_ns=time.monotonic_ns(),
+                           wall_time=time.time() + k * 1e-3, lamp_on=True) for k in range(2)))
         assert wait_for(lambda: len(published) == 2, 60.0)
     finally:
         pipeline.stop()

@@ -5,14 +5,13 @@ ranging record, and keep the range right where the calibration's values go wrong
 
 from __future__ import annotations
 
-import collections
-import threading
 import time
 
 import numpy as np
 import pytest
 
 from tests.waiting import wait_for
+from tests.queued_camera import QueuedCamera
 from uwcam.config import PatchConfig, ProcessingConfig
 from uwcam.drivers.base import Frame
 from uwcam.drivers.sim import RigState, SimulatedRig
@@ -28,22 +27,6 @@ SIZE = (160, 120)
 DRIFT = (0.06, 0.02, 0.0)  # 1/m: red and green absorb more (a plume), blue as before
 PERIOD_S = 240.0
 BOX = (74, 54, 12, 12)  # the patch: grey seabed at the image centre
-
-
-class QueuedCamera:
-    def __init__(self) -> None:
-        self.queue: collections.deque[Frame] = collections.deque()
-        self.lock = threading.Lock()
-
-    def get(self, timeout_s: float) -> Frame | None:
-        deadline = time.monotonic() + timeout_s
-        while True:
-            with self.lock:
-                if self.queue:
-                    return self.queue.popleft()
-            if time.monotonic() >= deadline:
-                return None
-            time.sleep(0.002)
 
 
 def test_drift_is_a_checked_option_of_static_scenes():
@@ -83,9 +66,8 @@ def run(profile, frames, processing):
     pipeline.start()
     try:
         for k, data in enumerate(frames):  # one at a time: none is skipped as stale
-            with camera.lock:
-                camera.queue.append(Frame(data=data, sequence=k, host_monotonic_ns=time.monotonic_ns(),
-                                          wall_time=time.time(), lamp_on=True))
+            camera.put(Frame(data=data, sequence=k, host_monotonic_ns=time.monotonic_ns(), wall_time=time.time(),
+                             lamp_on=True))
             assert wait_for(lambda: len(published) == k + 1, 60.0)
     finally:
         pipeline.stop()
