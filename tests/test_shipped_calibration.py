@@ -1,5 +1,6 @@
-"""The embedded default rig's simulated-water calibration ships with uwcam, so that a new user's
-first start ranges at once. It must be what calibrating in that water gives today."""
+"""The simulated-water calibrations of the setups ``uwcam run --simulate NAME`` starts (the embedded
+default vehicle and the tank) ship with uwcam, so that a new user's first start ranges at once.
+Each must be what calibrating in that water gives today."""
 
 from __future__ import annotations
 
@@ -8,18 +9,22 @@ import os
 
 import pytest
 
-from uwcam.config import default_config
+from uwcam.config import SIMULATED_SETUPS
 from uwcam.runtime.simulated_rig import calibrate_simulated_water, shipped_calibration_path, simulated_calibration
 from uwcam.drivers.sim import SimulatedRig
 from uwcam.calibration.profile import load_profile
 from uwcam.simulation import tank
 
-REGENERATE = ("regenerate it: .venv/bin/python -c 'from uwcam.config import default_config; "
-              "from uwcam.runtime.simulated_rig import ship_simulated_calibration; ship_simulated_calibration(default_config())'")
 
 
-def default_rig() -> SimulatedRig:
-    return SimulatedRig(**default_config().simulation)
+def regenerate(setup: str) -> str:
+    return (f"regenerate it: .venv/bin/python -c 'from uwcam.config import SIMULATED_SETUPS; "
+            f"from uwcam.runtime.simulated_rig import ship_simulated_calibration; "
+            f"ship_simulated_calibration(SIMULATED_SETUPS[\"{setup}\"]())'")
+
+
+def setup_rig(setup: str) -> SimulatedRig:
+    return SimulatedRig(**SIMULATED_SETUPS[setup]().simulation)
 
 
 def differences(a, b, where: str = "") -> list[str]:
@@ -40,20 +45,22 @@ def differences(a, b, where: str = "") -> list[str]:
 
 
 @pytest.mark.slow
-def test_the_shipped_calibration_is_what_calibrating_gives_today():
-    rig = default_rig()
+@pytest.mark.parametrize("setup", sorted(SIMULATED_SETUPS))
+def test_the_shipped_calibration_is_what_calibrating_gives_today(setup):
+    rig = setup_rig(setup)
     path = shipped_calibration_path(rig)
-    assert os.path.exists(path), f"no shipped calibration for the embedded default at {path}: {REGENERATE}"
+    assert os.path.exists(path), f"no shipped calibration for the simulated {setup} at {path}: {regenerate(setup)}"
     shipped = load_profile(path).model_dump(mode="json")
     fresh = calibrate_simulated_water(rig).model_dump(mode="json")
-    assert differences(shipped, fresh) == [], f"the simulator or calibration changed: {REGENERATE}"
+    assert differences(shipped, fresh) == [], f"the simulator or calibration changed: {regenerate(setup)}"
 
 
-def test_the_default_rig_starts_from_the_shipped_calibration_without_calibrating(monkeypatch, tmp_path, caplog):
+@pytest.mark.parametrize("setup", sorted(SIMULATED_SETUPS))
+def test_each_simulated_setup_starts_from_the_shipped_calibration_without_calibrating(setup, monkeypatch, tmp_path, caplog):
     monkeypatch.setenv("UWCAM_CACHE_DIR", str(tmp_path / "empty"))
     monkeypatch.setattr(tank, "calibrate_in_simulation", lambda *a, **k: pytest.fail("calibrated at start"))
     caplog.set_level("INFO", logger="uwcam.runtime.simulated_rig")
-    rig = default_rig()
+    rig = setup_rig(setup)
     profile = simulated_calibration(rig)
     assert profile.intrinsics["fx"] == pytest.approx(rig.world.intrinsics.fx)
     assert "ships with uwcam" in caplog.text and "calibrating" not in caplog.text
