@@ -6,7 +6,7 @@ the seconds from the command to: the install's end, the daemon serving, the firs
 first frame painted by the operator page in Debian's Chromium. Then stops the daemon with Ctrl-C,
 starts it again from the same install with an empty cache, and prints the same for that start.
 
-    python3 bench/bench_first_start.py [--chromium /usr/bin/chromium]
+    .venv/bin/python bench/bench_first_start.py [--chromium /usr/bin/chromium]
 """
 
 from __future__ import annotations
