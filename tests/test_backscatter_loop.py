@@ -182,5 +182,6 @@ def test_an_open_water_request_without_frames_is_withdrawn(tmp_path):
             SimulatedCamera.stall(SERIAL, False)
         fresh(s, 3)  # frames flow again: none of them is taken for open water
         state = s.http.get("/api/v1/backscatter").json()
-        # A frame already on its way when the camera stalled may have been counted; never two.
+        # Frames captured before the request are never taken; one the camera was delivering as it
+        # stalled may have been; never two.
     assert state["open_water"] is None and re.match(r"lapsed: [01] of 2 lamp-lit frames came within 0.5 s", state["capture"])

@@ -68,3 +68,33 @@ def test_stale_frames_are_skipped_for_the_newest_and_counted():
 def test_a_stale_frame_with_nothing_newer_is_still_ranged():
     ranged, unranged = run_with([3 * BUDGET_S])
     assert ranged == [1] and unranged == []
+
+
+def test_an_open_water_request_takes_only_frames_captured_after_it_and_before_its_deadline():
+    """A loop that fell behind still holds frames captured before the request (the camera may not
+    have faced open water yet): they are ranged, not averaged into the open-water frame. A frame
+    captured after the deadline lapses the request however soon it is processed."""
+    camera = QueuedCamera()
+    pipeline = FramePipeline(camera, make_profile([0.46, 0.11, 0.06], [0, 0, 0]), ProcessingConfig())
+    ranged = []
+    pipeline.subscribe(lambda p: ranged.append(p.frame.sequence))
+    pipeline.start()
+    try:
+        before = [frame(k, 0.05) for k in (1, 2)]  # captured 50 ms before the request
+        done = pipeline.request_open_water(frames=2, timeout_s=30.0)
+        camera.put(*before)
+        assert wait_for(lambda: len(ranged) == 2, 10.0)
+        assert not done.is_set() and pipeline.backscatter_status()["capture"] == "capturing"
+        camera.put(frame(3, 0.0), frame(4, 0.0))  # after it: these two make the open-water frame
+        assert done.wait(10.0)
+        assert pipeline.open_water_info["frames"] == 2
+        assert np.array_equal(pipeline.open_water, before[0].data.astype(np.float32))
+
+        pipeline.request_open_water(frames=2, timeout_s=0.2)
+        late = frame(5, 0.0)
+        late.host_monotonic_ns += int(0.5e9)  # stamped 0.3 s past the deadline (a clock seen ahead)
+        camera.put(late)
+        assert wait_for(lambda: 5 in ranged, 10.0)
+        assert pipeline.backscatter_status()["capture"].startswith("lapsed: 0 of 2 lamp-lit frames came within 0.2 s")
+    finally:
+        pipeline.stop()

@@ -55,10 +55,14 @@ class CompensationStage:
     def request_open_water(self, frames: int = 4, timeout_s: float = 10.0) -> threading.Event:
         """Average the next ``frames`` lamp-lit frames into the open-water frame; the event is set
         when it is in use. Frames later than ``timeout_s`` from now are not taken (the request
-        lapses, and :meth:`backscatter_status` says so). The view must show only water meanwhile."""
+        lapses, and :meth:`backscatter_status` says so). The view must show only water meanwhile.
+        Frames are taken by their capture time: one captured before the request (still on its way
+        through a loop that fell behind) may show what the camera saw before, and is not taken."""
         done = threading.Event()
+        now_ns = time.monotonic_ns()
         with self._lock:
             self._open_water_request = {"frames": int(frames), "sum": None, "count": 0, "done": done,
+                                        "requested_ns": now_ns, "deadline_ns": now_ns + int(timeout_s * 1e9),
                                         "deadline": time.monotonic() + timeout_s, "timeout_s": timeout_s}
             self._open_water_capture = "capturing"
         return done
@@ -77,7 +81,12 @@ class CompensationStage:
     def _take_open_water(self, frame: Frame, ambient: NDArray | None, source: str) -> None:
         """Accumulate ``frame`` for a pending open-water request."""
         request = self._pending_open_water()
-        if request is None:
+        if request is None or frame.host_monotonic_ns < request["requested_ns"]:
+            return
+        if frame.host_monotonic_ns > request["deadline_ns"]:  # captured too late, however soon it is processed
+            with self._lock:
+                request["deadline"] = -np.inf
+            self._pending_open_water()  # lapses, saying so
             return
         light = frame.data.astype(np.float32) if ambient is None else frame.data.astype(np.float32) - ambient
         gathered = frame.light_gathered()
