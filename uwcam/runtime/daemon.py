@@ -404,6 +404,7 @@ class Daemon:
                             "reflectance": stats.get("reflectance")},
             "backscatter": stats.get("backscatter"),
             "orientation": stats.get("orientation"),
+            "temporal": stats.get("temporal"),
             "exposure": stats.get("exposure"),
             "rangefinder": rf,
             "lamp": lamp,
