@@ -19,7 +19,7 @@ from uwcam.config import TemporalConfig
 from uwcam.optics import Reason
 from uwcam.ranging.estimator import RangeEstimator
 from uwcam.runtime.stages import temporal as stage
-from uwcam.runtime.stages.temporal import TemporalFuser, changed_pixels, frames_summary, fuse_step
+from uwcam.runtime.stages.temporal import TemporalFuser, changed_pixels, frames_summary, fuse_step, image_shift_px
 
 B = np.log([0.7, 1.0, 0.8])
 READ, GAIN = 5.0, 1.0  # DN rms, DN per electron
@@ -251,3 +251,28 @@ def test_fused_frames_range_the_same_with_a_background_by_the_compiled_kernel_an
     np.testing.assert_array_equal(got.reasons, want.reasons)
     np.testing.assert_allclose(got.range, want.range, rtol=2e-5, equal_nan=True)
     np.testing.assert_allclose(got.variance, want.variance, rtol=2e-4, equal_nan=True)
+
+
+def test_image_shift_of_the_vehicles_motion_and_the_restart_it_makes():
+    # 0.1 rad/s for 0.1 s with f = 1000 px: 0.01 rad → 10 px; 0.3 m/s for 0.1 s at 3 m: 3 cm → 10 px.
+    assert image_shift_px(0.1, None, 0.1, 1000.0, 3.0) == pytest.approx(10.0)
+    assert image_shift_px(None, 0.3, 0.1, 1000.0, 3.0) == pytest.approx(10.0)
+    assert image_shift_px(0.1, 0.3, 0.1, 1000.0, 3.0) == pytest.approx(20.0)
+    assert image_shift_px(None, None, 0.1, 1000.0, 3.0) is None
+    rng = np.random.default_rng(10)
+    est = estimator()
+    fuser = TemporalFuser(TemporalConfig(motion_pixels=0.5))
+    t = 0
+    for turn in (0.0, 0.0, 0.0, 0.0004, 0.01, 0.0):  # rad/s, frames 0.1 s apart, f = 1000 px
+        fuser.judge_motion(t, turn, None, 1000.0, 3.0)
+        fuser.update(noisy(rng, scene(4.0)), EXPOSURE, est)
+        t += 100_000_000
+        if turn == 0.0004:  # 0.04 px: still
+            assert np.mean(fuser.count == 4) > 0.99
+        if turn == 0.01:  # 1 px
+            assert (fuser.count == 1).all() and fuser.restarted == "the vehicle moved (1.0 pixels in a frame)"
+    assert np.mean(fuser.count == 2) > 0.99
+    off = TemporalFuser(TemporalConfig(motion_pixels=None))
+    off.judge_motion(0, 1.0, 1.0, 1000.0, 1.0)
+    off.judge_motion(100_000_000, 1.0, 1.0, 1000.0, 1.0)
+    assert off.shift_px is None

@@ -12,6 +12,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import socket
 import threading
 import time
 
@@ -20,7 +21,7 @@ import pytest
 
 from tests.served import Server
 from tests.waiting import wait_for
-from uwcam.config import ApiConfig, CameraConfig, DaemonConfig, DeviceConfig, ProcessingConfig
+from uwcam.config import ApiConfig, CameraConfig, DaemonConfig, DeviceConfig, MavlinkConfig, ProcessingConfig, TemporalConfig
 
 TOKEN = "temporal-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -83,7 +84,7 @@ def test_holding_station_fusion_divides_the_noise_and_a_move_is_never_smeared(tm
         assert frames_off.dtype == np.uint16 and set(np.unique(frames_off)) <= {0, 1}
 
         on = s.http.patch("/api/v1/config", json={"temporal": {"max_frames": M}}, headers=AUTH)
-        assert on.status_code == 200 and on.json()["temporal"] == {"max_frames": M, "change_sigmas": 4.0}
+        assert on.status_code == 200 and on.json()["temporal"] == {"max_frames": M, "change_sigmas": 4.0, "motion_pixels": 0.5}
         with open(os.path.join(tmp_path, "uwcam-state.json")) as fh:
             saved = json.load(fh)
         assert ProcessingConfig.model_validate(saved["processing"]).temporal.max_frames == M  # kept for a restart
@@ -141,3 +142,76 @@ def test_holding_station_fusion_divides_the_noise_and_a_move_is_never_smeared(tm
         assert wait_for(lambda: s.http.get("/api/v1/status").json()["temporal"] == {"enabled": False}, 10.0)
         assert wait_for(lambda: pipeline.latest.frames is None, 10.0)
         pipeline.unsubscribe(collect)
+
+
+class Autopilot:
+    """A MAVLink peer on loopback that, once the daemon has sent it something, reports the vehicle's
+    motion to it 20 times a second: ATTITUDE with ``turn`` rad/s of yaw rate and LOCAL_POSITION_NED
+    with ``speed`` m/s northwards."""
+
+    def __init__(self) -> None:
+        from pymavlink.dialects.v20 import common as mavlink2
+
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.05)
+        self.port = self.sock.getsockname()[1]
+        self.mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+        self.turn = self.speed = 0.0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="autopilot")
+
+    def _run(self) -> None:
+        peer = None
+        started = time.monotonic()
+        while not self._stop.is_set():
+            try:
+                _, peer = self.sock.recvfrom(65536)
+            except socket.timeout:
+                pass
+            if peer is None:
+                continue
+            ms = int((time.monotonic() - started) * 1000)
+            self.sock.sendto(self.mav.attitude_encode(ms, 0.0, 0.0, 0.0, 0.0, 0.0, self.turn).pack(self.mav), peer)
+            self.sock.sendto(self.mav.local_position_ned_encode(ms, 0.0, 0.0, 3.0, self.speed, 0.0, 0.0).pack(self.mav), peer)
+
+    def __enter__(self) -> "Autopilot":
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.sock.close()
+
+
+@pytest.mark.slow
+def test_the_vehicle_turning_or_moving_over_mavlink_restarts_every_pixel(tmp_path):
+    # The simulated view does not move: only the autopilot's word says the vehicle did.
+    with Autopilot() as autopilot:
+        cfg = config(tmp_path).model_copy(update={
+            "mavlink": MavlinkConfig(connection=f"udpout:127.0.0.1:{autopilot.port}", rate_hz=20),
+            "processing": ProcessingConfig(temporal=TemporalConfig(max_frames=M))})
+        with Server(cfg) as s:
+            pipeline = s.daemon.pipeline
+            collect = Collector()
+            pipeline.subscribe(collect)
+
+            def temporal():
+                return s.http.get("/api/v1/status").json()["temporal"]
+
+            assert wait_for(lambda: temporal().get("median_frames") == M, 120.0, 0.2), temporal()
+            assert temporal()["vehicle_shift_px"] == 0.0  # reported still
+            autopilot.turn = 0.2  # rad/s: at 10 frames/s about 0.02 rad, several pixels, a frame
+            assert wait_for(lambda: "the vehicle moved" in temporal()["restarted"], 20.0, 0.1), temporal()
+            turning = collect.take(5)
+            assert all(np.max(p.frames) == 1 for p in turning), [np.bincount(p.frames.ravel()) for p in turning]
+            assert temporal()["vehicle_shift_px"] > 0.5
+            autopilot.turn = 0.0
+            assert wait_for(lambda: temporal().get("median_frames") == M, 60.0, 0.2), temporal()
+            # Moving at 0.5 m/s, the plate 3 m away: a frame's motion moves the image by pixels too.
+            autopilot.speed = 0.5
+            assert wait_for(lambda: temporal()["vehicle_shift_px"] > 0.5, 20.0, 0.1), temporal()
+            moving = collect.take(5)
+            assert all(np.max(p.frames) == 1 for p in moving), [np.bincount(p.frames.ravel()) for p in moving]
+            pipeline.unsubscribe(collect)

@@ -193,6 +193,12 @@ class TemporalConfig(Strict):
     """A pixel starts afresh when any channel of the new frame differs from the running mean by more
     than this many standard deviations of that difference (the noise model's frame-to-frame noise).
     At 4 a still pixel of three channels starts afresh by chance about once in 5000 frames."""
+    motion_pixels: Annotated[Real, Field(gt=0, le=10000)] | None = 0.5
+    """Where the autopilot reports the vehicle's motion over MAVLink (ATTITUDE's rates,
+    LOCAL_POSITION_NED's velocity; needs the ``mavlink`` section): every pixel starts afresh when
+    that motion over one frame interval moves the image by more than this many pixels (turning:
+    f·ω·Δt; moving: f·v·Δt over the median range), before a change too slow for the noise to show
+    is averaged in. None: motion is judged from the image alone."""
 
 
 class ProcessingConfig(Strict):

@@ -92,6 +92,9 @@ class FramePipeline(CompensationStage):
         self._latencies: collections.deque[float] = collections.deque(maxlen=600)
         self._times: collections.deque[float] = collections.deque(maxlen=4096)  # publish times, s
         self._started_s: float | None = None
+        self.motion: Callable[[], tuple[float | None, float | None]] | None = None
+        """The vehicle's (angular speed rad/s, speed m/s) as the autopilot reports them (MAVLink), for
+        temporal fusion to start afresh when the vehicle moves; None: not known."""
 
     def _build(self, processing: ProcessingConfig, profile: CalibrationProfile) -> tuple:
         """Everything that ranges with ``processing`` and ``profile``; raises ValueError (changing
@@ -354,6 +357,7 @@ class FramePipeline(CompensationStage):
             self._take_open_water(frame, ambient, "taken on request")
         data, samples = frame.data, None
         if temporal is not None:  # the running mean of the frames over which each pixel held still
+            self._judge_motion(temporal, frame, profile)
             data, samples = temporal.update(frame.data, frame.exposures(), estimator)
         result = range_frame(estimator, data, processing.smoothing, processing.smoothing_stage, ambient,
                              processing.vehicle_mask, transform, water, scale, samples)
@@ -390,6 +394,20 @@ class FramePipeline(CompensationStage):
         self._times.append(now / 1e9)  # monotonic seconds
         for callback in list(self._subscribers):
             callback(published)
+
+    def _judge_motion(self, temporal: TemporalFuser, frame: Frame, profile: CalibrationProfile) -> None:
+        """Hand temporal fusion the vehicle's reported motion, the focal length and the median range."""
+        turn, speed = self.motion() if self.motion is not None else (None, None)
+        intrinsics = profile.camera_intrinsics()
+        # Without intrinsics a focal length of the image width (a 53° field of view) stands in.
+        focal = intrinsics.fx if intrinsics is not None else float(frame.data.shape[1])
+        latest = self.latest
+        range_m = 1.0  # no range yet: a near surface, so that motion counts for much
+        if latest is not None and speed is not None:
+            sample = latest.result.range[::8, ::8]  # the median of every 64th pixel is plenty here
+            sample = sample[np.isfinite(sample)]
+            range_m = float(np.median(sample)) if sample.size else range_m
+        temporal.judge_motion(frame.host_monotonic_ns, turn, speed, focal, range_m)
 
     FPS_WINDOW_S = 2.0
     """fps is the number of frames published in this many seconds before now, per second."""

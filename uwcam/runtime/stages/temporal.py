@@ -74,6 +74,20 @@ def fuse_step(mean: NDArray[np.float32] | None, count: NDArray[np.uint16] | None
     return mean, count, weight_squares.astype(np.float32)
 
 
+def image_shift_px(turn_rate_rad_s: float | None, speed_m_s: float | None, interval_s: float, focal_px: float,
+                   range_m: float) -> float | None:
+    """How far (pixels) the vehicle's motion over ``interval_s`` seconds moves the image, at most:
+    turning at ω rad/s moves every pixel by about f·ω·Δt; moving at v m/s moves a surface at
+    range r by up to f·v·Δt/r (sideways; straight ahead the image grows by less). None when
+    neither rate is known."""
+    if turn_rate_rad_s is None and speed_m_s is None:
+        return None
+    shift = focal_px * (turn_rate_rad_s or 0.0) * interval_s
+    if speed_m_s is not None and range_m > 0:
+        shift += focal_px * speed_m_s * interval_s / range_m
+    return shift
+
+
 @njit(parallel=True, cache=True, nogil=True, error_model="numpy")
 def _fuse_compiled(frame, mean, count, weight_squares, dark, read_variance, shot_gain, fixed_squared, saturation, sigmas_squared,
                    max_frames, samples):  # pragma: no cover - compiled; its numpy twin is changed_pixels + fuse_step + samples_of_mean
@@ -132,12 +146,27 @@ class TemporalFuser:
     changed_fraction: float | None = None
     """Share of the pixels that started afresh on the last frame."""
     _exposures: tuple | None = None
+    shift_px: float | None = None
+    """The image shift the vehicle's reported motion made over the last frame interval (None: no report)."""
+    _last_ns: int | None = None
     ms: collections.deque = field(default_factory=lambda: collections.deque(maxlen=100))
 
     def reset(self, why: str) -> None:
         """Forget the running mean: the next frame starts every pixel afresh."""
         self.mean = self.count = self.weight_squares = None
         self.restarted = why
+
+    def judge_motion(self, capture_ns: int, turn_rate_rad_s: float | None, speed_m_s: float | None, focal_px: float,
+                     range_m: float) -> None:
+        """Start every pixel afresh when the vehicle's reported motion since the last frame (captured
+        at ``capture_ns``, monotonic ns) moved the image by more than ``config.motion_pixels``."""
+        last, self._last_ns = self._last_ns, capture_ns
+        if last is None or self.config.motion_pixels is None:
+            self.shift_px = None
+            return
+        self.shift_px = image_shift_px(turn_rate_rad_s, speed_m_s, max(capture_ns - last, 0) / 1e9, focal_px, range_m)
+        if self.shift_px is not None and self.shift_px > self.config.motion_pixels and self.mean is not None:
+            self.reset(f"the vehicle moved ({self.shift_px:.1f} pixels in a frame)")
 
     def update(self, data: NDArray, exposures: tuple, estimator: RangeEstimator) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
         """Add a frame's raw linear values (H, W, N) taken at ``exposures`` (the frame's exposure times
@@ -194,7 +223,9 @@ class TemporalFuser:
         ms = list(self.ms)
         return {"enabled": True, "max_frames": self.config.max_frames, "change_sigmas": self.config.change_sigmas,
                 "changed_fraction": None if self.changed_fraction is None else round(self.changed_fraction, 4),
-                "restarted": self.restarted, "ms_per_frame": round(float(np.median(ms)), 2) if ms else None}
+                "restarted": self.restarted, "ms_per_frame": round(float(np.median(ms)), 2) if ms else None,
+                "motion_pixels": self.config.motion_pixels,
+                "vehicle_shift_px": None if self.shift_px is None else round(self.shift_px, 2)}
 
 
 def frames_summary(frames: NDArray[np.uint16] | None) -> dict:
