@@ -276,3 +276,27 @@ def test_image_shift_of_the_vehicles_motion_and_the_restart_it_makes():
     off.judge_motion(0, 1.0, 1.0, 1000.0, 1.0)
     off.judge_motion(100_000_000, 1.0, 1.0, 1000.0, 1.0)
     assert off.shift_px is None
+
+
+@pytest.mark.skipif(not HAVE_NUMBA, reason="numba is not installed: only the numpy threshold exists")
+@pytest.mark.parametrize("scaled", [False, True])
+@pytest.mark.parametrize("with_ambient", [False, True])
+def test_the_compiled_water_threshold_of_fused_values_equals_the_numpy_one(monkeypatch, scaled, with_ambient):
+    # Fused frames are judged against the water's light with their own noise every frame: the
+    # compiled quadratic must be the numpy one, also where a large fixed pattern leaves no threshold.
+    from uwcam.water import water_light
+
+    rng = np.random.default_rng(11)
+    profile = make_profile(RGB_ATTENUATION, B, read_noise=[3.0, 4.0, 5.0], shot_gain=[0.5, 1.0, 2.0], dark_level=[10.0, 20.0, 30.0])
+    profile = profile.model_copy(update={"channels": [c.model_copy(update={"fixed_pattern": f})
+                                                      for c, f in zip(profile.channels, (0.01, 0.2, 0.6))]})
+    est = RangeEstimator(profile)
+    light = water_light.WaterLight(rng.uniform(0.0, 5000.0, (40, 60, 3)).astype(np.float32), 0.05, "test")
+    ambient = rng.uniform(0.0, 100.0, (40, 60, 3)).astype(np.float32) if with_ambient else None
+    scale = np.array([1.5, 0.7, 1.0]) if scaled else None
+    samples = rng.uniform(0.5, 40.0, (40, 60, 3)).astype(np.float32)
+    compiled = light.threshold(est, scale, ambient, samples)
+    monkeypatch.setattr(water_light, "HAVE_NUMBA", False)
+    plain = light.threshold(est, scale, ambient, samples)
+    assert np.isinf(plain).any() and np.isfinite(plain).any()
+    np.testing.assert_allclose(compiled, plain, rtol=1e-6)
