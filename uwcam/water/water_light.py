@@ -71,20 +71,34 @@ def _threshold_compiled(level, scale, ambient, samples, a, g, f2, dark, k2, u2, 
     """:meth:`WaterLight.threshold`'s quadratic per value, for values that are means (``samples``
     (H, W, N), float32; ``ambient`` (H, W, N) float32 or an empty array): the same float64
     arithmetic in one pass instead of a dozen numpy temporaries (a fused frame's threshold changes
-    every frame, so it cannot be cached as a single frame's is)."""
+    every frame, so it cannot be cached as a single frame's is). Rows are taken as W·N contiguous
+    values with each channel's constants repeated along them, a loop without branches that vectorises."""
     h, w, n = out.shape
+    m = w * n
     has_ambient = ambient.size > 0
+    level_rows, count_rows, out_rows = level.reshape(h, m), samples.reshape(h, m), out.reshape(h, m)
+    ambient_rows = ambient.reshape(h, m) if has_ambient else np.zeros((1, m), np.float32)
+    step = 1 if has_ambient else 0  # row i of the ambient light, or its one row of zeros
+    t = np.empty((5, m))
+    for j in range(w):
+        for k in range(n):
+            t[0, j * n + k] = scale[k]
+            t[1, j * n + k] = a[k]
+            t[2, j * n + k] = g[k]
+            t[3, j * n + k] = f2[k]
+            t[4, j * n + k] = dark[k]
     for i in prange(h):
-        for j in range(w):
-            for k in range(n):
-                light = np.float64(level[i, j, k]) * scale[k]
-                base = light + (np.float64(ambient[i, j, k]) if has_ambient else 0.0)
-                count = max(np.float64(samples[i, j, k]), 1.0)
-                qa = 1.0 - k2 * f2[k] / count
-                qb = -(2.0 * base + k2 * g[k] / count)
-                qc = base * base - k2 * (a[k] / count + u2 * light * light)
-                root = (-qb + math.sqrt(max(qb * qb - 4.0 * qa * qc, 0.0))) / (2.0 * qa)
-                out[i, j, k] = np.float32((root if qa > 0 else np.inf) + dark[k])
+        lv, cn, o = level_rows[i], count_rows[i], out_rows[i]
+        am = ambient_rows[i * step]
+        for x in range(m):
+            light = np.float64(lv[x]) * t[0, x]
+            base = light + np.float64(am[x])
+            count = max(np.float64(cn[x]), 1.0)
+            qa = 1.0 - k2 * t[3, x] / count
+            qb = -(2.0 * base + k2 * t[2, x] / count)
+            qc = base * base - k2 * (t[1, x] / count + u2 * light * light)
+            root = (-qb + math.sqrt(max(qb * qb - 4.0 * qa * qc, 0.0))) / (2.0 * qa)
+            o[x] = np.float32((root if qa > 0 else np.inf) + t[4, x])
 
 
 @dataclass

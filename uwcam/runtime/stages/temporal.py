@@ -92,41 +92,63 @@ def image_shift_px(turn_rate_rad_s: float | None, speed_m_s: float | None, inter
 def _fuse_compiled(frame, mean, count, weight_squares, dark, read_variance, shot_gain, fixed_squared, saturation, sigmas_squared,
                    max_frames, samples):  # pragma: no cover - compiled; its numpy twin is changed_pixels + fuse_step + samples_of_mean
     """One pass of :func:`changed_pixels`, the saturation test, :func:`fuse_step` and
-    :func:`uwcam.ranging.images.samples_of_mean` per pixel, in float32, updating mean, count and
-    weight_squares in place and filling samples (H, W, N); returns how many pixels started afresh."""
+    :func:`uwcam.ranging.images.samples_of_mean` per row, in float32, updating mean, count and
+    weight_squares in place and filling samples (H, W, N); returns how many pixels started afresh.
+    Each row is taken as W·N contiguous values with each channel's constants repeated along it:
+    the per-value passes have no branch and vectorise; only the per-pixel pass joins channels."""
     h, w, n = mean.shape
+    m = w * n
     one, zero = np.float32(1.0), np.float32(0.0)
+    frame_rows, mean_rows, sample_rows = frame.reshape(h, m), mean.reshape(h, m), samples.reshape(h, m)
+    t = np.empty((4, m), np.float32)
+    for j in range(w):
+        for k in range(n):
+            t[0, j * n + k] = dark[k]
+            t[1, j * n + k] = read_variance[k]
+            t[2, j * n + k] = shot_gain[k]
+            t[3, j * n + k] = fixed_squared[k]
     restarted = np.zeros(h, np.int64)
     for i in prange(h):
+        xs, ms, out = frame_rows[i], mean_rows[i], sample_rows[i]
+        spread = np.empty(m, np.float32)  # 1 + Σw² of each value's pixel
         for j in range(w):
-            s = weight_squares[i, j]
-            changed = False
             for k in range(n):
-                x = np.float32(frame[i, j, k])
-                m = mean[i, j, k]
-                e = max(m - dark[k], zero)
-                d = x - m
-                if x >= saturation or m >= saturation or d * d > sigmas_squared * ((read_variance[k] + shot_gain[k] * e) * (one + s)):
-                    changed = True
-            if changed:
-                c = 1
-                restarted[i] += 1
-            else:
-                c = min(np.int64(count[i, j]) + 1, max_frames)
+                spread[j * n + k] = one + weight_squares[i, j]
+        far = np.empty(m, np.int32)  # 1 where a value is not the same scene as the mean
+        for x in range(m):  # per value: the change test
+            v = np.float32(xs[x])
+            u = ms[x]
+            e = max(u - t[0, x], zero)
+            d = v - u
+            far[x] = np.int32((v >= saturation) | (u >= saturation)
+                              | (d * d > sigmas_squared * ((t[1, x] + t[2, x] * e) * spread[x])))
+        alpha_row = np.empty(m, np.float32)
+        s_row = np.empty(m, np.float32)
+        fresh = np.empty(m, np.int32)
+        for j in range(w):  # per pixel: a change in any channel restarts it
+            changed = 0
+            for k in range(n):
+                changed |= far[j * n + k]
+            c = 1 if changed else min(np.int64(count[i, j]) + 1, max_frames)
+            restarted[i] += changed
             alpha = one / np.float32(c)
             keep = one - alpha
-            s = one if changed else keep * keep * s + alpha * alpha
+            s = one if changed else keep * keep * weight_squares[i, j] + alpha * alpha
             count[i, j] = c
             weight_squares[i, j] = s
             for k in range(n):
-                x = np.float32(frame[i, j, k])
-                m = x if changed else mean[i, j, k] + alpha * (x - mean[i, j, k])
-                mean[i, j, k] = m
-                e = max(m - dark[k], zero)
-                temporal = read_variance[k] + shot_gain[k] * e
-                fixed = fixed_squared[k] * e * e
-                fused = temporal * s + fixed
-                samples[i, j, k] = (temporal + fixed) / fused if fused > zero else one / s
+                alpha_row[j * n + k] = alpha
+                s_row[j * n + k] = s
+                fresh[j * n + k] = changed
+        for x in range(m):  # per value: the mean and its samples
+            v = np.float32(xs[x])
+            u = v if fresh[x] else ms[x] + alpha_row[x] * (v - ms[x])
+            ms[x] = u
+            e = max(u - t[0, x], zero)
+            temporal = t[1, x] + t[2, x] * e
+            fixed = t[3, x] * e * e
+            fused = temporal * s_row[x] + fixed
+            out[x] = (temporal + fixed) / fused if fused > zero else one / s_row[x]
     return restarted.sum()
 
 
