@@ -98,6 +98,7 @@ def test_holding_station_fusion_divides_the_noise_and_a_move_is_never_smeared(tm
         assert np.isfinite(ranges_on).mean() > 0.99
         served = np.load(io.BytesIO(s.http.get("/api/v1/snapshot/frames").content))
         assert served.shape == truth.shape and s.http.get("/api/v1/snapshot/frames?format=png").status_code == 422
+        assert s.http.get("/api/v1/snapshot/frames?format=tiff").headers["content-type"] == "image/tiff"
 
         # The frame-to-frame spread: √(2M − 1) = 3.9 times smaller (pooled over the plate's pixels).
         spread_off = np.sqrt(np.mean(t2))
@@ -215,3 +216,24 @@ def test_the_vehicle_turning_or_moving_over_mavlink_restarts_every_pixel(tmp_pat
             moving = collect.take(5)
             assert all(np.max(p.frames) == 1 for p in moving), [np.bincount(p.frames.ravel()) for p in moving]
             pipeline.unsubscribe(collect)
+
+
+@pytest.mark.slow
+def test_a_recording_says_which_frames_were_fused_and_reprocessing_says_it_ranges_them_singly(tmp_path):
+    from tests.test_recording import decoded, recording_config, running
+    from uwcam.recording import format as rec
+    from uwcam.recording.reprocess import reprocess
+
+    cfg = recording_config(tmp_path, results=False)
+    cfg.processing = ProcessingConfig(temporal=TemporalConfig(max_frames=M))
+    path = str(tmp_path / "fused.mcap")
+    with running(cfg) as d:
+        d.recorder.start(path)
+        assert wait_for(lambda: d.recorder.status()["frames_written"] >= 10, 60.0)
+        d.recorder.stop()
+    records = [r for _, r in decoded(path, rec.RANGING)]
+    assert records and all(r["processing"]["temporal"] == {"max_frames": M, "change_sigmas": 4.0, "motion_pixels": 0.5}
+                           for r in records)
+    warnings: list[str] = []
+    reprocess([path], str(tmp_path / "again.mcap"), progress=False, warn=warnings.append)
+    assert [w for w in warnings if f"{len(records)} frames were fused over time" in w and "as single frames" in w], warnings
