@@ -178,10 +178,9 @@ def test_still_pixels_restart_by_chance_as_rarely_as_change_sigmas_says():
     # Pure noise around an unchanging mean: a channel's |difference| beyond 3σ happens with
     # probability 0.27 %, so with three channels 0.81 % of the pixels (and 0.0063 % at 4σ each).
     rng = np.random.default_rng(7)
-    est = estimator()
     clean = scene(4.0)
     mean = clean.astype(np.float32)  # the exact mean: Σw² = 0
-    s = np.zeros(SHAPE * 1, np.float32)
+    s = np.zeros(SHAPE, np.float32)
     big = np.concatenate([noisy(rng, clean) for _ in range(40)])  # 40·64 rows
     means = np.concatenate([mean] * 40)
     rv = np.full(3, READ**2 + 1 / 12.0, np.float32)

@@ -206,8 +206,8 @@ class TemporalFuser:
             self.changed_fraction = 1.0
             if self.restarted == "no frame yet":
                 self.restarted = "started with the first frame"
-        elif HAVE_NUMBA and data.flags.c_contiguous:
-            return self._update_compiled(data, estimator, started)
+        elif HAVE_NUMBA:
+            return self._update_compiled(np.ascontiguousarray(data), estimator, started)
         else:
             x = np.asarray(data, np.float32)
             q = float(np.asarray(estimator.profile.quantisation_step, np.float64))
