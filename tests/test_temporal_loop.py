@@ -202,7 +202,8 @@ def test_the_vehicle_turning_or_moving_over_mavlink_restarts_every_pixel(tmp_pat
                 return s.http.get("/api/v1/status").json()["temporal"]
 
             assert wait_for(lambda: temporal().get("median_frames") == M, 120.0, 0.2), temporal()
-            assert temporal()["vehicle_shift_px"] == 0.0  # reported still
+            # Reported still (the autopilot answers once the daemon's first message has reached it).
+            assert wait_for(lambda: temporal()["vehicle_shift_px"] == 0.0, 30.0, 0.1), temporal()
             autopilot.turn = 0.2  # rad/s: at 10 frames/s about 0.02 rad, several pixels, a frame
             assert wait_for(lambda: "the vehicle moved" in temporal()["restarted"], 20.0, 0.1), temporal()
             turning = collect.take(5)
