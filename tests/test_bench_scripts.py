@@ -65,6 +65,17 @@ def test_orientation_benchmark_runs():
 
 
 @pytest.mark.slow
+def test_temporal_benchmark_runs():
+    out = subprocess.run([sys.executable, str(ROOT / "bench" / "bench_temporal.py"), "--size", "160x120", "--distance", "3",
+                          "--water", "jerlov-IA", "--seconds", "1.5", "--frames", "3", "--max-frames", "8"],
+                         check=True, capture_output=True, text=True, timeout=600).stdout
+    rows = {line.split()[0]: line.split() for line in out.splitlines() if line.startswith(("one frame", "fused"))}
+    assert rows["one"][2] == "100.0%" and rows["fused"][1] == "100.0%", out  # the grey seabed at 3 m, every pixel
+    assert float(rows["fused"][6]) >= 4, out  # frames per pixel, median
+    assert "fusion stage:" in out
+
+
+@pytest.mark.slow
 def test_recording_budget_benchmark_runs():
     out = subprocess.run([sys.executable, str(ROOT / "bench" / "bench_recording_budget.py"), "--frames", "1"],
                          check=True, capture_output=True, text=True, timeout=600).stdout

@@ -174,6 +174,33 @@ class ExposureConfig(Strict):
         return self
 
 
+class TemporalConfig(Strict):
+    """Temporal fusion in the loop (uwcam.runtime.stages.temporal; docs/physics.md §11): a running
+    per-pixel mean of the frames over which the scene held still, ranged as one frame with its
+    noise divided accordingly. A pixel starts afresh where the new frame differs from the mean by
+    more than its noise allows, where it is saturated, and everywhere when the exposure changes.
+
+    Off by default (``processing.temporal`` null): the embedded default is a vehicle surveying at
+    0.4 m/s, whose view shifts several pixels a frame, so nearly every pixel would start afresh
+    every frame and fusion would cost time for nothing; a pilot holding station at an inspection
+    target switches it on (the page's switch, or PATCH /api/v1/config {"temporal": {}})."""
+
+    max_frames: Annotated[Whole, Field(ge=2, le=1024)] = 32
+    """Most frames one pixel's estimate is built from: beyond it each new frame weighs 1/max_frames
+    (a running average), so the estimate follows slow drift (tide, a settling vehicle) within
+    about max_frames frames; at 30 frames/s, 32 is about a second."""
+    change_sigmas: Annotated[Real, Field(ge=2, le=100)] = 4.0
+    """A pixel starts afresh when any channel of the new frame differs from the running mean by more
+    than this many standard deviations of that difference (the noise model's frame-to-frame noise).
+    At 4 a still pixel of three channels starts afresh by chance about once in 5000 frames."""
+    motion_pixels: Annotated[Real, Field(gt=0, le=10000)] | None = 0.5
+    """Where the autopilot reports the vehicle's motion over MAVLink (ATTITUDE's rates,
+    LOCAL_POSITION_NED's velocity; needs the ``mavlink`` section): every pixel starts afresh when
+    that motion over one frame interval moves the image by more than this many pixels (turning:
+    f·ω·Δt; moving: f·v·Δt over the median range), before a change too slow for the noise to show
+    is averaged in. None: motion is judged from the image alone."""
+
+
 class ProcessingConfig(Strict):
     pair: tuple[str, str] | None = None
     """Two channel names for single-pair ranging; None fuses all channels."""
@@ -195,6 +222,8 @@ class ProcessingConfig(Strict):
     """Surface incidence angles (Kirlin) in the loop; None: off."""
     exposure: ExposureConfig | None = None
     """Radiometric exposure control, per channel where the camera allows; None: the exposure stays as set."""
+    temporal: TemporalConfig | None = None
+    """Fuse frames over time where the scene holds still (√N less noise holding station); None: off."""
     vehicle_mask: Annotated[list[Box], Field(max_length=64)] = []
     """Regions (x, y, width, height in pixels) where the vehicle itself is in view: the patch's
     bracket, skids, a manipulator. They get no range (reason 6, "vehicle"), so that the page's

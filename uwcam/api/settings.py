@@ -8,7 +8,8 @@ from fastapi import APIRouter, Depends, HTTPException
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from uwcam.api.common import get_daemon
-from uwcam.config import BackscatterConfig, Box, ExposureConfig, Flag, OrientationConfig, PatchConfig, ProcessingConfig, Real, Whole
+from uwcam.config import (BackscatterConfig, Box, ExposureConfig, Flag, OrientationConfig, PatchConfig, ProcessingConfig, Real,
+                          TemporalConfig, Whole)
 from uwcam.runtime.daemon import Daemon
 
 router = APIRouter(prefix="/api/v1/config", tags=["config"])
@@ -36,6 +37,8 @@ class ProcessingPatch(BaseModel):
     """Regions [x, y, width, height] where the vehicle is in view: no range there."""
     orientation: OrientationConfig | None = None
     """Surface incidence angles in the loop ({"block": 16}); null switches them off."""
+    temporal: TemporalConfig | None = None
+    """Temporal fusion where the scene holds still ({"max_frames": 32}); null switches it off."""
 
 
 @router.get("")

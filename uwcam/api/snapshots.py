@@ -123,12 +123,14 @@ def pointcloud(d: Daemon = Depends(get_daemon)) -> Response:
 
 
 @router.get("/{kind}", responses={200: {"content": {"application/octet-stream": {}, "image/png": {}, "image/tiff": {}}}})
-def snapshot(kind: Literal["range", "variance", "reasons", "image"],
+def snapshot(kind: Literal["range", "variance", "reasons", "image", "frames"],
              format: Literal["npy", "tiff", "png16", "png"] = Query("npy"),
              low: Annotated[float | None, Query(ge=0, le=1000, allow_inf_nan=False)] = None,
              high: Annotated[float | None, Query(gt=0, le=1000, allow_inf_nan=False)] = None,
              d: Daemon = Depends(get_daemon)) -> Response:
-    """The latest processed frame's range (m), variance (m²), reason codes or colour image.
+    """The latest processed frame's range (m), variance (m²), reason codes or colour image, or the
+    frames each pixel's range is built from (uint16; 0: no range; 1 everywhere with a range while
+    temporal fusion is off).
     png16: range in millimetres as uint16, 0 invalid (data for tools; it looks black in a viewer).
     png: a picture — the colour image (8 or 16 bit), or range / σ (for variance) in false colour
     (turbo, near = blue) between ``low`` and ``high`` metres (default: 2nd and 98th percentile;
@@ -136,8 +138,11 @@ def snapshot(kind: Literal["range", "variance", "reasons", "image"],
     if low is not None and high is not None and low >= high:
         raise HTTPException(status_code=422, detail="low must be below high (metres)")
     published = latest(d)
-    data = {"range": published.result.range, "variance": published.result.variance,
-            "reasons": published.result.reasons, "image": published.frame.data}[kind]
+    if kind == "frames":
+        data = published.frames if published.frames is not None else np.isfinite(published.result.range).astype(np.uint16)
+    else:
+        data = {"range": published.result.range, "variance": published.result.variance,
+                "reasons": published.result.reasons, "image": published.frame.data}[kind]
     headers = {"X-Frame-Number": str(published.number), "X-Capture-Time": f"{published.frame.wall_time:.6f}"}
     if format in ("npy", "tiff"):
         return array_response(data, format, headers)
@@ -146,8 +151,8 @@ def snapshot(kind: Literal["range", "variance", "reasons", "image"],
             raise HTTPException(status_code=422, detail="png16 is for the range map (millimetres); use npy or tiff")
         mm = range_millimetres(data)
         return Response(cv2.imencode(".png", mm)[1].tobytes(), media_type="image/png", headers=headers)
-    if kind == "reasons":
-        raise HTTPException(status_code=422, detail="png is for pictures of the image, range or σ; use npy or tiff for reasons")
+    if kind in ("reasons", "frames"):
+        raise HTTPException(status_code=422, detail=f"png is for pictures of the image, range or σ; use npy or tiff for {kind}")
     if kind != "image":
         values = np.sqrt(data) if kind == "variance" else data
         picture = false_colour(values, low, high)

@@ -170,7 +170,7 @@ def _ln_row(x, out, bits):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _background_terms(raw, bg, t, level, sat, e, var, ln, bits, y_out, w_out):
+def _background_terms(raw, bg, n_rows, t, level, sat, e, var, ln, bits, y_out, w_out):
     """[y, w] of every value of one row, channels interleaved as in the frame ((W·N,) each): the
     arithmetic of RangeEstimator.channel_terms with a background ``bg`` (DN) known not to come from
     the surface, in float32 (a 16-bit code and the noise terms need no more: the values differ
@@ -178,7 +178,9 @@ def _background_terms(raw, bg, t, level, sat, e, var, ln, bits, y_out, w_out):
     t: (9, W·N) float32, each channel's constants repeated along the row (dark, read², shot gain,
     fixed pattern, q²/12, floor, b, active, relative background uncertainty u, adding (u·bg)²);
     level: (W·N,) float32, the open-water level (−inf: none); sat: float32; e, var, ln: float32
-    rows and bits an int32 row, for scratch.
+    rows and bits an int32 row, for scratch. n_rows: (W·N,) float32, how many single-pixel noises
+    each value's noise is (frames fused over time; the variance is divided by it, at least 1), or
+    an empty row: one.
 
     Three passes, each over contiguous memory with no call and no branch, so that each vectorises
     (per pixel and channel, the terms cost about what the table lookup of integer frames does):
@@ -190,6 +192,8 @@ def _background_terms(raw, bg, t, level, sat, e, var, ln, bits, y_out, w_out):
         total = max(v + b, zero)
         s2 = t[1, x] + t[2, x] * total + t[4, x] + (t[3, x] * total) * (t[3, x] * total)
         s2 = s2 if s2 > zero else one
+        if n_rows.shape[0] > 0:
+            s2 = s2 / max(n_rows[x], one)
         u = t[8, x]
         var[x] = s2 + (u * b) * (u * b) if u > zero else s2
         e[x] = v
@@ -213,15 +217,19 @@ def _background_terms(raw, bg, t, level, sat, e, var, ln, bits, y_out, w_out):
 
 @parallel
 @njit(parallel=True, cache=True, nogil=True, error_model="numpy")
-def fuse_background(frame, background, noise, levels, sat, c, geo, bounds, out_range, out_var, out_reason):
+def fuse_background(frame, background, samples, noise, levels, sat, c, geo, bounds, out_range, out_var, out_reason):
     """As :func:`fuse_arrays` for a C-contiguous frame (H, W, N) of any pixel type with a
     C-contiguous background (H, W, N) float32 subtracted: the per-channel terms are computed here,
-    row by row (:func:`_background_terms`), instead of in numpy."""
+    row by row (:func:`_background_terms`), instead of in numpy. samples: C-contiguous (H, W, N)
+    float32, how many single-pixel noises each value's noise is (see RangeEstimator.channel_terms),
+    or an empty (0, 0, 0) array: one."""
     h, w = out_range.shape
     n = len(c)
     m = w * n
     raw_rows = frame.reshape(h, m)
     bg_rows = background.reshape(h, m)
+    counted = samples.size > 0
+    n_rows = samples.reshape(h, m) if counted else np.empty((h, 0), np.float32)
     t = np.empty((9, m), np.float32)
     level = np.empty(m, np.float32)
     for j in range(w):
@@ -238,7 +246,7 @@ def fuse_background(frame, background, noise, levels, sat, c, geo, bounds, out_r
         bits = np.empty(m, np.int32)
         y = np.empty(m, np.float32)
         wt = np.empty(m, np.float32)
-        _background_terms(raw_rows[i], bg_rows[i], t, level, sat32, e, var, ln, bits, y, wt)
+        _background_terms(raw_rows[i], bg_rows[i], n_rows[i], t, level, sat32, e, var, ln, bits, y, wt)
         buf = np.empty((n, 2 * w), np.float32)
         for j in range(w):
             for k in range(n):

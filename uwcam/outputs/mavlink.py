@@ -28,6 +28,9 @@ Field semantics follow MAVLink's common.xml:
 * STATUSTEXT for each alert raised or cleared (uwcam.runtime.alerts), with the alert's MAV_SEVERITY
   (cleared: INFO), its text cut to the message's 50 characters; queued while the link is down
   (the newest 16 kept).
+* Received: the autopilot's HEARTBEAT (status), and its ATTITUDE (roll, pitch and yaw rates) and
+  LOCAL_POSITION_NED (velocity), which temporal fusion reads to start afresh when the vehicle
+  moves (:meth:`MavlinkOutput.motion`; docs/physics.md §11).
 * HEARTBEAT at 1 Hz as an onboard controller, so the autopilot and ground station see the
   component; ``system_status`` ACTIVE while distances are sent, STANDBY otherwise. 1 Hz also
   while the link is being re-opened: a reconnect does not send one of its own.
@@ -36,6 +39,7 @@ Field semantics follow MAVLink's common.xml:
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections import deque
@@ -59,6 +63,8 @@ log = logging.getLogger(__name__)
 HEARTBEAT_PERIOD_S = 1.0
 STATUSTEXT_BYTES = 50
 """STATUSTEXT's text field (a longer text would need MAVLink 2's chunks, which not every ground station joins)."""
+MOTION_MAX_AGE_S = 1.0
+"""ATTITUDE and LOCAL_POSITION_NED older than this (s) say nothing about the vehicle's motion now."""
 STATUSTEXT_QUEUE = 16
 # MAVLink enum values used here (common.xml), named so the code reads like the spec.
 MAV_DISTANCE_SENSOR_UNKNOWN = 4
@@ -110,6 +116,12 @@ class MavlinkOutput:
         self.measurement: Measurement | None = None
         self.max_distance_from = "processing.path_length_bounds"
         self.autopilot_heartbeat_monotonic: float | None = None
+        # The vehicle's motion as the autopilot reports it, (monotonic s, value), or None; each a
+        # tuple swapped whole, so that another thread reads one consistent reading.
+        self._turn_rate: tuple[float, float] | None = None
+        """Angular speed (rad/s) from ATTITUDE's roll, pitch and yaw rates."""
+        self._speed: tuple[float, float] | None = None
+        """Speed (m/s) from LOCAL_POSITION_NED's velocity."""
         self._state_lock = threading.Lock()
         self._state = ("stopped", "not started", time.time())
         self.connected = False
@@ -236,8 +248,25 @@ class MavlinkOutput:
         except Exception:  # robust parsing: garbage on the link is not our problem
             return
         for msg in messages:
-            if msg.get_type() == "HEARTBEAT" and msg.autopilot != MAV_AUTOPILOT_INVALID:
+            kind = msg.get_type()
+            if kind == "HEARTBEAT" and msg.autopilot != MAV_AUTOPILOT_INVALID:
                 self.autopilot_heartbeat_monotonic = time.monotonic()
+            elif kind == "ATTITUDE":
+                rate = math.sqrt(msg.rollspeed**2 + msg.pitchspeed**2 + msg.yawspeed**2)
+                if math.isfinite(rate):
+                    self._turn_rate = (time.monotonic(), rate)
+            elif kind == "LOCAL_POSITION_NED":
+                speed = math.sqrt(msg.vx**2 + msg.vy**2 + msg.vz**2)
+                if math.isfinite(speed):
+                    self._speed = (time.monotonic(), speed)
+
+    def motion(self, max_age_s: float = MOTION_MAX_AGE_S) -> tuple[float | None, float | None]:
+        """(angular speed rad/s, speed m/s) of the vehicle from the autopilot's latest ATTITUDE and
+        LOCAL_POSITION_NED, each None when none came in the last ``max_age_s`` seconds. Any thread."""
+        now = time.monotonic()
+        turn, speed = self._turn_rate, self._speed
+        return (turn[1] if turn is not None and now - turn[0] <= max_age_s else None,
+                speed[1] if speed is not None and now - speed[0] <= max_age_s else None)
 
     def _send_texts(self) -> None:
         while True:

@@ -29,6 +29,8 @@ from uwcam.ranging.smoothing import block_means, smooth_frame, smooth_range_map
 _IGNORED = 4
 # With a known background subtracted, a channel needs this many σ of signal to be used.
 BACKGROUND_SIGMAS = kernels.BACKGROUND_SIGMAS
+_NO_SAMPLES = np.empty((0, 0, 0), np.float32)
+"""An empty samples array for the background kernel: every value one pixel's noise."""
 # The calibration's share of the variance is smooth across the image: it is computed on blocks
 # of this many pixels a side and interpolated (bench/bench_fusion.py prints the error and cost).
 CALIBRATION_VARIANCE_BLOCK = 8
@@ -298,14 +300,17 @@ class RangeEstimator:
             table, offset = self._lookup_tables(frame.dtype)
             b = tuple(float(v) for v in self.effective_log_constant - offset)
             kernels.fuse_lookup(frame, table, self._c, b, *common)
-        elif background is not None and samples is None and kernels.fuse_background is not None and (
+        elif background is not None and kernels.fuse_background is not None and (
                 self.response is None) and (
                 np.issubdtype(frame.dtype, np.integer) or np.issubdtype(frame.dtype, np.floating)):
             # Compiled: the per-channel terms of channel_terms, computed row by row in the kernel.
             bg = np.ascontiguousarray(np.broadcast_to(background, frame.shape), dtype=np.float32)
             # The kernel reads rows as contiguous runs of values (a strided view, e.g. channels
             # reordered, is copied once here).
-            kernels.fuse_background(np.ascontiguousarray(frame), bg, self._noise_terms(), self._open_water_levels,
+            # Values that are means (frames fused over time) have their noise divided in the kernel.
+            counts = _NO_SAMPLES if samples is None else np.ascontiguousarray(np.broadcast_to(samples, frame.shape),
+                                                                               dtype=np.float32)
+            kernels.fuse_background(np.ascontiguousarray(frame), bg, counts, self._noise_terms(), self._open_water_levels,
                                     float(self.profile.saturation_level), self._c, *common)
         elif np.issubdtype(frame.dtype, np.integer) or np.issubdtype(frame.dtype, np.floating):
             y, weight, state = self.channel_terms(frame, background, samples)  # y already has b subtracted

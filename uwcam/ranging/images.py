@@ -46,14 +46,23 @@ def fuse_frames(estimator: RangeEstimator, frames: Sequence[NDArray]) -> tuple[N
     if response is not None and np.issubdtype(first.dtype, np.integer):
         frames = [response.linearise(f) for f in frames]  # a gamma camera: average light, not codes
     mean = np.mean(np.stack(frames).astype(np.float64), axis=0)
-    e = mean - estimator.dark
-    q = estimator.profile.quantisation_step
-    total = signal_variance(e, estimator.read_noise, estimator.shot_gain, q, estimator.fixed_pattern)
-    fused = temporal_variance(e, estimator.read_noise, estimator.shot_gain, q) / k + (estimator.fixed_pattern * np.maximum(e, 0.0)) ** 2
-    with np.errstate(invalid="ignore", divide="ignore"):
-        samples = np.where(fused > 0, total / fused, float(k))
     # A saturated mean stays at or above the level: the estimator marks it as it would one frame.
-    return mean.astype(np.float32), samples.astype(np.float32)
+    return mean.astype(np.float32), samples_of_mean(estimator, mean - estimator.dark, 1.0 / k)
+
+
+def samples_of_mean(estimator: RangeEstimator, signal: NDArray, weight_squares: float | NDArray) -> NDArray[np.float32]:
+    """Per value, the number of single-pixel noises the variance of a weighted mean of frames equals:
+    σ²(E) / (σ_t²(E)·Σw² + (f·E)²). signal: (H, W, N) the mean's dark-corrected signal E (DN);
+    weight_squares: Σw² of the frames' weights (they sum to 1), 1/K for K equal frames, a scalar or
+    (H, W, 1); σ_t² the temporal part of the noise model (read, shot, quantisation), which averages
+    down, f its fixed pattern, which is the same in every frame and does not."""
+    q = estimator.profile.quantisation_step
+    total = signal_variance(signal, estimator.read_noise, estimator.shot_gain, q, estimator.fixed_pattern)
+    fused = (temporal_variance(signal, estimator.read_noise, estimator.shot_gain, q) * weight_squares
+             + (estimator.fixed_pattern * np.maximum(signal, 0.0)) ** 2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        samples = np.where(fused > 0, total / fused, 1.0 / np.asarray(weight_squares, np.float64))
+    return samples.astype(np.float32)
 
 
 def range_images(

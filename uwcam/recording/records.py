@@ -50,7 +50,9 @@ def ranging_record(p: Published, profile: CalibrationProfile, processing) -> dic
                            "smoothing_stage": processing.smoothing_stage,
                            "path_length_bounds": list(processing.path_length_bounds),
                            "vehicle_mask": [list(box) for box in processing.vehicle_mask],
-                           "backscatter": None if processing.backscatter is None else processing.backscatter.iterations},
+                           "backscatter": None if processing.backscatter is None else processing.backscatter.iterations,
+                           # Fused frames are reprocessed as single frames (docs/physics.md §11).
+                           "temporal": None if processing.temporal is None else processing.temporal.model_dump()},
             "water": p.water_source, "light_scale": None if p.light_scale is None else list(p.light_scale),
             "depth": "metres along the optical axis (range along the pixel ray times u_z)"}
 

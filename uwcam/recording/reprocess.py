@@ -410,6 +410,7 @@ def _write_output(path: str, results: Iterable[PartResult], bar, warn: Callable[
         out = rec.McapFile(tmp, replace=True, compression="zstd")  # the empty temporary file made above; offline, so the smallest
         attached: set[str] = set()
         last_profile = None
+        fused = 0  # frames the loop had fused over time (docs/physics.md §11)
         for result in results:
             for fr in result.frames:
                 name = fr.ranging["profile"]
@@ -427,6 +428,7 @@ def _write_output(path: str, results: Iterable[PartResult], bar, warn: Callable[
                               rec.camera_calibration(prof, fr.width, fr.height, fr.log_time_ns), fr.log_time_ns)
                     last_profile = name
                 t = fr.log_time_ns
+                fused += bool(fr.ranging.get("processing", {}).get("temporal"))
                 out.write_json(rec.RANGING, fr.ranging, t)
                 out.write(rec.DEPTH, "foxglove.RawImage", fr.depth, t)
                 out.write(rec.VARIANCE, "foxglove.RawImage", fr.variance, t)
@@ -434,6 +436,9 @@ def _write_output(path: str, results: Iterable[PartResult], bar, warn: Callable[
             bar.update(len(result.frames))
             for t, why in result.skipped:
                 warn(f"{result.part.path}: skipped the ranged frame logged at {t / 1e9:.3f} s ({why})")
+        if fused:
+            warn(f"{path}: {fused} frames were fused over time in the frame loop (processing.temporal); they are "
+                 "ranged again each on its own, as single frames")
         out.finish()
         os.replace(tmp, path)
     except BaseException:

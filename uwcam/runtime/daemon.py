@@ -163,6 +163,7 @@ class Daemon:
             self.pipeline.start()
             if cfg.mavlink is not None:
                 self.mavlink = MavlinkOutput(cfg.mavlink, self.pipeline)
+                self.pipeline.motion = self.mavlink.motion  # the vehicle's motion, for temporal fusion
                 self.mavlink.start()
             self._start_alerts()
         except BaseException:
@@ -404,6 +405,7 @@ class Daemon:
                             "reflectance": stats.get("reflectance")},
             "backscatter": stats.get("backscatter"),
             "orientation": stats.get("orientation"),
+            "temporal": stats.get("temporal"),
             "exposure": stats.get("exposure"),
             "rangefinder": rf,
             "lamp": lamp,

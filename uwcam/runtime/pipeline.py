@@ -33,6 +33,7 @@ from uwcam.runtime.stages.compensation import CompensationStage
 from uwcam.runtime.stages.orientation import OrientationEstimator
 from uwcam.runtime.stages.patch_tracker import PatchTracker
 from uwcam.runtime.stages.reflectance import ReflectanceCorrector
+from uwcam.runtime.stages.temporal import TemporalFuser, frames_summary
 
 QUEUED_FRAME_BUDGET_S = 0.030
 """A frame that waited longer than this (seconds since capture) is skipped when a newer one is
@@ -91,6 +92,9 @@ class FramePipeline(CompensationStage):
         self._latencies: collections.deque[float] = collections.deque(maxlen=600)
         self._times: collections.deque[float] = collections.deque(maxlen=4096)  # publish times, s
         self._started_s: float | None = None
+        self.motion: Callable[[], tuple[float | None, float | None]] | None = None
+        """The vehicle's (angular speed rad/s, speed m/s) as the autopilot reports them (MAVLink), for
+        temporal fusion to start afresh when the vehicle moves; None: not known."""
 
     def _build(self, processing: ProcessingConfig, profile: CalibrationProfile) -> tuple:
         """Everything that ranges with ``processing`` and ``profile``; raises ValueError (changing
@@ -119,11 +123,14 @@ class FramePipeline(CompensationStage):
         beam = processing.orientation.beam_half_angle_deg if processing.orientation else None
         corrector = ReflectanceCorrector(processing.reflectance, profile, self.rangefinder, beam) if processing.reflectance else None
         orientation = OrientationEstimator(processing.orientation, profile) if processing.orientation else None
-        return estimator, tracker, corrector, orientation
+        # A new fuser starts every pixel afresh: frames ranged with other settings or another profile
+        # are not averaged with the next ones (the settings may change what a frame's values mean).
+        temporal = TemporalFuser(processing.temporal) if processing.temporal else None
+        return estimator, tracker, corrector, orientation, temporal
 
     def _apply(self, processing: ProcessingConfig, profile: CalibrationProfile | None = None) -> None:
         profile = profile or self.profile
-        estimator, tracker, corrector, orientation = self._build(processing, profile)
+        estimator, tracker, corrector, orientation, temporal = self._build(processing, profile)
         exposure = None
         if processing.exposure is not None:
             from uwcam.runtime.stages.exposure import ExposureController
@@ -147,6 +154,7 @@ class FramePipeline(CompensationStage):
             self.tracker = tracker
             self.corrector = corrector
             self.orientation = orientation
+            self.temporal = temporal
             self.exposure = exposure
             self._hdr = hdr
             # An open-water frame taken meanwhile makes the one built here stale: the loop builds anew.
@@ -315,6 +323,7 @@ class FramePipeline(CompensationStage):
         with self._lock:
             estimator, tracker, processing, corrector = self.estimator, self.tracker, self.processing, self.corrector
             profile, orientation, exposure, hdr = self.profile, self.orientation, self.exposure, self._hdr
+            temporal = self.temporal
         taken = frame.exposures()[0]
         coded = None
         if estimator.response is not None and np.issubdtype(frame.data.dtype, np.integer):
@@ -346,8 +355,13 @@ class FramePipeline(CompensationStage):
                 estimator.set_log_constants(b)
         if frame.lamp_on is not False:
             self._take_open_water(frame, ambient, "taken on request")
-        result = range_frame(estimator, frame.data, processing.smoothing, processing.smoothing_stage, ambient,
-                             processing.vehicle_mask, transform, water, scale)
+        data, samples = frame.data, None
+        if temporal is not None:  # the running mean of the frames over which each pixel held still
+            self._judge_motion(temporal, frame, profile)
+            data, samples = temporal.update(frame.data, frame.exposures(), estimator)
+        result = range_frame(estimator, data, processing.smoothing, processing.smoothing_stage, ambient,
+                             processing.vehicle_mask, transform, water, scale, samples)
+        frames = None if temporal is None else temporal.frames(np.isfinite(result.range))
         if exposure is not None:
             wanted = exposure.update(frame.data, frame.exposures()[0], frame.lamp_on, profile.array("dark_level"),
                                      estimator.floor, profile.saturation_level, taken)
@@ -371,7 +385,8 @@ class FramePipeline(CompensationStage):
                                orientation.config.block if orientation is not None else 0,
                                None if water is None else water.source,
                                None if scale is None else tuple(float(v) for v in np.asarray(scale).ravel()),
-                               self.open_water if water is not None and water.source == "open-water frame" else None)
+                               self.open_water if water is not None and water.source == "open-water frame" else None,
+                               frames)
         with self._lock:
             self._latest = published
         self.processed += 1
@@ -379,6 +394,20 @@ class FramePipeline(CompensationStage):
         self._times.append(now / 1e9)  # monotonic seconds
         for callback in list(self._subscribers):
             callback(published)
+
+    def _judge_motion(self, temporal: TemporalFuser, frame: Frame, profile: CalibrationProfile) -> None:
+        """Hand temporal fusion the vehicle's reported motion, the focal length and the median range."""
+        turn, speed = self.motion() if self.motion is not None else (None, None)
+        intrinsics = profile.camera_intrinsics()
+        # Without intrinsics a focal length of the image width (a 53° field of view) stands in.
+        focal = intrinsics.fx if intrinsics is not None else float(frame.data.shape[1])
+        latest = self.latest
+        range_m = 1.0  # no range yet: a near surface, so that motion counts for much
+        if latest is not None and speed is not None:
+            sample = latest.result.range[::8, ::8]  # the median of every 64th pixel is plenty here
+            sample = sample[np.isfinite(sample)]
+            range_m = float(np.median(sample)) if sample.size else range_m
+        temporal.judge_motion(frame.host_monotonic_ns, turn, speed, focal, range_m)
 
     FPS_WINDOW_S = 2.0
     """fps is the number of frames published in this many seconds before now, per second."""
@@ -404,8 +433,18 @@ class FramePipeline(CompensationStage):
             "ambient_frames": self._ambient_frames,
             "backscatter": self.backscatter_status(),
             "orientation": {"enabled": False} if self.orientation is None else self.orientation.status(),
+            "temporal": self.temporal_status(),
             "exposure": self.exposure_status(),
         }
+
+    def temporal_status(self) -> dict:
+        """Temporal fusion's state, with the frames per pixel of the latest published range."""
+        temporal = self.temporal
+        latest = self.latest
+        if temporal is None:
+            return {"enabled": False}
+        frames = latest.frames if latest is not None else None
+        return {**temporal.status(), **frames_summary(frames)}
 
     def exposure_status(self) -> dict:
         """The exposure controller's state, or where exposure control stands without it."""

@@ -36,6 +36,9 @@ class Published:
     """Per channel, this frame's exposure × gain over that of the backscatter model's light (None: 1)."""
     open_water: NDArray[np.float32] | None = None
     """The open-water frame the backscatter model was made with, when it was (raw DN less ambient)."""
+    frames: NDArray[np.uint16] | None = None
+    """(H, W) frames each pixel's range is built from under temporal fusion (0: no range); None
+    when fusion is off (every range from its own frame alone)."""
 
     @property
     def latency_s(self) -> float:

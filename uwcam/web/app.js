@@ -23,6 +23,7 @@ const state = {
   paused: false,
   mode: "side",
   showSigma: false,
+  fusedFrames: null,  // median frames per pixel under temporal fusion (status), or null
   table: lut("turbo"),
   limits: { auto: true, min: 0.5, max: 5 },
   autoLimits: null,
@@ -282,7 +283,14 @@ function drawColourbar(limits) {
   $("bar-min").textContent = limits.min.toFixed(digits);
   $("bar-max").textContent = limits.max.toFixed(digits);
   $("bar-unit").textContent = state.showSigma ? "σ, m" : "range, m";
-  $("range-label").textContent = state.showSigma ? "σ of range" : "range";
+  $("range-label").textContent = rangeLabel();
+}
+
+// "range", and over how many frames the median pixel's range is fused while temporal fusion is on.
+function rangeLabel() {
+  const what = state.showSigma ? "σ of range" : "range";
+  const n = state.fusedFrames;
+  return n ? `${what} · fused over ${n} frame${n === 1 ? "" : "s"}` : what;
 }
 
 function drawColour() {
@@ -597,6 +605,15 @@ function renderHealth(s) {
       $("lamp-intensity-value").textContent = Math.round(lamp.percent);
     }
   }
+  const t = s.temporal;
+  state.fusedFrames = t && t.enabled ? t.median_frames : null;
+  if (t && t.enabled) {
+    add("fusion", t.median_frames ? `${t.median_frames} frames per pixel (median, at most ${t.max_frames})` +
+      ` · ${(t.changed_fraction * 100).toFixed(1)} % changed in the last frame` : "no range yet", "",
+      "Temporal fusion: each pixel's range is made from the frames over which it held still, so its noise " +
+      "is √N smaller; a pixel whose light changes more than its noise allows starts afresh from the newest frame.");
+  }
+  $("range-label").textContent = rangeLabel();
   $("figures").replaceChildren(...figures);
   renderRecording(s.recording);
   renderBackscatter(s.backscatter);
@@ -681,6 +698,7 @@ async function loadConfig() {
   // Disabled: always on with this calibration (renderBackscatter), whatever the settings say.
   $("backscatter-on").checked = (c.backscatter !== null && c.backscatter !== undefined) || $("backscatter-on").disabled;
   if (c.patch?.path_length_m) $("patch-path").value = c.patch.path_length_m;
+  $("temporal-on").checked = c.temporal !== null && c.temporal !== undefined;
 }
 
 async function patchConfig(what, body) {
@@ -736,6 +754,7 @@ function wireControls() {
     if (!Number.isInteger(n) || n < 0) { message("the lamp-off interval is a whole number of frames, 0 or more"); return; }
     patchConfig("Lamp-off interval", { lamp_off_interval: n });
   };
+  $("temporal-on").onchange = () => patchConfig("Temporal fusion", { temporal: $("temporal-on").checked ? {} : null });
   $("backscatter-on").onchange = () => patchConfig("Backscatter", { backscatter: $("backscatter-on").checked ? { iterations: 2 } : null });
   $("open-water").onclick = async () => {
     if (await change("Take open-water frame", "api/v1/backscatter/open-water", { method: "POST", body: { frames: 4 } })) pollStatusNow();
