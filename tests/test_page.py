@@ -524,12 +524,12 @@ def test_range_view_changes_as_the_vehicle_moves(browser, speed):
             assert 4000 <= t1 - t0 < 15000  # new frames were painted in both cases
             change = np.abs(after - before).mean()
             print(f"mean change of the 16×16-pixel block colours at {speed} m/s: {change:.1f}")
-            # Measured here: 6.9–11 moving (it depends on which stretch of seabed the 4 s cover),
-            # 2.1–2.3 held in place (noise alone); a page that stopped painting gives 0.
+            # Measured here: 4.5–11 moving (it depends on how much relief the 4 s of seabed
+            # have), 2.1–2.3 held in place (noise alone); a page that stopped painting gives 0.
             if speed:
-                assert change > 5.0, change
+                assert change > 3.3, change
             else:
-                assert change < 4.0, change
+                assert change < 3.0, change
             assert page.errors == [] and page.outside == []
         finally:
             page.close()
