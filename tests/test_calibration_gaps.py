@@ -650,3 +650,45 @@ def test_a_lamp_level_with_the_plate_gives_a_finite_profile():
         frames.append(np.ones(SHAPE + (3,)) * e)
     profile = calibrate_with_details(frames, [1.0, 2.0], _inputs(lamp_position_m=tuple(lamp), lamp_radius_m=LAMP_R)).profile
     assert np.all(np.isfinite(profile.array("attenuation")))
+
+
+def test_covariance_between_distances_enters_the_generalised_least_squares():
+    """Four distances, three channels (reference 0), each channel's entries correlated between
+    distances (the same pixels' fixed pattern): V, b and their covariance are the generalised
+    least squares written out here, channel-major, with the full covariance of the ratios
+    y_ik = ln E_k − ln E_ref (their reference share included); leaving the cross-distance
+    covariance out gives another answer."""
+    from uwcam.calibration.line_fit import fit_attenuation_differences
+
+    rng = np.random.default_rng(21)
+    d = np.array([1.0, 1.6, 2.3, 3.1])
+    n, chans, ref = len(d), 3, 0
+    v_true, b_true = np.array([0.0, 0.35, 0.4]), np.array([0.0, -0.2, 0.1])
+    ln_e = np.log(5000.0) - 0.1 * d[:, None] + (b_true - np.outer(d, v_true)) + rng.normal(0, 1e-3, (n, chans))
+    lv = rng.uniform(1e-4, 3e-4, (n, chans))
+    lc = np.zeros((n, n, chans))
+    for k in range(chans):  # a fixed pattern shared by every distance: 60 % correlated
+        s = np.sqrt(lv[:, k])
+        lc[:, :, k] = 0.6 * np.outer(s, s)
+    fit = fit_attenuation_differences(ln_e, d, ref, lv, lc)
+
+    others = [1, 2]
+    rows = [(k, i) for k in others for i in range(n)]  # channel-major, unlike the code's order
+    y = np.array([ln_e[i, k] - ln_e[i, ref] for k, i in rows])
+    x = np.zeros((len(rows), 4))
+    cov_y = np.zeros((len(rows), len(rows)))
+    for r, (k, i) in enumerate(rows):
+        j = others.index(k)
+        x[r, j], x[r, 2 + j] = -d[i], 1.0
+        for c, (k2, i2) in enumerate(rows):
+            ref_part = lv[i, ref] if i == i2 else lc[i, i2, ref]
+            own = (lv[i, k] if i == i2 else lc[i, i2, k]) if k == k2 else 0.0
+            cov_y[r, c] = own + ref_part
+    w = np.linalg.inv(cov_y)
+    cov = np.linalg.inv(x.T @ w @ x)
+    theta = cov @ x.T @ w @ y
+    np.testing.assert_allclose(fit.attenuation_difference[others], theta[:2], rtol=1e-9)
+    np.testing.assert_allclose(fit.log_constant[others], theta[2:], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(fit.covariance, cov, rtol=1e-8)  # χ² well within its bound: unscaled
+    independent = fit_attenuation_differences(ln_e, d, ref, lv)
+    assert not np.allclose(independent.covariance, fit.covariance, rtol=1e-3)
