@@ -122,3 +122,36 @@ def test_range_fuses_several_images_and_refuses_mismatched_ones(setting, tmp_pat
     assert main(["range", str(tmp_path / "p.yaml"), str(tmp_path / "a.npy"), str(tmp_path / "small.npy"), "-o", out[0]]) == 2
     err = capsys.readouterr().err.strip()
     assert "image 2 is 80×58" in err and "image 1 is 80×60" in err and len(err.splitlines()) == 1
+
+
+def test_a_compensator_built_for_a_profile_replaced_meanwhile_is_not_kept(setting, monkeypatch):
+    """A frame in flight builds the compensator of its own profile (slow on a loaded machine); a new
+    profile put in use meanwhile brings its own, which that build must not replace: else the new
+    profile ranges with the old one's water light from then on."""
+    import threading
+
+    profile, frame, _, _ = setting
+    pipeline = FramePipeline(QueuedCamera(), profile, ProcessingConfig())
+    old_profile, old_processing, old_estimator = pipeline.profile, pipeline.processing, pipeline.estimator
+    assert pipeline._compensator is None  # no frame yet: the loop builds it on the first
+    make, building, release = pipeline._make_compensator, threading.Event(), threading.Event()
+
+    def slow(*args):
+        building.set()
+        assert release.wait(30.0)
+        return make(*args)
+
+    monkeypatch.setattr(pipeline, "_make_compensator", slow)
+    incoming = Frame(data=frame.copy(), sequence=1, host_monotonic_ns=time.monotonic_ns(), wall_time=time.time(), lamp_on=True)
+    in_flight = threading.Thread(target=pipeline._compensation, args=(incoming, old_processing, old_profile, old_estimator, None))
+    in_flight.start()
+    assert building.wait(30.0)
+    monkeypatch.setattr(pipeline, "_make_compensator", make)
+    pipeline._frame_shape = frame.shape  # frames have come: set_profile builds its compensator ahead
+    replacement = profile.model_copy(update={"name": "replacement"})
+    pipeline.set_profile(replacement)
+    ours = pipeline._compensator
+    assert ours is not None and ours.built_from[0] is replacement
+    release.set()
+    in_flight.join(30.0)
+    assert pipeline._compensator is ours

@@ -166,7 +166,15 @@ class CompensationStage:
         comp = self._compensator
         if comp is None or comp.shape != frame.data.shape[:2]:
             comp = self._make_compensator(processing, profile, frame.data.shape, self.open_water)
-            self._compensator = comp
+            # Kept only while the profile and settings it was built for are the ones in use: a
+            # profile put in use while this was built (seconds on a loaded machine) has its own,
+            # which this must not replace (it did: the new profile then ranged with the old one's
+            # water light for good, 4 % short in the tank).
+            with self._lock:
+                current = self._compensator
+                if self.profile is profile and self.processing is processing and (
+                        current is None or current.shape != comp.shape):
+                    self._compensator = comp
         # The modelled backscatter is in the counts of the light it came from: scaled to this frame's exposure.
         scale = light_scale(profile, estimator, frame.light_gathered(), comp.open_water, exposure)
         return compensation(comp, estimator, ambient, scale, self._compensation_ms), comp.water, scale
