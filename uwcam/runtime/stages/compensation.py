@@ -72,11 +72,17 @@ class CompensationStage:
         with self._lock:
             request = self._open_water_request
             if request is not None and time.monotonic() > request["deadline"]:
-                self._open_water_request = None
-                self._open_water_capture = (f"lapsed: {request['count']} of {request['frames']} lamp-lit frames came "
-                                            f"within {request['timeout_s']:g} s (is the camera streaming and the lamp on?)")
+                self._lapse(request)
                 return None
             return request
+
+    def _lapse(self, request: dict) -> None:
+        """Drop ``request`` if it is still the pending one, saying why; the caller holds the lock."""
+        if self._open_water_request is not request:  # taken, or replaced by a newer request meanwhile
+            return
+        self._open_water_request = None
+        self._open_water_capture = (f"lapsed: {request['count']} of {request['frames']} lamp-lit frames came "
+                                    f"within {request['timeout_s']:g} s (is the camera streaming and the lamp on?)")
 
     def _take_open_water(self, frame: Frame, ambient: NDArray | None, source: str) -> None:
         """Accumulate ``frame`` for a pending open-water request."""
@@ -85,8 +91,7 @@ class CompensationStage:
             return
         if frame.host_monotonic_ns > request["deadline_ns"]:  # captured too late, however soon it is processed
             with self._lock:
-                request["deadline"] = -np.inf
-            self._pending_open_water()  # lapses, saying so
+                self._lapse(request)
             return
         light = frame.data.astype(np.float32) if ambient is None else frame.data.astype(np.float32) - ambient
         gathered = frame.light_gathered()
