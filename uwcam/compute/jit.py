@@ -42,3 +42,14 @@ def set_threads(n: int) -> None:
     """Limit numba's parallel kernels to ``n`` threads in the calling thread (no-op without numba)."""
     if _numba is not None:
         _numba.set_num_threads(max(1, min(n, _numba.config.NUMBA_NUM_THREADS)))
+
+
+@njit(cache=True, nogil=True)
+def repeat_per_pixel(values, row):  # pragma: no cover - compiled; called only from compiled kernels
+    """Fill ``row`` (W·N,) with the N per-channel ``values`` once per pixel, in the order of a
+    frame row's values (channels interleaved): a compiled kernel taking a row as W·N contiguous
+    values reads each value's constant at the same index, a loop without branches that vectorises."""
+    n = values.shape[0]
+    for j in range(row.shape[0] // n):
+        for k in range(n):
+            row[j * n + k] = values[k]

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from uwcam.compute.jit import HAVE_NUMBA, njit, prange
+from uwcam.compute.jit import HAVE_NUMBA, njit, prange, repeat_per_pixel
 from uwcam.optics.validity import Reason
 
 SIGMAS = 3.0
@@ -80,13 +80,11 @@ def _threshold_compiled(level, scale, ambient, samples, a, g, f2, dark, k2, u2, 
     ambient_rows = ambient.reshape(h, m) if has_ambient else np.zeros((1, m), np.float32)
     step = 1 if has_ambient else 0  # row i of the ambient light, or its one row of zeros
     t = np.empty((5, m))
-    for j in range(w):
-        for k in range(n):
-            t[0, j * n + k] = scale[k]
-            t[1, j * n + k] = a[k]
-            t[2, j * n + k] = g[k]
-            t[3, j * n + k] = f2[k]
-            t[4, j * n + k] = dark[k]
+    repeat_per_pixel(scale, t[0])
+    repeat_per_pixel(a, t[1])
+    repeat_per_pixel(g, t[2])
+    repeat_per_pixel(f2, t[3])
+    repeat_per_pixel(dark, t[4])
     for i in prange(h):
         lv, cn, o = level_rows[i], count_rows[i], out_rows[i]
         am = ambient_rows[i * step]

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from uwcam.compute.jit import HAVE_NUMBA, njit, prange
+from uwcam.compute.jit import HAVE_NUMBA, njit, prange, repeat_per_pixel
 from uwcam.config import TemporalConfig
 from uwcam.ranging.estimator import RangeEstimator
 from uwcam.ranging.images import samples_of_mean
@@ -101,12 +101,10 @@ def _fuse_compiled(frame, mean, count, weight_squares, dark, read_variance, shot
     one, zero = np.float32(1.0), np.float32(0.0)
     frame_rows, mean_rows, sample_rows = frame.reshape(h, m), mean.reshape(h, m), samples.reshape(h, m)
     t = np.empty((4, m), np.float32)
-    for j in range(w):
-        for k in range(n):
-            t[0, j * n + k] = dark[k]
-            t[1, j * n + k] = read_variance[k]
-            t[2, j * n + k] = shot_gain[k]
-            t[3, j * n + k] = fixed_squared[k]
+    repeat_per_pixel(dark, t[0])
+    repeat_per_pixel(read_variance, t[1])
+    repeat_per_pixel(shot_gain, t[2])
+    repeat_per_pixel(fixed_squared, t[3])
     restarted = np.zeros(h, np.int64)
     for i in prange(h):
         xs, ms, out = frame_rows[i], mean_rows[i], sample_rows[i]
