@@ -5,13 +5,15 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
 from uwcam.simulation.scene import MATERIALS, SCENES
 from uwcam.simulation.water import WATER_PRESETS
 
 SCENE_NAMES = ("survey", *SCENES)
 SURVEY_KEYS = ("speed", "altitude", "altitude_period")
+NAMED = {"scene": SCENE_NAMES, "water": WATER_PRESETS, "material": MATERIALS}
+"""The options that name one of a known set, and that set."""
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 
@@ -66,25 +68,12 @@ class SimulationOptions(BaseModel):
                 raise ValueError(str(exc)) from None
         return v
 
-    @field_validator("scene")
+    @field_validator(*NAMED)
     @classmethod
-    def _known_scene(cls, v: str) -> str:
-        if v not in SCENE_NAMES:
-            raise ValueError(f"unknown scene '{v}'; known: {', '.join(SCENE_NAMES)}")
-        return v
-
-    @field_validator("water")
-    @classmethod
-    def _known_water(cls, v: str) -> str:
-        if v not in WATER_PRESETS:
-            raise ValueError(f"unknown water '{v}'; known: {', '.join(WATER_PRESETS)}")
-        return v
-
-    @field_validator("material")
-    @classmethod
-    def _known_material(cls, v: str | None) -> str | None:
-        if v is not None and v not in MATERIALS:
-            raise ValueError(f"unknown material '{v}'; known: {', '.join(MATERIALS)}")
+    def _known_name(cls, v: str | None, info: ValidationInfo) -> str | None:
+        known = NAMED[info.field_name]
+        if v is not None and v not in known:
+            raise ValueError(f"unknown {info.field_name} '{v}'; known: {', '.join(known)}")
         return v
 
     @field_validator("bits")
