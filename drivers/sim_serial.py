@@ -23,6 +23,7 @@ from typing import Annotated, Literal
 
 from pydantic import Field
 
+from uwcam.drivers.select_thread import SelectThread
 from uwcam.drivers.sim import SimulatedRig
 
 log = logging.getLogger(__name__)
@@ -84,26 +85,22 @@ class PtyDevice:
         self._folder = Path(folder or tempfile.mkdtemp(prefix=f"{FOLDER_PREFIX}{os.getpid()}-"))
         self.path = str(self._folder / self.name)
         self._lock = threading.Lock()
-        self._stop_r, self._stop_w = os.pipe()  # wakes the select when stopping
-        self._wake_r, self._wake_w = os.pipe()  # wakes it when the pty is replaced
+        self._loop = SelectThread(self._run, f"pty-{self.name}")
+        self._wake_r, self._wake_w = os.pipe()  # wakes the loop when the pty is replaced
         self._master: int | None = None
         self._slave: int | None = None
-        self._thread: threading.Thread | None = None
         self._truncate_next = False
 
     # -- lifecycle ---------------------------------------------------------------------
     def start(self) -> "PtyDevice":
         self._plug()
-        self._thread = threading.Thread(target=self._run, name=f"pty-{self.name}", daemon=True)
-        self._thread.start()
+        self._loop.start()
         return self
 
     def stop(self) -> None:
-        os.write(self._stop_w, b"x")
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
+        self._loop.stop()
         self._unplug()
-        for fd in (self._stop_r, self._stop_w, self._wake_r, self._wake_w):
+        for fd in (self._wake_r, self._wake_w):
             os.close(fd)
         try:
             os.unlink(self.path)
@@ -173,12 +170,12 @@ class PtyDevice:
         while True:
             with self._lock:
                 master = self._master
-            fds = [self._stop_r, self._wake_r] + ([master] if master is not None else [])
+            fds = [self._loop.stop_fd, self._wake_r] + ([master] if master is not None else [])
             try:
                 ready, _, _ = select.select(fds, [], [], self.tick_s())
             except OSError:  # disconnect() closed the pty while we waited on it: look again
                 continue
-            if self._stop_r in ready:
+            if self._loop.stop_fd in ready:
                 return
             if self._wake_r in ready:
                 os.read(self._wake_r, 64)

@@ -11,13 +11,13 @@ tests, where it bridges a simulated Ping1D on a pseudo-terminal::
 from __future__ import annotations
 
 import argparse
-import os
 import select
 import socket
-import threading
 import time
 
 import serial
+
+from uwcam.drivers.select_thread import SelectThread
 
 
 class SerialUdpBridge:
@@ -33,8 +33,7 @@ class SerialUdpBridge:
         """While True every datagram and every byte from the device is dropped (a stalled bridge)."""
         self._sock: socket.socket | None = None
         self._serial: serial.Serial | None = None
-        self._stop_r, self._stop_w = os.pipe()  # wakes the select when stopping
-        self._thread: threading.Thread | None = None
+        self._loop = SelectThread(self._run, "udp-bridge")
 
     @property
     def address(self) -> str:
@@ -44,20 +43,15 @@ class SerialUdpBridge:
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._sock.bind((self.host, self.port))
         self.port = self._sock.getsockname()[1]
-        self._thread = threading.Thread(target=self._run, name="udp-bridge", daemon=True)
-        self._thread.start()
+        self._loop.start()
         return self
 
     def stop(self) -> None:
         """Close the UDP port (clients then get "connection refused") and the serial port."""
-        os.write(self._stop_w, b"x")
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
+        self._loop.stop()
         if self._sock is not None:
             self._sock.close()
         self._close_serial()
-        for fd in (self._stop_r, self._stop_w):
-            os.close(fd)
 
     def __enter__(self) -> "SerialUdpBridge":
         return self.start()
@@ -84,9 +78,9 @@ class SerialUdpBridge:
     def _run(self) -> None:
         while True:
             port = self._open_serial()
-            fds = [self._stop_r, self._sock] + ([port.fileno()] if port is not None else [])
+            fds = [self._loop.stop_fd, self._sock] + ([port.fileno()] if port is not None else [])
             ready, _, _ = select.select(fds, [], [], 0.2 if port is None else None)
-            if self._stop_r in ready:
+            if self._loop.stop_fd in ready:
                 return
             if self._sock in ready:
                 data, client = self._sock.recvfrom(65536)
