@@ -176,15 +176,13 @@ class ZenohListener:
             pass
 
     def close(self) -> None:
+        from uwcam.outputs.zenoh_publisher import close_session
+
         if self._query_thread is not None:
             self._query_thread.join(timeout=QUERY_TIMEOUT_S + 2.0)
             self._query_thread = None
-        if self._subscriber is not None:
-            self._subscriber.undeclare()
-            self._subscriber = None
-        if self._session is not None:
-            self._session.close()
-            self._session = None
+        close_session(self._session, self._subscriber)
+        self._session = self._subscriber = None
 
 
 def create_monitor_app(fleet: Fleet, listener: ZenohListener | None = None) -> FastAPI:

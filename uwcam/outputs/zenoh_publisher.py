@@ -85,6 +85,16 @@ def open_session(mode: str, listen: list[str], connect: list[str], scouting: boo
         raise UserInputError(f"cannot open the Zenoh session ({exc}); {hint}") from None
 
 
+def close_session(session, *declared) -> None:
+    """Undeclare what was declared on ``session`` (subscribers, queryables), then close it; parts
+    that are None (never opened) are passed over."""
+    for entity in declared:
+        if entity is not None:
+            entity.undeclare()
+    if session is not None:
+        session.close()
+
+
 def default_key_prefix() -> str:
     """uwcam/<host name>, the host name reduced to the characters a key allows."""
     host = "".join(c if c.isalnum() or c in "_-" else "_" for c in socket.gethostname()) or "vehicle"
@@ -278,12 +288,8 @@ class ZenohOutput(ThreadedOutput):
 
     def close(self) -> None:
         self._stop_thread()
-        if self._queryable is not None:
-            self._queryable.undeclare()
-            self._queryable = None
-        if self._session is not None:
-            self._session.close()
-            self._session = None
+        close_session(self._session, self._queryable)
+        self._session = self._queryable = None
 
     def status(self) -> dict:
         with self._lock:
