@@ -7,7 +7,9 @@ Why it is shaped like this:
   a row buffer and hand it to one shared row function: the row function is where the
   arithmetic is, and it sees only contiguous float32, so LLVM vectorises it (the lookup itself
   stays scalar). Kernels do not take functions as arguments because numba's on-disk cache
-  cannot reload kernels specialised on other compiled functions.
+  cannot reload kernels specialised on other compiled functions. So the two kernels' few lines
+  that fill the buffer stay written twice (they differ only in where a pair comes from): one
+  kernel for both would take such a function, or branch between the same two loops.
 * Attenuations and log constants arrive as tuples, so the channel count is a compile-time
   constant and the channel and pair loops unroll.
 * Every constant in the row loop is a float32 (``np.float32(...)``): one Python float would turn
