@@ -17,17 +17,8 @@ from typing import Annotated
 from pydantic import Field
 
 from uwcam.drivers.options import ChannelNames, DriverOptions, Flag, Whole
-from uwcam.drivers.base import (
-    CameraDriver,
-    CameraSettings,
-    ConfigurationError,
-    ConfigureReport,
-    CorruptFrame,
-    DeviceInfo,
-    DeviceLost,
-    Frame,
-    FrameTimeout,
-)
+from uwcam.drivers.base import (CameraDriver, CameraSettings, ConfigurationError, ConfigureReport, CorruptFrame,
+                                DeviceInfo, DeviceLost, Frame, FrameTimeout)
 from uwcam.drivers.pixels import decode, refuse_monochrome
 
 # Aravis's older names for PFNC formats.

@@ -21,16 +21,8 @@ from typing import Annotated
 from pydantic import Field
 
 from uwcam.drivers.options import ChannelNames, DriverOptions, Whole
-from uwcam.drivers.base import (
-    CameraDriver,
-    CameraSettings,
-    ConfigurationError,
-    ConfigureReport,
-    DeviceInfo,
-    DeviceLost,
-    Frame,
-    FrameTimeout,
-)
+from uwcam.drivers.base import (CameraDriver, CameraSettings, ConfigurationError, ConfigureReport, DeviceInfo,
+                                DeviceLost, Frame, FrameTimeout)
 from uwcam.drivers.pixels import assemble_components, decode, refuse_monochrome
 
 # Node → value that keeps radiometry linear and fixed.

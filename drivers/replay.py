@@ -16,18 +16,8 @@ from typing import Annotated
 from pydantic import Field
 
 from uwcam.drivers.options import ChannelNames, DriverOptions, Flag, Real
-from uwcam.drivers.base import (
-    CameraDriver,
-    CameraSettings,
-    ConfigurationError,
-    ConfigureReport,
-    CorruptFrame,
-    DeviceInfo,
-    DeviceLost,
-    EndOfStream,
-    Frame,
-    FrameTimeout,
-)
+from uwcam.drivers.base import (CameraDriver, CameraSettings, ConfigurationError, ConfigureReport, CorruptFrame,
+                                DeviceInfo, DeviceLost, EndOfStream, Frame, FrameTimeout)
 from uwcam.fileio import UserInputError
 from uwcam.imaging.imageio import IMAGE_SUFFIXES, read_frame
 

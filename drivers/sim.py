@@ -17,17 +17,8 @@ import numpy as np
 from pydantic import Field
 from numpy.typing import NDArray
 
-from uwcam.drivers.base import (
-    CameraDriver,
-    CameraSettings,
-    ConfigurationError,
-    ConfigureReport,
-    CorruptFrame,
-    DeviceInfo,
-    DeviceLost,
-    Frame,
-    FrameTimeout,
-)
+from uwcam.drivers.base import (CameraDriver, CameraSettings, ConfigurationError, ConfigureReport, CorruptFrame,
+                                DeviceInfo, DeviceLost, Frame, FrameTimeout)
 from uwcam.drivers.options import DriverOptions as _DriverOptions
 from uwcam.drivers.options import Flag as _Flag
 from uwcam.drivers.options import Real as _Real

@@ -22,16 +22,8 @@ from typing import Annotated, Literal
 import cv2
 from pydantic import Field
 
-from uwcam.drivers.base import (
-    CameraDriver,
-    CameraSettings,
-    ConfigurationError,
-    ConfigureReport,
-    DeviceInfo,
-    DeviceLost,
-    Frame,
-    FrameTimeout,
-)
+from uwcam.drivers.base import (CameraDriver, CameraSettings, ConfigurationError, ConfigureReport, DeviceInfo,
+                                DeviceLost, Frame, FrameTimeout)
 from uwcam.drivers.options import ChannelNames, DriverOptions, Real
 
 SCHEMES = ("rtsp://", "rtsps://", "udp://", "rtp://", "http://", "https://", "tcp://")

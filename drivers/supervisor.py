@@ -24,20 +24,8 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
-from uwcam.drivers.base import (
-    CameraDriver,
-    CameraSettings,
-    ConfigurationError,
-    ConfigureReport,
-    CorruptFrame,
-    DeviceInfo,
-    EndOfStream,
-    Frame,
-    FrameTimeout,
-    Health,
-    HealthState,
-    HealthTracker,
-)
+from uwcam.drivers.base import (CameraDriver, CameraSettings, ConfigurationError, ConfigureReport, CorruptFrame,
+                                DeviceInfo, EndOfStream, Frame, FrameTimeout, Health, HealthState, HealthTracker)
 
 log = logging.getLogger(__name__)
 

@@ -28,16 +28,8 @@ from typing import Annotated, Literal
 from pydantic import Field
 
 from uwcam.drivers.options import ChannelNames, DriverOptions, Real
-from uwcam.drivers.base import (
-    CameraDriver,
-    CameraSettings,
-    ConfigurationError,
-    ConfigureReport,
-    DeviceInfo,
-    DeviceLost,
-    Frame,
-    FrameTimeout,
-)
+from uwcam.drivers.base import (CameraDriver, CameraSettings, ConfigurationError, ConfigureReport, DeviceInfo,
+                                DeviceLost, Frame, FrameTimeout)
 
 log = logging.getLogger(__name__)
 APIS = {"v4l2": cv2.CAP_V4L2, "any": cv2.CAP_ANY}
