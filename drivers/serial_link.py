@@ -20,6 +20,34 @@ from uwcam.drivers.base import ConfigurationError, DeviceLost, HealthState, Heal
 PORT_ERRORS = (serial.SerialException, OSError, termios.error)
 
 
+class OpenBackoff:
+    """When a lazily opened link may next try to open its device: a failed open waits
+    ``retry_s[0]`` seconds before the next try, doubling up to ``retry_s[1]``; an open that works
+    resets the wait. Failures set ``health`` to RECOVERING; ``port`` names the device in messages."""
+
+    def __init__(self, port: str, retry_s: tuple[float, float], health: HealthTracker) -> None:
+        self.port, self.retry_s, self.health = port, retry_s, health
+        self._next_try = 0.0
+        self._delay = retry_s[0]
+
+    def check(self) -> float:
+        """The monotonic time now; DeviceLost while the wait after a failed open lasts."""
+        now = time.monotonic()
+        if now < self._next_try:
+            raise DeviceLost(f"{self.port} is unavailable; retrying in {self._next_try - now:.1f} s")
+        return now
+
+    def failed(self, now: float, exc: Exception) -> DeviceLost:
+        """Record a failed open tried at ``now``; the DeviceLost to raise."""
+        self._next_try = now + self._delay
+        self._delay = min(self._delay * 2, self.retry_s[1])
+        self.health.set(HealthState.RECOVERING, f"cannot open {self.port}: {exc}")
+        return DeviceLost(f"cannot open {self.port}: {exc}")
+
+    def opened(self) -> None:
+        self._delay = self.retry_s[0]
+
+
 class SerialLink:
     """One serial port, opened lazily and reopened after failures (at most every ``retry_s``)."""
 
@@ -29,8 +57,7 @@ class SerialLink:
         self.health = HealthTracker()
         self.lock = threading.RLock()  # one transaction (command + reply) at a time
         self._serial: serial.Serial | None = None
-        self._next_try = 0.0
-        self._delay = retry_s[0]
+        self._backoff = OpenBackoff(self.port, retry_s, self.health)
 
     def check_exists(self) -> None:
         """ConfigurationError at start when the port cannot exist at all (wrong name)."""
@@ -42,18 +69,13 @@ class SerialLink:
     def _ensure_open(self) -> serial.Serial:
         if self._serial is not None:
             return self._serial
-        now = time.monotonic()
-        if now < self._next_try:
-            raise DeviceLost(f"{self.port} is unavailable; retrying in {self._next_try - now:.1f} s")
+        now = self._backoff.check()
         try:
             self._serial = serial.Serial(self.port, self.baud, timeout=self.timeout_s, write_timeout=self.timeout_s)
-            self._delay = self.retry_s[0]
-            return self._serial
         except PORT_ERRORS as exc:
-            self._next_try = now + self._delay
-            self._delay = min(self._delay * 2, self.retry_s[1])
-            self.health.set(HealthState.RECOVERING, f"cannot open {self.port}: {exc}")
-            raise DeviceLost(f"cannot open {self.port}: {exc}") from None
+            raise self._backoff.failed(now, exc) from None
+        self._backoff.opened()
+        return self._serial
 
     def _close_port(self) -> None:
         if self._serial is not None:

@@ -18,6 +18,7 @@ import threading
 import time
 
 from uwcam.drivers.base import ConfigurationError, DeviceLost, HealthState, HealthTracker
+from uwcam.drivers.serial_link import OpenBackoff
 
 SCHEME = "udp:"
 
@@ -43,8 +44,7 @@ class UdpLink:
         self.lock = threading.RLock()  # one transaction (command + reply) at a time
         self._sock: socket.socket | None = None
         self._buffer = bytearray()
-        self._next_try = 0.0
-        self._delay = retry_s[0]
+        self._backoff = OpenBackoff(self.port, retry_s, self.health)
 
     def _address(self):
         try:
@@ -59,20 +59,15 @@ class UdpLink:
     def _ensure_open(self) -> socket.socket:
         if self._sock is not None:
             return self._sock
-        now = time.monotonic()
-        if now < self._next_try:
-            raise DeviceLost(f"{self.port} is unavailable; retrying in {self._next_try - now:.1f} s")
+        now = self._backoff.check()
         try:
             family, kind, proto, _, address = self._address()
             sock = socket.socket(family, kind, proto)
             sock.connect(address)
         except (OSError, ConfigurationError) as exc:
-            self._next_try = now + self._delay
-            self._delay = min(self._delay * 2, self.retry_s[1])
-            self.health.set(HealthState.RECOVERING, f"cannot open {self.port}: {exc}")
-            raise DeviceLost(f"cannot open {self.port}: {exc}") from None
+            raise self._backoff.failed(now, exc) from None
         self._sock = sock
-        self._delay = self.retry_s[0]
+        self._backoff.opened()
         return sock
 
     def fail(self, reason: str) -> None:
