@@ -20,6 +20,15 @@ from uwcam.drivers.base import ConfigurationError, DeviceLost, HealthState, Heal
 PORT_ERRORS = (serial.SerialException, OSError, termios.error)
 
 
+def close_quietly(port: serial.Serial | None) -> None:
+    """Close ``port`` (None: nothing to close); a port that vanished closes as best it can, without an error."""
+    if port is not None:
+        try:
+            port.close()
+        except Exception:  # closing a vanished port is best effort
+            pass
+
+
 class OpenBackoff:
     """When a lazily opened link may next try to open its device: a failed open waits
     ``retry_s[0]`` seconds before the next try, doubling up to ``retry_s[1]``; an open that works
@@ -78,12 +87,8 @@ class SerialLink:
         return self._serial
 
     def _close_port(self) -> None:
-        if self._serial is not None:
-            try:
-                self._serial.close()
-            except Exception:  # closing a vanished port is best effort
-                pass
-            self._serial = None
+        close_quietly(self._serial)
+        self._serial = None
 
     def fail(self, reason: str) -> None:
         """Close after an I/O failure; the next use reopens."""

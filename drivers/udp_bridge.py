@@ -18,6 +18,7 @@ import time
 import serial
 
 from uwcam.drivers.select_thread import SelectThread
+from uwcam.drivers.serial_link import close_quietly
 
 
 class SerialUdpBridge:
@@ -60,12 +61,8 @@ class SerialUdpBridge:
         self.stop()
 
     def _close_serial(self) -> None:
-        if self._serial is not None:
-            try:
-                self._serial.close()
-            except Exception:  # a vanished port closes as best it can
-                pass
-            self._serial = None
+        close_quietly(self._serial)
+        self._serial = None
 
     def _open_serial(self) -> serial.Serial | None:
         if self._serial is None:

@@ -98,12 +98,10 @@ class _Serial:
             raise LinkDown(f"reading from {self.device} failed: {exc}") from None
 
     def close(self) -> None:
-        if self.port is not None:
-            try:
-                self.port.close()
-            except Exception:  # closing a vanished port is best effort
-                pass
-            self.port = None
+        from uwcam.drivers.serial_link import close_quietly
+
+        close_quietly(self.port)
+        self.port = None
 
 
 def open_transport(config: MavlinkConfig):
