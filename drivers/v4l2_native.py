@@ -20,6 +20,7 @@ import errno
 import mmap
 import os
 import select
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import cv2
@@ -242,22 +243,14 @@ class NativeDevice:
     def formats(self) -> list[FormatOffer]:
         """Every capture format with its frame sizes."""
         offers = []
-        for index in range(64):
-            desc = raw.v4l2_fmtdesc()
-            desc.index, desc.type = index, CAPTURE
-            if not self._query(IOC.ENUM_FMT, desc):
-                break
+        for desc in self._enumerate(IOC.ENUM_FMT, raw.v4l2_fmtdesc, 64, type=CAPTURE):
             offers.append(FormatOffer(fourcc_name(desc.pixelformat), desc.description.decode(errors="replace"),
                                       bool(desc.flags & 0x1), tuple(self._sizes(desc.pixelformat))))
         return offers
 
     def _sizes(self, code: int) -> list[tuple[int, int]]:
         sizes = []
-        for index in range(256):
-            size = raw.v4l2_frmsizeenum()
-            size.index, size.pixel_format = index, code
-            if not self._query(IOC.ENUM_FRAMESIZES, size):
-                break
+        for size in self._enumerate(IOC.ENUM_FRAMESIZES, raw.v4l2_frmsizeenum, 256, pixel_format=code):
             if size.type == 1:  # V4L2_FRMSIZE_TYPE_DISCRETE
                 sizes.append((size.discrete.width, size.discrete.height))
             else:  # stepwise or continuous: the bounds
@@ -297,6 +290,15 @@ class NativeDevice:
                 raise self._lost_or(exc, "QUERYMENU") from None
             entries[index] = item.name.decode(errors="replace") if query.type == ControlType.MENU else str(item.value)
         return entries
+
+    def _enumerate(self, request: int, kind: type, limit: int, **fields: int) -> Iterator:
+        """The items of one of the device's lists: a ``kind`` struct with ``fields`` and index 0, 1, …
+        filled in by ``request`` until the device says the list has ended, at most ``limit`` of them."""
+        for index in range(limit):
+            struct = kind(index=index, **fields)
+            if not self._query(request, struct):
+                return
+            yield struct
 
     def _query(self, request: int, struct: object) -> bool:
         """One enumeration step; False at the end of the list (EINVAL)."""
