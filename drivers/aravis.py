@@ -8,6 +8,7 @@ reported. Buffers are copied once, at hand-off, and returned to the stream at on
 
 from __future__ import annotations
 
+import contextlib
 import time
 
 import numpy as np
@@ -184,10 +185,8 @@ class AravisCamera(CameraDriver):
 
     def stop(self) -> None:
         if self._camera is not None:
-            try:
+            with contextlib.suppress(Exception):  # a camera that went away stops as best it can
                 self._camera.stop_acquisition()
-            except Exception:
-                pass
 
     def close(self) -> None:
         self.stop()

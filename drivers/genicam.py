@@ -9,6 +9,7 @@ per sensor (3-chip cameras) are assembled into one registered frame.
 
 from __future__ import annotations
 
+import contextlib
 import glob
 import os
 import threading
@@ -330,17 +331,13 @@ class GenTLCamera(CameraDriver):
 
     def stop(self) -> None:
         if self._acquirer is not None:
-            try:
+            with contextlib.suppress(Exception):  # a camera that went away stops as best it can
                 self._acquirer.stop()
-            except Exception:
-                pass
 
     def close(self) -> None:
         if self._acquirer is not None:
-            try:
+            with contextlib.suppress(Exception):  # likewise its release
                 self._acquirer.destroy()
-            except Exception:
-                pass
             self._acquirer = None
         if self._harvester is not None:
             self._harvester = None
