@@ -28,6 +28,7 @@ from pydantic import Field
 from uwcam.drivers.options import DriverOptions, Real, Whole
 from uwcam.drivers.base import ConfigurationError, DeviceLost, Health, HealthState
 from uwcam.drivers.serial_link import SerialLink
+from uwcam.drivers.threads import StoppableThread
 from uwcam.drivers.udp_link import SCHEME as UDP_SCHEME, UdpLink
 
 FRESH_WATER = 1435.0
@@ -88,8 +89,7 @@ class SerialRangefinder:
         self.stats = RangefinderStats()
         self._latest: RangeReading | None = None
         self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._worker = StoppableThread(self._run, f"rangefinder-{self.kind}")
         self._last_good = time.monotonic()
 
     @property
@@ -128,15 +128,14 @@ class SerialRangefinder:
     def start(self) -> None:
         self.link.check_exists()
         self._setup()
-        self._thread = threading.Thread(target=self._run, name=f"rangefinder-{self.kind}", daemon=True)
-        self._thread.start()
+        self._worker.start()
 
     def _setup(self) -> None:
         """Configure the device (e.g. speed of sound); failures are retried by the thread."""
 
     def _run(self) -> None:
         configured = True
-        while not self._stop.is_set():
+        while not self._worker.stopping.is_set():
             try:
                 if not configured:
                     self._setup()
@@ -145,19 +144,17 @@ class SerialRangefinder:
             except DeviceLost as exc:
                 configured = False
                 self.link.health.set(HealthState.RECOVERING, str(exc))
-                self._stop.wait(self.link.timeout_s)
+                self._worker.stopping.wait(self.link.timeout_s)
             except Exception as exc:  # never let a device kill the reader: report and retry
                 configured = False
                 self.link.fail(f"{type(exc).__name__}: {exc}")
-                self._stop.wait(self.link.timeout_s)
+                self._worker.stopping.wait(self.link.timeout_s)
 
     def _poll(self) -> None:
         raise NotImplementedError
 
     def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
+        self._worker.stop(timeout_s=5.0)
         self.link.close()
         self.link.health.set(HealthState.STOPPED, "stopped")
 
@@ -315,4 +312,4 @@ class Ping1DRangefinder(SerialRangefinder):
         if msg is not None and msg.message_id in (definitions.PING1D_DISTANCE, definitions.PING1D_DISTANCE_SIMPLE,
                                                   definitions.PING1D_PROFILE):
             self._accept(msg.distance / 1000.0, msg.confidence / 100.0)
-        self._stop.wait(self.period_s)
+        self._worker.stopping.wait(self.period_s)

@@ -23,7 +23,7 @@ from typing import Annotated, Literal
 
 from pydantic import Field
 
-from uwcam.drivers.select_thread import SelectThread
+from uwcam.drivers.threads import SelectThread
 from uwcam.drivers.sim import SimulatedRig
 
 log = logging.getLogger(__name__)

@@ -26,6 +26,7 @@ from dataclasses import dataclass, replace
 
 from uwcam.drivers.base import (CameraDriver, CameraSettings, ConfigurationError, ConfigureReport, CorruptFrame,
                                 DeviceInfo, EndOfStream, Frame, FrameTimeout, Health, HealthState, HealthTracker)
+from uwcam.drivers.threads import StoppableThread
 
 log = logging.getLogger(__name__)
 
@@ -71,8 +72,7 @@ class SupervisedCamera:
         self._queue: collections.deque[Frame] = collections.deque(maxlen=queue_size)
         # One condition guards the queue: the acquisition thread notifies, consumers wait.
         self._ready = threading.Condition()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._worker = StoppableThread(self._run, f"camera-{driver.name}", wake=self._ready)
         self._connected = False
         self._exposure_lock = threading.Lock()
         self._pending_exposure: tuple[tuple[float, ...], tuple[float, ...] | None] | None = None
@@ -88,7 +88,7 @@ class SupervisedCamera:
         """The oldest queued frame, waiting up to ``timeout_s``; None if none came."""
         with self._ready:
             if not self._queue:
-                self._ready.wait_for(lambda: bool(self._queue) or self._stop.is_set(), timeout=timeout_s)
+                self._ready.wait_for(lambda: bool(self._queue) or self._worker.stopping.is_set(), timeout=timeout_s)
             return self._queue.popleft() if self._queue else None
 
     @property
@@ -134,15 +134,10 @@ class SupervisedCamera:
         """Open and configure once in the caller's thread, so a configuration that can never work
         fails here, clearly; then stream in the background."""
         self._connect()
-        self._thread = threading.Thread(target=self._run, name=f"camera-{self.driver.name}", daemon=True)
-        self._thread.start()
+        self._worker.start()
 
     def stop(self) -> None:
-        self._stop.set()
-        with self._ready:
-            self._ready.notify_all()
-        if self._thread is not None:
-            self._thread.join(timeout=10.0)
+        self._worker.stop()
         self._disconnect()
         self._health.set(HealthState.STOPPED, "stopped")
 
@@ -192,7 +187,7 @@ class SupervisedCamera:
         lost_since: float | None = None
         delay = self.backoff_s[0]
         self._health.set(HealthState.RECOVERING, "started, waiting for the first frame")
-        while not self._stop.is_set():
+        while not self._worker.stopping.is_set():
             if not self._connected:
                 try:
                     self._connect()
@@ -204,7 +199,7 @@ class SupervisedCamera:
                     state = HealthState.LOST if gone >= self.lost_after_s else HealthState.RECOVERING
                     self._health.set(state, f"reconnecting to {self.driver.serial_number or 'the camera'}: {exc}")
                     self._disconnect()
-                    self._stop.wait(delay)
+                    self._worker.stopping.wait(delay)
                     delay = min(delay * 2, self.backoff_s[1])
                     continue
             try:

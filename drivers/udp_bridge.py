@@ -17,7 +17,7 @@ import time
 
 import serial
 
-from uwcam.drivers.select_thread import SelectThread
+from uwcam.drivers.threads import SelectThread
 from uwcam.drivers.serial_link import close_quietly
 
 

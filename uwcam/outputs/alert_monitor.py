@@ -17,6 +17,7 @@ from collections.abc import Callable
 from uwcam.runtime.alerts import (AlertEvaluator, AlertEvent, DropWindow, calibration_conditions, device_conditions,
                           disk_condition, dropped_condition, range_condition)
 from uwcam.config import AlertsConfig
+from uwcam.drivers.threads import StoppableThread
 from uwcam.runtime.published import Published
 
 log = logging.getLogger(__name__)
@@ -42,23 +43,18 @@ class AlertMonitor:
         self._slot: Published | None = None
         self._active: list[AlertEvent] = []
         self._history: list[AlertEvent] = []
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._worker = StoppableThread(self._run, "alert-monitor")
         self.evaluations = 0
         self.error: str | None = None
 
     def start(self) -> None:
-        self._thread = threading.Thread(target=self._run, name="alert-monitor", daemon=True)
-        self._thread.start()
+        self._worker.start()
         if self.config.range is not None:
             self.pipeline.subscribe(self._on_published)
 
     def close(self) -> None:
         self.pipeline.unsubscribe(self._on_published)
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=10.0)
-            self._thread = None
+        self._worker.stop()
 
     def _on_published(self, published: Published) -> None:  # the frame loop's thread: hand-off only
         with self._lock:
@@ -80,7 +76,7 @@ class AlertMonitor:
         from uwcam.outputs.zenoh_publisher import range_summary
 
         next_status = 0.0
-        while not self._stop.wait(RANGE_PERIOD_S):
+        while not self._worker.stopping.wait(RANGE_PERIOD_S):
             try:
                 conditions = []
                 with self._lock:

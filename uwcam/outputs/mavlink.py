@@ -46,6 +46,7 @@ from collections import deque
 from dataclasses import dataclass, field
 
 from uwcam.config import MavlinkConfig
+from uwcam.drivers.threads import StoppableThread
 from uwcam.outputs.mavlink_links import LinkDown, open_transport
 from uwcam.outputs.mavlink_measure import (
     Measurement,
@@ -107,8 +108,7 @@ class MavlinkOutput:
         self._slot: Published | None = None  # newest frame not yet measured (one slot, newest wins)
         self._slot_lock = threading.Lock()
         self._texts: deque[tuple[int, bytes]] = deque(maxlen=STATUSTEXT_QUEUE)  # guarded by _slot_lock
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._worker = StoppableThread(self._run, "output-mavlink")
         self._transport = None
         self._retry_at = 0.0
         self._retry_delay = 0.2
@@ -146,15 +146,12 @@ class MavlinkOutput:
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self) -> None:
         self._set_state("connecting", f"opening {self.config.connection}")
-        self._thread = threading.Thread(target=self._run, name="output-mavlink", daemon=True)
-        self._thread.start()
+        self._worker.start()
         self.pipeline.subscribe(self.offer)
 
     def stop(self) -> None:
         self.pipeline.unsubscribe(self.offer)
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
+        self._worker.stop(timeout_s=5.0)
         self._close()
         self._set_state("stopped", "stopped")
 
@@ -201,7 +198,7 @@ class MavlinkOutput:
     def _run(self) -> None:
         period = 1.0 / self.config.rate_hz
         next_send = next_heartbeat = time.monotonic()
-        while not self._stop.wait(max(0.0, min(next_send, next_heartbeat) - time.monotonic())):
+        while not self._worker.stopping.wait(max(0.0, min(next_send, next_heartbeat) - time.monotonic())):
             now = time.monotonic()
             if now >= next_send:
                 # Only the newest frame, and only when a message is due: the work is bounded by

@@ -12,6 +12,8 @@ import logging
 import threading
 import time
 
+from uwcam.drivers.threads import StoppableThread
+
 log = logging.getLogger(__name__)
 
 
@@ -36,8 +38,7 @@ class LampCommander:
         self._failures = 0
         self._last_error: str | None = None
         self._retry_at: float | None = None
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._worker = StoppableThread(self._run, "lamp-commander", wake=self._cond)
 
     def request(self, on: bool) -> int:
         """Ask for the lamp on or off; returns a ticket for :meth:`done`. Never blocks."""
@@ -71,15 +72,10 @@ class LampCommander:
                     "retry_in_s": None if self._retry_at is None else round(max(0.0, self._retry_at - time.monotonic()), 2)}
 
     def start(self) -> None:
-        self._thread = threading.Thread(target=self._run, name="lamp-commander", daemon=True)
-        self._thread.start()
+        self._worker.start()
 
     def stop(self) -> None:
-        self._stop.set()
-        with self._cond:
-            self._cond.notify_all()
-        if self._thread is not None:
-            self._thread.join(timeout=10.0)
+        self._worker.stop()
 
     @property
     def polls(self) -> int:
@@ -98,10 +94,10 @@ class LampCommander:
 
     def _run(self) -> None:
         delay = self.backoff_s[0]
-        while not self._stop.is_set():
+        while not self._worker.stopping.is_set():
             with self._cond:
-                self._cond.wait_for(lambda: self._want is not None or self._stop.is_set(), timeout=self.poll_s)
-                if self._stop.is_set():
+                self._cond.wait_for(lambda: self._want is not None or self._worker.stopping.is_set(), timeout=self.poll_s)
+                if self._worker.stopping.is_set():
                     return
                 want, ticket = self._want, self._requested
             if want is None:
@@ -116,7 +112,7 @@ class LampCommander:
                     self._retry_at = time.monotonic() + delay
                 if self._failures == 1:
                     log.warning("lamp did not take 'switch %s': %s; retrying with backoff", "on" if want else "off", exc)
-                self._stop.wait(delay)
+                self._worker.stopping.wait(delay)
                 delay = min(delay * 2, self.backoff_s[1])
                 continue
             delay = self.backoff_s[0]
