@@ -256,6 +256,8 @@ def test_simulation_options_are_checked():
         ({"scene": "seabed", "speed": 1}, "'speed' applies only to scene: survey"),
         ({"scene": "survey", "distance": 2}, "'distance' applies only to static scenes"),
         ({"scene": "reef"}, "unknown scene 'reef'; known: survey, seabed"),
+        ({"water": "jerlov-XX"}, "water: unknown water 'jerlov-XX'; known: ideal, jerlov-I"),
+        ({"material": "gold"}, "material: unknown material 'gold'; known: sand, brick, pipe"),
         ({"lamp_offset": [0, 0, 9]}, "lamp_offset.2: Input should be less than or equal to 3"),
     ]
     for options, message in cases:
