@@ -88,13 +88,14 @@ def window_light(frame: NDArray[np.float32], usable: NDArray[np.float32], sample
     return mean, counts, light
 
 
-def _noise_variance(estimator, frame: NDArray, samples: NDArray | None) -> NDArray[np.float64]:
-    """(H, W, N) noise variance (DN²) of values that are means of ``samples`` pixels (None: one)."""
-    e = np.maximum(np.asarray(frame, np.float64) - estimator.dark, 0.0)
-    var = signal_variance(e, estimator.read_noise, estimator.shot_gain, estimator.profile.quantisation_step,
-                          estimator.fixed_pattern)
-    var = np.where(var > 0, var, 1.0)  # a profile without a noise model counts 1 DN, as the estimator does
-    return var if samples is None else var / np.maximum(samples, 1e-6)
+def _noise_variance(estimator, frame: NDArray, samples: NDArray | None) -> NDArray[np.float32]:
+    """(H, W, N) noise variance (DN²) of values that are means of ``samples`` pixels (None: one),
+    in float32 (a test statistic's scale, not a result)."""
+    f32 = np.float32
+    var = signal_variance(np.asarray(frame) - estimator.dark, estimator.read_noise, estimator.shot_gain,
+                          estimator.profile.quantisation_step, estimator.fixed_pattern).astype(f32)
+    var = np.where(var > 0, var, f32(1))  # a profile without a noise model counts 1 DN, as the estimator does
+    return var if samples is None else var / np.maximum(np.asarray(samples, f32), f32(1e-6))
 
 
 def adaptive_windows(single: RangeResult, frame: NDArray, ranged: Ranger, estimator, target: float,
@@ -130,6 +131,8 @@ def adaptive_windows(single: RangeResult, frame: NDArray, ranged: Ranger, estima
     best_v = np.where(have, v1, np.nan).astype(np.float64)
     first_r, first_v = best_r.copy(), best_v.copy()
     chosen = np.zeros(r1.shape, bool)
+    # The calibration's share of each pixel's variance, of the light its range came from.
+    cal = None if single.calibration_variance is None else np.array(single.calibration_variance, np.float32)
     for size in ladder:
         if not active.any():
             break
@@ -137,8 +140,8 @@ def adaptive_windows(single: RangeResult, frame: NDArray, ranged: Ranger, estima
         result = ranged(mean, counts, light)
         r, v = result.range.astype(np.float64), result.variance.astype(np.float64)
         with np.errstate(invalid="ignore", divide="ignore"):
-            z2 = (data - mean).astype(np.float64) ** 2 / (own_noise + _noise_variance(estimator, mean, counts))
-            alike = np.max(np.where(judged, z2, 0.0), axis=-1) <= LIGHT_SIGMAS**2
+            z2 = (data - mean) ** 2 / (own_noise + _noise_variance(estimator, mean, counts))
+            alike = np.max(np.where(judged, z2, np.float32(0)), axis=-1) <= LIGHT_SIGMAS**2
             known = np.isfinite(best_r)
 
             def consistent(ref_r: NDArray, ref_v: NDArray) -> NDArray[np.bool_]:
@@ -151,6 +154,8 @@ def adaptive_windows(single: RangeResult, frame: NDArray, ranged: Ranger, estima
         first = take & ~np.isfinite(first_r)
         first_r[first], first_v[first] = r[first], v[first]
         best_r[take], best_v[take] = r[take], v[take]
+        if cal is not None and result.calibration_variance is not None:
+            cal[take] = result.calibration_variance[take]
         chosen |= take
         # Growing stops at the target, and at the first window given up once a range is had (or
         # whose light is unlike the pixel's own): a larger one would cross the same edge.
@@ -161,5 +166,5 @@ def adaptive_windows(single: RangeResult, frame: NDArray, ranged: Ranger, estima
         np.where(chosen, best_r, r1).astype(np.float32),
         np.where(chosen, best_v, v1).astype(np.float32),
         np.where(chosen, np.uint8(Reason.VALID), reasons1).astype(np.uint8),
-        single.calibration_variance,
+        cal,
     )
