@@ -148,6 +148,31 @@ def test_a_range_step_is_not_smeared(scene):
         assert np.median(np.abs(result.range[far] / truth[far] - 1.0)) < 0.02
 
 
+@pytest.mark.slow
+def test_a_smaller_step_is_not_smeared_either(profile):
+    # 8 m beside 10 m, both dark (a quarter of the 8 m seabed's own exposure): the light differs by
+    # a few single-pixel σ only, so the windows' ranges must give the step away.
+    near = world(8.0)
+    exposure = 0.25 * near.exposure
+    near, far = world(8.0, exposure), world(FAR, exposure, seed=7)
+    left = (np.arange(SIZE[0]) < EDGE)[None, :]
+    mean = np.where(left[..., None], near.expected()[0], far.expected()[0]).astype(np.float32)
+    std = np.where(left[..., None], near.expected()[1], far.expected()[1]).astype(np.float32)
+    truth = np.where(left, near.camera_range, far.camera_range)
+    water = SimulatedWorld(scene="open-water", distance=4.0, size=SIZE, water=WATER, lamp=LAMP, camera=CAMERA,
+                           fixed_exposure=exposure, seed=6).frame(0)
+    columns = np.abs(np.arange(SIZE[0]) - EDGE + 0.5)[None, :].repeat(SIZE[1], axis=0)
+    for k in range(2):
+        frame = CAMERA.digitise(mean, std, 11, k)
+        result = range_images(profile, [frame], smoothing="adaptive", open_water=water)
+        single = range_images(profile, [frame], open_water=water)
+        on = (columns <= 4) & np.isfinite(truth) & np.isfinite(result.range)
+        error = np.abs(result.range[on] / truth[on] - 1.0)
+        sigma = np.sqrt(result.variance[on]) / truth[on]
+        assert np.mean(error > np.maximum(0.02, 3 * sigma)) < 0.015, np.mean(error > np.maximum(0.02, 3 * sigma))
+        assert np.mean(result.range[on] != single.range[on]) > 0.5  # windows were used there
+
+
 def naive_window(frame, usable, size):
     h, w, n = frame.shape
     half = size // 2
