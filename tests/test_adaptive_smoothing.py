@@ -1,7 +1,8 @@
-"""Adaptive spatial windows (``smoothing: adaptive``): on the simulator's scenes, against its true
-range of every pixel — σ stays honest, the far and dark parts keep a range, pixels already within
-the target are untouched, and a range step is not smeared. The window means are checked against a
-plain loop over windows written apart from the code."""
+"""Adaptive spatial windows (``smoothing: adaptive``) on the simulator's scenes, against its true
+range of every pixel: σ stays honest, the far and dark parts keep more pixels and reach the
+target, pixels already within the target are untouched bit for bit, and a range step is not
+smeared. The window means are checked against a plain loop over windows written apart from the
+code; the command line, the frame loop and ``uwcam reprocess`` agree in tests/test_one_ranging_path.py."""
 
 from __future__ import annotations
 
