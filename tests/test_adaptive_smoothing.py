@@ -15,7 +15,8 @@ from uwcam.cli import main
 from uwcam.calibration.profile import save_profile
 from uwcam.config import ProcessingConfig
 from uwcam.optics.validity import Reason
-from uwcam.ranging.adaptive import window_light
+from uwcam.ranging.adaptive import adaptive_windows, window_light
+from uwcam.ranging.result import RangeResult
 from uwcam.ranging.images import range_images
 from uwcam.simulation import CameraModel, Lamp, SimulatedWorld, water_preset
 from uwcam.simulation.tank import calibrate_in_simulation
@@ -172,6 +173,47 @@ def test_a_smaller_step_is_not_smeared_either(profile):
         sigma = np.sqrt(result.variance[on]) / truth[on]
         assert np.mean(error > np.maximum(0.02, 3 * sigma)) < 0.015, np.mean(error > np.maximum(0.02, 3 * sigma))
         assert np.mean(result.range[on] != single.range[on]) > 0.5  # windows were used there
+
+
+class _Noise:
+    """The estimator's noise model and channels, as adaptive_windows reads them: 100 DN of read noise."""
+
+    dark = np.zeros(3)
+    read_noise = np.full(3, 100.0)
+    shot_gain = np.zeros(3)
+    fixed_pattern = np.zeros(3)
+    active = np.ones(3, bool)
+    response = None
+    profile = type("P", (), {"quantisation_step": 1.0, "saturation_level": 65535.0})()
+
+
+def _light_ranged(mean, counts, light):
+    """A stand-in transform: channel 0's light 1000 DN reads 5 m, 1050 DN reads 7 m (linear between,
+    as mixed light reads between two surfaces), σ² 0.04 m² over the number of pixels averaged."""
+    n = np.ones(mean.shape[:2]) if counts is None else counts[..., 0]
+    r = 5.0 + (mean[..., 0].astype(np.float64) - 1000.0) / 25.0
+    return RangeResult(r.astype(np.float32), (0.04 / n).astype(np.float32), np.zeros(mean.shape[:2], np.uint8))
+
+
+def test_windows_stop_at_a_step_their_ranges_give_away_and_at_the_target():
+    # A step of 50 DN in one channel (half the noise: the light test cannot see it) between surfaces
+    # 5 m and 7 m away. Each pixel must take the largest window of the ladder not reaching over the
+    # step, and no larger than the first one within the target (9×9 here: σ 0.022 m ≤ 0.5 % of 5 m).
+    h, w, step = 40, 60, 30
+    frame = np.full((h, w, 3), 1000.0, np.float32)
+    frame[:, step:, 0] = 1050.0
+    single = _light_ranged(frame, None, None)
+    # A pixel without a range for too little light gets one; a saturated one stays as it is.
+    single.range[20, 10], single.variance[20, 10], single.reasons[20, 10] = np.nan, np.nan, Reason.BACKSCATTER_ONLY
+    single.range[20, 12], single.variance[20, 12], single.reasons[20, 12] = np.nan, np.nan, Reason.SATURATED
+    out = adaptive_windows(single, frame, _light_ranged, _Noise(), 0.005)
+    rows = slice(8, h - 8)
+    for column, n in ((step - 1, 1), (step - 2, 9), (step - 3, 25), (step - 4, 25), (step - 5, 81), (8, 81)):
+        np.testing.assert_array_equal(out.range[rows, column], 5.0)  # never smeared towards 7 m
+        np.testing.assert_allclose(out.variance[rows, column], 0.04 / n, rtol=1e-6)
+    np.testing.assert_array_equal(out.range[rows, step], 7.0)
+    assert out.reasons[20, 10] == Reason.VALID and out.range[20, 10] == 5.0 and out.variance[20, 10] == pytest.approx(0.04 / 81)
+    assert out.reasons[20, 12] == Reason.SATURATED and np.isnan(out.range[20, 12])
 
 
 def naive_window(frame, usable, size):
