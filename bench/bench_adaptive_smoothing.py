@@ -10,9 +10,8 @@ no smoothing, the 3×3 mean of the range map and adaptive windows. Prints, for e
 loop has them) and the ratio of the smoothing's own cost (its time less that of no smoothing) to
 the 3×3 mean's, measured in the same run; then, pooled over --frames frames, against the
 simulator's true range of each pixel of the far seabed (clear of the edge by 17 pixels): the
-share with a range, the median and rms relative error, the sd of z = error/σ (σ less the
-calibration's share, which is one draw for the whole frame; 1 when σ is honest), the share of
-|z| > 3 and the share of valid pixels whose σ is within the target.
+share with a range, the median and rms relative error, the sd of z = error/σ (1 when σ is
+honest), the share of |z| > 3 and the share of valid pixels whose σ is within the target.
 
     python3 bench/bench_adaptive_smoothing.py [--size 1280x720] [--near 2] [--far 10] [--water jerlov-IA]
                                               [--target 0.02] [--repeat 3] [--frames 2]
@@ -103,12 +102,10 @@ def main() -> None:
         results = [ranged(kind, f) for f in frames]
         r = np.stack([x.range for x in results]).astype(np.float64)
         v = np.stack([x.variance for x in results]).astype(np.float64)
-        cal = np.stack([np.zeros(r.shape[1:]) if x.calibration_variance is None else x.calibration_variance
-                        for x in results]).astype(np.float64)
         t = np.broadcast_to(truth, r.shape)
         on = np.isfinite(r) & region[None]
         error = r[on] / t[on] - 1.0
-        z = (r[on] - t[on]) / np.sqrt(v[on] - cal[on])
+        z = (r[on] - t[on]) / np.sqrt(v[on])
         reached = np.sqrt(v[on]) <= args.target * r[on] * (1 + 1e-6)
         print(f"{'':<12}{kind:<10} {on.sum() / (len(frames) * region.sum()):7.1%} {np.median(error):+8.2%} "
               f"{np.sqrt(np.mean(error**2)):7.2%} {np.std(z):6.2f} {np.mean(np.abs(z) > 3):7.2%} {reached.mean():9.1%}")

@@ -77,19 +77,16 @@ FAR_REGION = (np.arange(SIZE[0]) >= EDGE + 17)[None, :].repeat(SIZE[1], axis=0)
 def pooled(results, truth, region):
     r = np.stack([x.range for x in results]).astype(np.float64)
     v = np.stack([x.variance for x in results]).astype(np.float64)
-    cal = np.stack([x.calibration_variance for x in results]).astype(np.float64)
     t = np.broadcast_to(truth, r.shape)
     on = np.isfinite(r) & np.isfinite(t) & region[None]
-    return r, v, cal, t, on
+    return r, v, t, on
 
 
 def figures(results, truth, region):
     """Valid share of the region's surface, median and rms relative error, sd of z and share |z| > 3."""
-    r, v, cal, t, on = pooled(results, truth, region)
+    r, v, t, on = pooled(results, truth, region)
     error = r[on] / t[on] - 1.0
-    # The calibration's share of σ is one draw for the whole frame: it shows as an offset common to
-    # all pixels, not as spread between them, so the spread is judged against the rest of σ.
-    z = (r[on] - t[on]) / np.sqrt(v[on] - cal[on])
+    z = (r[on] - t[on]) / np.sqrt(v[on])
     surface = np.isfinite(truth) & region
     return dict(valid=on.sum() / (len(results) * surface.sum()), median=np.median(error), rms=np.sqrt(np.mean(error**2)),
                 z_sd=np.std(z), beyond=np.mean(np.abs(z) > 3), reached=np.mean(np.sqrt(v[on]) <= 0.02 * r[on] * (1 + 1e-6)))
