@@ -208,7 +208,7 @@ class ProcessingConfig(Strict):
     """3×3 smoothing ("mean", "median"), or windows that adapt to the signal ("adaptive"): a pixel whose σ
     is above ``smoothing_target`` × its range, or that has no range for too little light, is ranged
     from the mean light of the smallest window (3, 5, 9 or 17 pixels a side) that reaches the target,
-    never across a range step; the others keep their own (docs/physics.md §7)."""
+    given up at a range step larger than a few single-pixel σ; the others keep their own (docs/physics.md §7)."""
     smoothing_stage: Literal["after", "before"] = "after"
     """Smooth the range map (after; keeps edges of invalid areas) or the image (before the transform);
     3×3 mean and median only (adaptive windows average the image and judge by the range)."""
