@@ -30,6 +30,7 @@ accepted (or its own range), at the first window
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -37,6 +38,9 @@ from numpy.typing import NDArray
 
 from uwcam.optics.validity import Reason
 from uwcam.ranging.result import RangeResult
+
+if TYPE_CHECKING:  # the estimator imports this module
+    from uwcam.ranging.estimator import RangeEstimator
 
 LADDER: tuple[int, ...] = (3, 5, 9, 17)
 """Window sides (pixels) tried in turn after the pixel alone: each holds about 3 times the pixels
@@ -87,7 +91,7 @@ def window_light(frame: NDArray[np.float32], usable: NDArray[np.float32], sample
     return mean, counts, light
 
 
-def _noise_variance(estimator, frame: NDArray, samples: NDArray | None) -> NDArray[np.float32]:
+def _noise_variance(estimator: RangeEstimator, frame: NDArray, samples: NDArray | None) -> NDArray[np.float32]:
     """(H, W, N) noise variance (DN²) of values that are means of ``samples`` pixels (None: one),
     in float32 (a test statistic's scale, not a result)."""
     # signal_variance's σ² = read² + q²/12 + g·E + (f·E)², in float32 and in place: in float64 it was
@@ -103,7 +107,7 @@ def _noise_variance(estimator, frame: NDArray, samples: NDArray | None) -> NDArr
     return var if samples is None else var / np.maximum(np.asarray(samples, f32), f32(1e-6))
 
 
-def adaptive_windows(single: RangeResult, frame: NDArray, ranged: Ranger, estimator, target: float,
+def adaptive_windows(single: RangeResult, frame: NDArray, ranged: Ranger, estimator: RangeEstimator, target: float,
                      samples: NDArray | None = None, background: NDArray | None = None,
                      ladder: tuple[int, ...] = LADDER) -> RangeResult:
     """``single`` (the frame's own ranging) with each pixel above ``target`` (σ/range, e.g. 0.02)
