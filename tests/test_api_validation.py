@@ -65,6 +65,9 @@ def patch(s: Server, body):
 @pytest.mark.parametrize("body, message", [
     ({"smoothing": "gaussian"}, "smoothing"),
     ({"smoothing_stage": "during"}, "smoothing_stage"),
+    ({"smoothing_target": 0.0}, "greater than or equal to 0.001"),
+    ({"smoothing_target": 0.7}, "less than or equal to 0.5"),
+    ({"smoothing_target": float("nan")}, "smoothing_target"),
     ({"pair": ["R", "X"]}, "pair needs two different channels"),
     ({"pair": ["G", "G"]}, "pair needs two different channels"),
     ({"pair": ["R"]}, "pair"),
@@ -113,6 +116,18 @@ def test_good_processing_settings_apply_and_restore(server):
     finally:
         patch(server, {k: v for k, v in before.items() if k in ("smoothing", "smoothing_stage", "path_length_bounds",
                                                                 "lamp_off_interval")} | {"fuse": True})
+
+
+def test_adaptive_windows_switch_on_live_and_the_loop_ranges_with_them(server):
+    before = server.http.get("/api/v1/config").json()
+    try:
+        r = patch(server, {"smoothing": "adaptive", "smoothing_target": 0.05})
+        assert r.status_code == 200 and r.json()["smoothing"] == "adaptive" and r.json()["smoothing_target"] == 0.05, r.text
+        assert server.daemon.pipeline.processing.smoothing_target == 0.05
+        n = server.daemon.pipeline.processed
+        assert wait_for(lambda: server.daemon.pipeline.processed > n + 2, timeout_s=30)  # the loop ranges on
+    finally:
+        patch(server, {k: v for k, v in before.items() if k in ("smoothing", "smoothing_target")})
 
 
 def test_exposure_control_switches_on_live_and_reports_in_the_status(server):

@@ -104,3 +104,14 @@ def test_soak_runs_and_judges():
                     "silent lamp shown, then answering", "slow reader's newest map", "page open throughout"):
         assert f"  {verdict}" in out, out
     assert result.returncode == (0 if "soak passed" in out else 1), out
+
+
+@pytest.mark.slow
+def test_adaptive_smoothing_benchmark_runs():
+    out = subprocess.run([sys.executable, str(ROOT / "bench" / "bench_adaptive_smoothing.py"), "--size", "160x120",
+                          "--repeat", "1", "--frames", "1"], check=True, capture_output=True, text=True, timeout=600).stdout
+    rows = {line.split()[0]: line.split() for line in out.splitlines() if line.split() and line.split()[0] in
+            ("none", "mean", "adaptive", "far")}
+    assert "smoothing's own cost" in out and {"none", "mean", "adaptive"} <= set(rows), out
+    far = [line.split() for line in out.splitlines() if line.strip().startswith("adaptive") and "%" in line]
+    assert far and float(far[-1][-1].rstrip("%")) > 50, out  # most far pixels reach the target

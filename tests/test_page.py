@@ -317,6 +317,9 @@ def test_controls_need_sign_in_when_a_token_is_set(browser):
             page.select_option("#smoothing", "median")
             assert wait_for(lambda: s.daemon.pipeline.processing.smoothing == "median", 20.0), \
                 (page.inner_text("#message"), page.changes[-6:], page.errors)
+            page.select_option("#smoothing", "adaptive")
+            assert wait_for(lambda: s.daemon.pipeline.processing.smoothing == "adaptive", 20.0), \
+                (page.inner_text("#message"), page.changes[-6:], page.errors)
             assert page.errors == [], page.errors
         finally:
             page.close()

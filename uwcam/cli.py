@@ -76,7 +76,11 @@ def build_parser() -> argparse.ArgumentParser:
     rng.add_argument("--surface-reflectance", metavar="R1,R2,...", help="surface reflectance per channel, if it differs in hue from the target")
     rng.add_argument("--pair", metavar="NAME,NAME", help="use one channel pair instead of fusing all channels")
     rng.add_argument("--path-bounds", metavar="MIN,MAX", help="accepted lamp→surface→camera path length in metres")
-    rng.add_argument("--smooth", choices=("mean", "median"), help="3×3 smoothing of the range map over valid pixels")
+    rng.add_argument("--smoothing", "--smooth", dest="smooth", choices=("none", "mean", "median", "adaptive"),
+                     help="3×3 smoothing of the range map over valid pixels (mean, median), or windows that adapt "
+                     "to the signal (adaptive: up to 17×17 where σ is above --smoothing-target)")
+    rng.add_argument("--smoothing-target", metavar="FRACTION",
+                     help="adaptive smoothing's target σ as a fraction of the range, 0.001–0.5 (default 0.02: 2 %%)")
     rng.add_argument("--compensate-backscatter", action="store_true",
                      help="insist on subtracting modelled backscatter (done anyway whenever the profile was calibrated "
                      "with a black patch; with this flag a profile without one is refused)")

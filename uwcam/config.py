@@ -204,10 +204,16 @@ class TemporalConfig(Strict):
 class ProcessingConfig(Strict):
     pair: tuple[str, str] | None = None
     """Two channel names for single-pair ranging; None fuses all channels."""
-    smoothing: Literal["none", "mean", "median"] = "none"
-    """3×3 smoothing."""
+    smoothing: Literal["none", "mean", "median", "adaptive"] = "none"
+    """3×3 smoothing ("mean", "median"), or windows that adapt to the signal ("adaptive"): a pixel whose σ
+    is above ``smoothing_target`` × its range, or that has no range for too little light, is ranged
+    from the mean light of the smallest window (3, 5, 9 or 17 pixels a side) that reaches the target,
+    given up at a range step larger than a few single-pixel σ; the others keep their own (docs/physics.md §7)."""
     smoothing_stage: Literal["after", "before"] = "after"
-    """Smooth the range map (after; keeps edges of invalid areas) or the image (before the transform)."""
+    """Smooth the range map (after; keeps edges of invalid areas) or the image (before the transform);
+    3×3 mean and median only (adaptive windows average the image and judge by the range)."""
+    smoothing_target: Annotated[Real, Field(ge=0.001, le=0.5)] = 0.02
+    """Adaptive smoothing's target: σ as a fraction of the range (0.02: 2 %), from 0.001 to 0.5."""
     path_length_bounds: tuple[Annotated[Real, Field(ge=0, le=10000)], Annotated[Real, Field(gt=0, le=10000)]] = (0.0, 100.0)
     """Accepted lamp → surface → camera path lengths [min, max], metres."""
     patch: PatchConfig | None = None

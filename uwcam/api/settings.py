@@ -23,8 +23,10 @@ class ProcessingPatch(BaseModel):
     pair: tuple[Annotated[str, Field(max_length=64)], Annotated[str, Field(max_length=64)]] | None = None
     fuse: Flag | None = None
     """true: fuse all channels (clears pair)."""
-    smoothing: Literal["none", "mean", "median"] | None = None
+    smoothing: Literal["none", "mean", "median", "adaptive"] | None = None
     smoothing_stage: Literal["after", "before"] | None = None
+    smoothing_target: Real | None = None
+    """Adaptive smoothing's σ target, a fraction of the range (0.001–0.5)."""
     path_length_bounds: tuple[Real, Real] | None = None
     """[min, max] lamp → surface → camera path length, metres."""
     patch: PatchConfig | None = None

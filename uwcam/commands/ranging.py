@@ -21,6 +21,7 @@ def cmd_range(args: argparse.Namespace) -> int:
     from uwcam.imaging.imageio import MAP_SUFFIXES, read_frame, write_map
     from uwcam.config import BackscatterConfig
     from uwcam.calibration.profile import load_profile
+    from uwcam.ranging.estimator import DEFAULT_SMOOTHING_TARGET
     from uwcam.ranging.images import range_images
 
     outputs = [(args.output, "-o")] + [(p, f) for p, f in ((args.variance, "--variance"), (args.reasons, "--reasons")) if p]
@@ -45,8 +46,16 @@ def cmd_range(args: argparse.Namespace) -> int:
         raise UserInputError("--open-water needs a profile with backscatter measurements; calibrate with a rig that "
                              "has a black patch (e.g. --rig grey-plate)")
     open_water = read_frame(args.open_water) if args.open_water else None
+    target = DEFAULT_SMOOTHING_TARGET
+    if args.smoothing_target is not None:
+        if (args.smooth or "none") != "adaptive":
+            raise UserInputError("--smoothing-target is the target of adaptive smoothing: give --smoothing adaptive too")
+        target = parse_floats(args.smoothing_target, "--smoothing-target", 1)[0]
+        if not 0.001 <= target <= 0.5:
+            raise UserInputError(f"--smoothing-target must be a fraction of the range from 0.001 to 0.5 (0.02 is 2 %), "
+                                 f"got '{args.smoothing_target}'")
     result = range_images(profile, frames, pair=pair, surface_reflectance=surface,  # type: ignore[arg-type]
-                          path_length_bounds=bounds, smoothing=args.smooth or "none",
+                          path_length_bounds=bounds, smoothing=args.smooth or "none", smoothing_target=target,
                           compensate=args.compensate_backscatter, iterations=BackscatterConfig().iterations,
                           open_water=open_water)
     write_map(args.output, result.range)

@@ -23,6 +23,7 @@ from uwcam.optics.noise import signal_variance
 from uwcam.optics.validity import ChannelState, Reason, channel_states
 from uwcam.calibration.profile import CalibrationProfile
 from uwcam.ranging.result import RangeResult
+from uwcam.ranging.adaptive import adaptive_windows
 from uwcam.ranging.smoothing import block_means, smooth_frame, smooth_range_map
 
 # A channel state the kernel neither uses nor counts (channels outside a chosen pair).
@@ -34,6 +35,8 @@ _NO_SAMPLES = np.empty((0, 0, 0), np.float32)
 # The calibration's share of the variance is smooth across the image: it is computed on blocks
 # of this many pixels a side and interpolated (bench/bench_fusion.py prints the error and cost).
 CALIBRATION_VARIANCE_BLOCK = 8
+DEFAULT_SMOOTHING_TARGET = 0.02
+"""Adaptive smoothing's default target: σ no more than 2 % of the range (``processing.smoothing_target``)."""
 
 
 class RangeEstimator:
@@ -404,7 +407,8 @@ class RangeEstimator:
 def range_frame(estimator: RangeEstimator, frame: NDArray, smoothing: str = "none", stage: str = "after",
                 background: NDArray | None = None, vehicle_mask: Sequence[tuple[int, int, int, int]] = (),
                 transform: Callable[[NDArray, NDArray | None], RangeResult] | None = None,
-                water=None, water_scale: NDArray | None = None, samples: NDArray | None = None) -> RangeResult:
+                water=None, water_scale: NDArray | None = None, samples: NDArray | None = None,
+                smoothing_target: float = DEFAULT_SMOOTHING_TARGET) -> RangeResult:
     """Range one frame as the daemon's processing settings say: 3×3 smoothing of the image
     (stage "before", :func:`smooth_frame`), the transform (``estimator``, or ``transform(frame,
     samples)`` such as backscatter compensation; ``background``: light not from the lamp, e.g.
@@ -415,21 +419,31 @@ def range_frame(estimator: RangeEstimator, frame: NDArray, smoothing: str = "non
     (stage "after", :func:`smooth_range_map`: the masked vehicle lends no range to its neighbours).
     ``uwcam range``, the frame loop and ``uwcam reprocess`` all range through here. samples: (H, W, N)
     how many single-pixel noises each value's variance equals (frames fused over time,
-    :func:`uwcam.ranging.images.fuse_frames`); None: one."""
-    if smoothing != "none" and stage == "before":
+    :func:`uwcam.ranging.images.fuse_frames`); None: one. smoothing "adaptive" (stage ignored): each
+    pixel whose σ is above ``smoothing_target`` × its range, or that has no range for too little
+    light, is ranged again from the mean light of the smallest window that reaches the target
+    (:func:`uwcam.ranging.adaptive.adaptive_windows`), through these same steps."""
+    if smoothing in ("mean", "median") and stage == "before":
         if estimator.response is not None and np.issubdtype(frame.dtype, np.integer):
             frame = estimator.response.linearise(frame)  # average light, not codes of a tone curve
         frame, smoothed = smooth_frame(frame, smoothing, estimator.profile.saturation_level)
         samples = smoothed if samples is None else samples * smoothed
-    if transform is not None:
-        result = transform(frame, samples)
-    else:
-        result = estimator(frame, background=background, samples=samples)
-    if water is not None:
-        water.judge(result, frame, estimator, water_scale, background, samples)
-    if vehicle_mask:
-        mask_vehicle(result, vehicle_mask)
-    if smoothing != "none" and stage == "after":
+
+    def ranged(data: NDArray, counts: NDArray | None, light: NDArray | None) -> RangeResult:
+        if transform is not None:
+            result = transform(data, counts)
+        else:
+            result = estimator(data, background=light, samples=counts)
+        if water is not None:
+            water.judge(result, data, estimator, water_scale, light, counts)
+        if vehicle_mask:
+            mask_vehicle(result, vehicle_mask)
+        return result
+
+    result = ranged(frame, samples, background)
+    if smoothing == "adaptive":
+        result = adaptive_windows(result, frame, ranged, estimator, smoothing_target, samples, background)
+    elif smoothing != "none" and stage == "after":
         result = smooth_range_map(result, smoothing)
     return result
 

@@ -23,7 +23,7 @@ from uwcam.fileio import UserInputError
 from uwcam.optics.noise import signal_variance, temporal_variance
 from uwcam.calibration.profile import CalibrationProfile
 from uwcam.ranging.result import RangeResult
-from uwcam.ranging.estimator import RangeEstimator, range_frame
+from uwcam.ranging.estimator import DEFAULT_SMOOTHING_TARGET, RangeEstimator, range_frame
 
 
 def fuse_frames(estimator: RangeEstimator, frames: Sequence[NDArray]) -> tuple[NDArray, NDArray | None]:
@@ -73,6 +73,7 @@ def range_images(
     surface_reflectance: Sequence[float] | None = None,
     path_length_bounds: tuple[float, float] = (0.0, np.inf),
     smoothing: str = "none",
+    smoothing_target: float = DEFAULT_SMOOTHING_TARGET,
     compensate: bool = False,
     iterations: int = 2,
     open_water: NDArray | None = None,
@@ -86,7 +87,8 @@ def range_images(
     (K, H, W, N), for the backscatter's pattern and the per-pixel open-water light. Whenever the
     profile has backscatter measurements, a pixel not clearly above the open water's light has no
     range (reason 3). smoothing: "none", "mean" or "median", of the range map (as the loop's
-    smoothing stage "after")."""
+    smoothing stage "after"), or "adaptive", windows reaching ``smoothing_target`` (σ/range) as the
+    loop's ``processing.smoothing_target``."""
     from uwcam.water.frame_compensator import BackscatterCompensator, compensation, compensation_iterations
 
     options = dict(pair=pair, surface_reflectance=surface_reflectance, path_length_bounds=path_length_bounds)
@@ -106,4 +108,5 @@ def range_images(
     if compensate or passes is not None:
         comp = BackscatterCompensator(profile, shape, passes or iterations, open_water, **options)
         transform, water = compensation(comp, estimator), comp.water
-    return range_frame(estimator, frame, smoothing, "after", None, (), transform, water, None, samples)
+    return range_frame(estimator, frame, smoothing, "after", None, (), transform, water, None, samples,
+                       smoothing_target)

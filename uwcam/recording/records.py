@@ -48,6 +48,7 @@ def ranging_record(p: Published, profile: CalibrationProfile, processing) -> dic
             "ambient_subtracted": p.ambient is not None,
             "processing": {"pair": processing.pair, "smoothing": processing.smoothing,
                            "smoothing_stage": processing.smoothing_stage,
+                           "smoothing_target": processing.smoothing_target,
                            "path_length_bounds": list(processing.path_length_bounds),
                            "vehicle_mask": [list(box) for box in processing.vehicle_mask],
                            "backscatter": None if processing.backscatter is None else processing.backscatter.iterations,

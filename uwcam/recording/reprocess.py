@@ -32,7 +32,7 @@ from uwcam.extras import require_extra
 from uwcam.fileio import UserInputError
 from uwcam.recording.records import to_depth
 from uwcam.calibration.profile import CalibrationProfile, load_profile, profile_to_yaml
-from uwcam.ranging.estimator import RangeEstimator, range_frame
+from uwcam.ranging.estimator import DEFAULT_SMOOTHING_TARGET, RangeEstimator, range_frame
 
 END_OF_TIME = 2**63 - 1
 DECIMATED = object()
@@ -255,7 +255,8 @@ def process_part(part: Part, profile_yaml: str | None = None, kernel_threads: in
                                                               frame_ambient)
             # Recordings made before the vehicle mask existed have none.
             result = range_frame(est, raw, proc["smoothing"], proc["smoothing_stage"], frame_ambient,
-                                 proc.get("vehicle_mask") or (), transform, water, scale)
+                                 proc.get("vehicle_mask") or (), transform, water, scale, None,
+                                 proc.get("smoothing_target", DEFAULT_SMOOTHING_TARGET))
             shape = (profile.name, *raw.shape[:2])
             if shape not in factors:
                 factors[shape] = rec.depth_factor(profile, *raw.shape[:2])

@@ -360,7 +360,7 @@ class FramePipeline(CompensationStage):
             self._judge_motion(temporal, frame, profile)
             data, samples = temporal.update(frame.data, frame.exposures(), estimator)
         result = range_frame(estimator, data, processing.smoothing, processing.smoothing_stage, ambient,
-                             processing.vehicle_mask, transform, water, scale, samples)
+                             processing.vehicle_mask, transform, water, scale, samples, processing.smoothing_target)
         frames = None if temporal is None else temporal.frames(np.isfinite(result.range))
         if exposure is not None:
             wanted = exposure.update(frame.data, frame.exposures()[0], frame.lamp_on, profile.array("dark_level"),
