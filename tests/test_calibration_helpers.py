@@ -183,6 +183,33 @@ def test_backscatter_at_the_black_patch_is_exact_for_a_smooth_lamp_field():
     assert not est.variance.any() and not est.plate_log_variance.any()  # no pixel variance given
 
 
+def test_a_black_patch_projected_pixels_off_is_measured_where_the_image_shows_it():
+    """A pose from a few markers put the projected patch 4 px off (the simulated tank at 1 m): the
+    box then reached over the grey plate, which read as backscatter hundreds of times the true
+    level. The patch is located in the image near the projection; the level is then the true one."""
+    from uwcam.calibration.black_patch import backscatter_at_black_patch, locate_black_patch
+
+    shape, true_patch = (60, 72), (24, 20, 20, 18)
+    light, plate_mask, patch = _plate(shape, true_patch)
+    bs, rho_p, rho_b = np.array([1.5, 6.0, 9.0]), np.array([0.18, 0.18, 0.18]), np.array([0.03, 0.03, 0.03])
+    signal = bs + np.where(patch[..., None], rho_b, rho_p) * light[..., None]
+    x, y, w, h = true_patch
+    for dx, dy in ((4, 0), (-3, 2), (0, -4)):
+        projected = np.zeros(shape, bool)
+        projected[y + dy : y + dy + h, x + dx : x + dx + w] = True
+        target = plate_mask & ~projected
+        located = locate_black_patch(signal, projected, target)
+        np.testing.assert_array_equal(located, patch)
+        est = backscatter_at_black_patch(signal, located, plate_mask & ~located, rho_b, rho_p)
+        np.testing.assert_allclose(est.level, bs, rtol=1e-6)
+        # What the projected box alone gives: grey plate inside the "black" (why the patch is located).
+        off = backscatter_at_black_patch(signal, projected, target, rho_b, rho_p)
+        assert np.all(np.abs(off.level - bs) > 10.0), off.level
+    # An unlit frame (nothing to tell patch from plate by): the projection is kept.
+    dim = np.full(shape + (3,), 5.0)
+    np.testing.assert_array_equal(locate_black_patch(dim, projected, plate_mask & ~projected), projected)
+
+
 def test_backscatter_variances_are_those_of_the_linear_estimate():
     """The level and the plate's light are linear in the pixel values: their variances for
     independent pixel noise σ² are σ²·Σ_p (∂/∂s_p)², the derivatives taken here by giving each

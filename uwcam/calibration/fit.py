@@ -23,7 +23,8 @@ from uwcam.calibration.profile import (
     Provenance,
     now_iso,
 )
-from uwcam.calibration.black_patch import EDGE, BackscatterEstimate, backscatter_at_black_patch, dilate_mask
+from uwcam.calibration.black_patch import (EDGE, BackscatterEstimate, backscatter_at_black_patch, dilate_mask,
+                                          locate_black_patch)
 from uwcam.calibration.line_fit import (
     SMOOTHING,
     AttenuationFit,
@@ -215,8 +216,11 @@ def calibrate_with_details(frames: list[NDArray], distances_m: list[float], inpu
                 )
         stack = [np.asarray(frames[i]) for i in idx]
         clipped = np.any([np.any(f >= inputs.saturation_level, axis=-1) for f in stack], axis=0)
-        usable = target & ~clipped
         mean_frame = np.mean([f.astype(np.float64) for f in stack], axis=0) - dark
+        if black is not None:  # where the image shows the patch: the pose's projection may be pixels off
+            black = locate_black_patch(mean_frame, black, target)
+            target &= ~black
+        usable = target & ~clipped
         # Noise region: away from the plate's edges and from the black patch (and from anything,
         # like markers, outside the target region); on a plate only a few pixels across, as close as it takes.
         away = np.zeros(shape, bool) if black is None else black
