@@ -174,7 +174,7 @@ class CompensationStage:
             # Kept only while the profile and settings it was built for are the ones in use: a
             # profile put in use while this was built (seconds on a loaded machine) has its own,
             # which this must not replace (it did: the new profile then ranged with the old one's
-            # water light for good, 4 % short in the tank).
+            # water light for good).
             with self._lock:
                 current = self._compensator
                 if self.profile is profile and self.processing is processing and (
