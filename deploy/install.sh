@@ -28,7 +28,8 @@ else
   # A developer's: editable, so that the tests run the checkout's code as it is edited.
   .venv/bin/python -m pip install --quiet -e ".[$extras]"
 fi
-# numba compiles the kernels once into its cache beside the sources: do it now, so the first
-# `uwcam run` ranges within seconds instead of compiling for half a minute first.
+# numba compiles the kernels once into its cache beside the sources: do it now (two minutes on
+# 2 cores), so the first `uwcam run` ranges within seconds and no change of settings makes the
+# frame loop stop to compile (16 s for smoothing before the transform).
 .venv/bin/uwcam warmup
 echo "uwcam installed in $(pwd)/.venv: run it as .venv/bin/uwcam" >&2

@@ -124,14 +124,19 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_warmup(args: argparse.Namespace) -> int:
-    """Run the embedded default until its first range, then stop: numba compiles every kernel the
-    daemon's start needs into its on-disk cache, so the first ``uwcam run`` compiles nothing."""
+    """Run the embedded default until its first range, then range small frames every way the
+    processing settings allow (:func:`uwcam.runtime.warm_up.warm_up_ranging`), then stop: numba
+    compiles every kernel into its on-disk cache, so that neither the first ``uwcam run`` nor a
+    later change of its settings compiles anything."""
     import logging
     import time
+
+    import numpy as np
 
     from uwcam.config import default_config
     from uwcam.runtime.daemon import Daemon
     from uwcam.optics import kernels
+    from uwcam.runtime.warm_up import warm_up_ranging
 
     if not 1.0 <= args.timeout <= 86400.0:  # also refuses nan
         raise UserInputError(f"--timeout must be 1 to 86400 seconds, got {args.timeout}")
@@ -148,6 +153,9 @@ def cmd_warmup(args: argparse.Namespace) -> int:
             if time.monotonic() > deadline:
                 raise UserInputError(f"no range within {args.timeout:g} s; try again with a longer --timeout")
             time.sleep(0.05)
+        # Every other way the settings can range a frame, so that a later change compiles nothing either.
+        warm_up_ranging(daemon.pipeline.estimator)
+        daemon.pipeline.estimator.warm_up(dtypes=(np.uint8, np.uint16, np.float32))
     finally:
         daemon.stop()
     print(f"compiled uwcam's kernels in {time.monotonic() - started:.0f} s (kept in numba's cache)")

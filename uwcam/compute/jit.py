@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from typing import Any, Callable
 
+import numpy as np
+
 try:
     import numba as _numba
 except ImportError:  # pragma: no cover - exercised on platforms without numba wheels
@@ -36,6 +38,17 @@ else:  # pragma: no cover
         return lambda f: f
 
     prange = range
+
+
+def kernel_array(values: Any, shape: tuple[int, ...], dtype: Any) -> "np.ndarray":
+    """``values`` broadcast to ``shape`` as a C-contiguous, writable array of ``dtype`` for a
+    compiled kernel: the array itself when it already is one, else a copy. numba compiles a kernel
+    apart for read-only arrays (a broadcast view is one), so an argument that is a view one time
+    and a copy the next would compile it twice, the second time in the frame loop."""
+    a = np.asarray(values)
+    if a.shape == shape and a.dtype == dtype and a.flags.c_contiguous and a.flags.writeable:
+        return a
+    return np.array(np.broadcast_to(a, shape), dtype=dtype, order="C")
 
 
 def set_threads(n: int) -> None:

@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from uwcam.compute.jit import kernel_array
 from uwcam.fileio import UserInputError
 
 from uwcam.optics import kernels
@@ -307,12 +308,11 @@ class RangeEstimator:
                 self.response is None) and (
                 np.issubdtype(frame.dtype, np.integer) or np.issubdtype(frame.dtype, np.floating)):
             # Compiled: the per-channel terms of channel_terms, computed row by row in the kernel.
-            bg = np.ascontiguousarray(np.broadcast_to(background, frame.shape), dtype=np.float32)
+            bg = kernel_array(background, frame.shape, np.float32)
             # The kernel reads rows as contiguous runs of values (a strided view, e.g. channels
             # reordered, is copied once here).
             # Values that are means (frames fused over time) have their noise divided in the kernel.
-            counts = _NO_SAMPLES if samples is None else np.ascontiguousarray(np.broadcast_to(samples, frame.shape),
-                                                                               dtype=np.float32)
+            counts = _NO_SAMPLES if samples is None else kernel_array(samples, frame.shape, np.float32)
             kernels.fuse_background(np.ascontiguousarray(frame), bg, counts, self._noise_terms(), self._open_water_levels,
                                     float(self.profile.saturation_level), self._c, *common)
         elif np.issubdtype(frame.dtype, np.integer) or np.issubdtype(frame.dtype, np.floating):

@@ -34,6 +34,7 @@ from uwcam.runtime.stages.orientation import OrientationEstimator
 from uwcam.runtime.stages.patch_tracker import PatchTracker
 from uwcam.runtime.stages.reflectance import ReflectanceCorrector
 from uwcam.runtime.stages.temporal import TemporalFuser, frames_summary
+from uwcam.runtime.warm_up import warm_up_ranging
 
 QUEUED_FRAME_BUDGET_S = 0.030
 """A frame that waited longer than this (seconds since capture) is skipped when a newer one is
@@ -142,6 +143,7 @@ class FramePipeline(CompensationStage):
         # Compile or load the kernels and build lookup tables here, in the caller's thread (start-up
         # or an API request), not on the loop's first frame, which would stall it for seconds.
         estimator.warm_up(background=bool(processing.lamp_off_interval))
+        warm_up_ranging(estimator, processing)  # the paths these settings take (smoothing, fusion, water light)
         # So is the backscatter compensator (0.3-0.6 s at 720p: 10-17 frames of a 30 fps loop)
         # once frames have come; before that, the loop builds it on the first frame.
         water, compensator = self.open_water, None

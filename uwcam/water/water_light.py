@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from uwcam.compute.jit import HAVE_NUMBA, njit, prange, repeat_per_pixel
+from uwcam.compute.jit import HAVE_NUMBA, kernel_array, njit, prange, repeat_per_pixel
 from uwcam.optics.validity import Reason
 
 SIGMAS = 3.0
@@ -160,10 +160,10 @@ class WaterLight:
         """:meth:`threshold` for values that are means, compiled (:func:`_threshold_compiled`)."""
         n = self.level.shape[-1]
         q = float(np.asarray(estimator.profile.quantisation_step, np.float64))
-        per = lambda v: np.ascontiguousarray(np.broadcast_to(np.asarray(v, np.float64), (n,)))  # noqa: E731
-        full = lambda v: np.ascontiguousarray(np.broadcast_to(v, self.level.shape), dtype=np.float32)  # noqa: E731
+        per = lambda v: kernel_array(v, (n,), np.float64)  # noqa: E731
+        full = lambda v: kernel_array(v, self.level.shape, np.float32)  # noqa: E731
         out = np.empty(self.level.shape, np.float32)
-        _threshold_compiled(np.ascontiguousarray(self.level, np.float32), per(1.0 if scale is None else scale),
+        _threshold_compiled(full(self.level), per(1.0 if scale is None else scale),
                             np.empty((0, 0, 0), np.float32) if ambient is None else full(ambient), full(samples),
                             per(estimator.read_noise**2 + q * q / 12.0), per(estimator.shot_gain),
                             per(estimator.fixed_pattern**2), per(estimator.dark), SIGMAS**2, self.uncertainty**2, out)
