@@ -15,7 +15,8 @@ from uwcam.cli import main
 from uwcam.calibration.profile import save_profile
 from uwcam.config import ProcessingConfig
 from uwcam.optics.validity import Reason
-from uwcam.ranging.adaptive import adaptive_windows, window_light
+from uwcam.ranging.adaptive import adaptive_windows
+from uwcam.ranging.smoothing import window_light
 from uwcam.ranging.result import RangeResult
 from uwcam.ranging.images import range_images
 from uwcam.simulation import CameraModel, Lamp, SimulatedWorld, water_preset

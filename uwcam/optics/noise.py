@@ -28,26 +28,30 @@ def signal_variance(
     shot_gain: ArrayLike,
     quantisation_step: ArrayLike = 1.0,
     fixed_pattern: ArrayLike = 0.0,
+    dtype: type = np.float64,
 ) -> NDArray[np.floating]:
     """Total variance σ² (DN²) of a dark-corrected signal E (DN) against its expected value.
 
     σ² = read_noise² + shot_gain·E + (fixed_pattern·E)² + quantisation_step²/12, with E
     clipped at 0. read_noise: rms in DN; shot_gain: DN per photo-electron; fixed_pattern:
     relative rms of the pixel response non-uniformity (0.01 = 1 %). Per-channel parameters
-    broadcast against the last axis of ``signal`` when given as length-N arrays.
+    broadcast against the last axis of ``signal`` when given as length-N arrays. dtype: the
+    arithmetic's precision (float32 for a test statistic's scale over a whole frame: half the
+    memory traffic of float64).
     """
-    e = np.maximum(np.asarray(signal, dtype=np.float64), 0.0)
-    fpn = np.asarray(fixed_pattern, dtype=np.float64)
-    return temporal_variance(e, read_noise, shot_gain, quantisation_step) + (fpn * e) ** 2
+    e = np.maximum(np.asarray(signal, dtype=dtype), 0.0)
+    fpn = np.asarray(fixed_pattern, dtype=dtype)
+    return temporal_variance(e, read_noise, shot_gain, quantisation_step, dtype) + (fpn * e) ** 2
 
 
 def temporal_variance(
-    signal: ArrayLike, read_noise: ArrayLike, shot_gain: ArrayLike, quantisation_step: ArrayLike = 1.0
+    signal: ArrayLike, read_noise: ArrayLike, shot_gain: ArrayLike, quantisation_step: ArrayLike = 1.0,
+    dtype: type = np.float64,
 ) -> NDArray[np.floating]:
-    """Frame-to-frame variance (DN²): read_noise² + shot_gain·E + step²/12, E clipped at 0."""
-    e = np.maximum(np.asarray(signal, dtype=np.float64), 0.0)
-    read = np.asarray(read_noise, dtype=np.float64)
-    return read**2 + np.asarray(shot_gain, dtype=np.float64) * e + np.asarray(quantisation_step, dtype=np.float64) ** 2 / 12.0
+    """Frame-to-frame variance (DN²): read_noise² + shot_gain·E + step²/12, E clipped at 0, in ``dtype``."""
+    e = np.maximum(np.asarray(signal, dtype=dtype), 0.0)
+    read = np.asarray(read_noise, dtype=dtype)
+    return read**2 + np.asarray(shot_gain, dtype=dtype) * e + np.asarray(quantisation_step, dtype=dtype) ** 2 / 12.0
 
 
 @dataclass(frozen=True)

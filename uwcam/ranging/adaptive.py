@@ -36,8 +36,10 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from uwcam.optics.noise import signal_variance
 from uwcam.optics.validity import Reason
 from uwcam.ranging.result import RangeResult
+from uwcam.ranging.smoothing import window_light
 
 if TYPE_CHECKING:  # the estimator imports this module
     from uwcam.ranging.estimator import RangeEstimator
@@ -59,50 +61,13 @@ Ranger = Callable[[NDArray, NDArray, "NDArray | None"], RangeResult]
 masked as a single frame is (:func:`uwcam.ranging.estimator.range_frame`)."""
 
 
-def window_light(frame: NDArray[np.float32], usable: NDArray[np.float32], samples: NDArray | None,
-                 background: NDArray | None, size: int) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray | None]:
-    """Each value's mean over the ``size``×``size`` window around it (clipped at the border) of the
-    values with ``usable`` 1 (unsaturated, not the vehicle), the number of single-pixel noises its
-    variance equals, and the background's mean over the same values.
-
-    frame, usable: (H, W, N) float32 (linear DN; 1 or 0); samples: (H, W, N) how many single-pixel
-    noises each value of ``frame`` already equals (frames fused over time), None: one. The mean of
-    n values with variances σ²/s_k has the variance σ²·Σ(1/s_k)/n², so it equals n²/Σ(1/s_k)
-    single-pixel noises (n without fusion). A value that is saturated itself stays as it is (the
-    estimator then marks that channel saturated), as does one without a usable value around it."""
-    box = dict(ddepth=-1, ksize=(size, size), normalize=False, borderType=cv2.BORDER_CONSTANT)
-    shape = frame.shape
-    # OpenCV sums float32 windows in float64 (its box filter's sum type), so 289 values of 16 bits stay exact enough.
-    count = np.rint(cv2.boxFilter(usable, **box)).reshape(shape)
-    total = cv2.boxFilter(frame * usable, **box).reshape(shape)
-    keep = (count > 0) & (usable > 0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = np.where(keep, total / count, frame).astype(np.float32)
-        if samples is None:
-            counts = np.where(keep, count, 1.0).astype(np.float32)
-        else:
-            s = np.maximum(np.asarray(samples, np.float32), np.float32(1e-6))
-            inverse = cv2.boxFilter(np.ascontiguousarray(usable / s), **box).reshape(shape)
-            counts = np.where(keep, count * count / inverse, s).astype(np.float32)
-        light = None
-        if background is not None:
-            bg = np.ascontiguousarray(np.broadcast_to(background, shape), dtype=np.float32)
-            light = np.where(count > 0, cv2.boxFilter(bg * usable, **box).reshape(shape) / count, bg).astype(np.float32)
-    return mean, counts, light
-
-
 def _noise_variance(estimator: RangeEstimator, frame: NDArray, samples: NDArray | None) -> NDArray[np.float32]:
     """(H, W, N) noise variance (DN²) of values that are means of ``samples`` pixels (None: one),
-    in float32 (a test statistic's scale, not a result)."""
-    # signal_variance's σ² = read² + q²/12 + g·E + (f·E)², in float32 and in place: in float64 it was
-    # half the cost of the windows at 720p.
+    in float32 (a test statistic's scale, not a result: in float64 it was half the cost of the
+    windows at 720p)."""
     f32 = np.float32
-    q = f32(np.asarray(estimator.profile.quantisation_step, np.float64))
-    e = np.asarray(frame, f32) - estimator.dark.astype(f32)
-    np.maximum(e, f32(0), out=e)
-    var = (estimator.fixed_pattern.astype(f32) * e) ** 2
-    var += estimator.shot_gain.astype(f32) * e
-    var += (estimator.read_noise.astype(f32) ** 2 + q * q / f32(12))
+    var = signal_variance(np.asarray(frame, f32) - estimator.dark.astype(f32), estimator.read_noise,
+                          estimator.shot_gain, estimator.profile.quantisation_step, estimator.fixed_pattern, f32)
     var = np.where(var > 0, var, f32(1))  # a profile without a noise model counts 1 DN, as the estimator does
     return var if samples is None else var / np.maximum(np.asarray(samples, f32), f32(1e-6))
 

@@ -31,6 +31,38 @@ def block_means(image: NDArray, size: tuple[int, int]) -> NDArray:
     return cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)
 
 
+def window_light(frame: NDArray[np.float32], usable: NDArray[np.float32], samples: NDArray | None,
+                 background: NDArray | None, size: int) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray | None]:
+    """Each value's mean over the ``size``×``size`` window around it (clipped at the border) of the
+    values with ``usable`` 1 (unsaturated, not the vehicle), the number of single-pixel noises its
+    variance equals, and the background's mean over the same values.
+
+    frame, usable: (H, W, N) float32 (linear DN; 1 or 0); samples: (H, W, N) how many single-pixel
+    noises each value of ``frame`` already equals (frames fused over time), None: one. The mean of
+    n values with variances σ²/s_k has the variance σ²·Σ(1/s_k)/n², so it equals n²/Σ(1/s_k)
+    single-pixel noises (n without fusion). A value that is saturated itself stays as it is (the
+    estimator then marks that channel saturated), as does one without a usable value around it."""
+    box = dict(ddepth=-1, ksize=(size, size), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    shape = frame.shape
+    # OpenCV sums float32 windows in float64 (its box filter's sum type), so 289 values of 16 bits stay exact enough.
+    count = np.rint(cv2.boxFilter(usable, **box)).reshape(shape)
+    total = cv2.boxFilter(frame * usable, **box).reshape(shape)
+    keep = (count > 0) & (usable > 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(keep, total / count, frame).astype(np.float32)
+        if samples is None:
+            counts = np.where(keep, count, 1.0).astype(np.float32)
+        else:
+            s = np.maximum(np.asarray(samples, np.float32), np.float32(1e-6))
+            inverse = cv2.boxFilter(np.ascontiguousarray(usable / s), **box).reshape(shape)
+            counts = np.where(keep, count * count / inverse, s).astype(np.float32)
+        light = None
+        if background is not None:
+            bg = np.ascontiguousarray(np.broadcast_to(background, shape), dtype=np.float32)
+            light = np.where(count > 0, cv2.boxFilter(bg * usable, **box).reshape(shape) / count, bg).astype(np.float32)
+    return mean, counts, light
+
+
 def smooth_frame(frame: NDArray, kind: str, saturation_level: float) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """3×3 smoothing of a raw frame (H, W, N) before the transform (docs/physics.md §7).
 
@@ -48,31 +80,25 @@ def smooth_frame(frame: NDArray, kind: str, saturation_level: float) -> tuple[ND
     saturated = raw >= saturation_level
     values = raw.astype(np.float32)
     usable = (~saturated).astype(np.float32)
+    if kind == "mean":  # a saturated value stays as it is, with 1 sample
+        smoothed, samples, _ = window_light(values, usable, None, None, 3)
+        return smoothed, samples
+    smoothed = np.empty_like(values)
+    for k in range(raw.shape[-1]):
+        smoothed[..., k] = cv2.medianBlur(np.ascontiguousarray(values[..., k]), 3)
+    # The border and windows holding a saturated value: the median of the usable values alone.
     box = dict(ddepth=-1, ksize=(3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
-    count = np.rint(cv2.boxFilter(usable, **box)).reshape(raw.shape)
-    if kind == "mean":
-        total = cv2.boxFilter(values * usable, **box).reshape(raw.shape)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            smoothed = np.where(count > 0, total / count, values)
-        samples = count
-    else:
-        smoothed = np.empty_like(values)
-        for k in range(raw.shape[-1]):
-            smoothed[..., k] = cv2.medianBlur(np.ascontiguousarray(values[..., k]), 3)
-        # The border and windows holding a saturated value: the median of the usable values alone.
-        redo = count < 9
-        if redo.any():
-            h, w = raw.shape[:2]
-            padded = np.pad(np.where(saturated, np.nan, values), ((1, 1), (1, 1), (0, 0)), constant_values=np.nan)
-            ii, jj, kk = np.nonzero(redo)
-            windows = np.stack([padded[ii + di, jj + dj, kk] for di in range(3) for dj in range(3)])
-            with np.errstate(all="ignore"), warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows: kept below
-                smoothed[ii, jj, kk] = np.nanmedian(windows, axis=0)
-        samples = np.ones(raw.shape, np.float32)
-    # A saturated value stays as it was: the estimator then marks that channel saturated.
-    smoothed = np.where(saturated, values, smoothed).astype(np.float32)
-    return smoothed, np.where(saturated, 1.0, samples).astype(np.float32)
+    redo = np.rint(cv2.boxFilter(usable, **box)).reshape(raw.shape) < 9
+    if redo.any():
+        padded = np.pad(np.where(saturated, np.nan, values), ((1, 1), (1, 1), (0, 0)), constant_values=np.nan)
+        ii, jj, kk = np.nonzero(redo)
+        windows = np.stack([padded[ii + di, jj + dj, kk] for di in range(3) for dj in range(3)])
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows: kept below
+            smoothed[ii, jj, kk] = np.nanmedian(windows, axis=0)
+    # A saturated value stays as it was (the estimator then marks that channel saturated); the
+    # median's variance is left at a single pixel's.
+    return np.where(saturated, values, smoothed).astype(np.float32), np.ones(raw.shape, np.float32)
 
 
 def smooth_range_map(result: RangeResult, kind: str = "mean") -> RangeResult:

@@ -63,7 +63,7 @@ class CompensationStage:
         with self._lock:
             self._open_water_request = {"frames": int(frames), "sum": None, "count": 0, "done": done,
                                         "requested_ns": now_ns, "deadline_ns": now_ns + int(timeout_s * 1e9),
-                                        "deadline": time.monotonic() + timeout_s, "timeout_s": timeout_s}
+                                        "timeout_s": timeout_s}
             self._open_water_capture = "capturing"
         return done
 
@@ -71,7 +71,7 @@ class CompensationStage:
         """The open-water request still pending, dropping one past its deadline."""
         with self._lock:
             request = self._open_water_request
-            if request is not None and time.monotonic() > request["deadline"]:
+            if request is not None and time.monotonic_ns() > request["deadline_ns"]:
                 self._lapse(request)
                 return None
             return request
