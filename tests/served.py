@@ -24,7 +24,9 @@ class Server:
         assert wait_for(lambda: self.server.started, 60.0), "server did not start"
         self.port = self.server.servers[0].sockets[0].getsockname()[1]
         self.url = f"http://127.0.0.1:{self.port}"
-        self.http = httpx.Client(base_url=self.url, timeout=10.0)
+        # A settings change compiles the kernels it needs in the request (never in the frame loop):
+        # on a cold numba cache (a fresh copy of the tree, before `uwcam warmup`) that takes tens of seconds.
+        self.http = httpx.Client(base_url=self.url, timeout=90.0)
         return self
 
     def __exit__(self, *exc) -> None:

@@ -80,6 +80,8 @@ class FramePipeline(CompensationStage):
         """(H, W, N) of the last frame taken, for building the compensator before it is needed."""
         self._frame_integer: bool | None = None
         """Whether the last frame taken held integer DN (None: no frame yet), to check profiles against."""
+        self._frame_kind: tuple[np.dtype, bool] | None = None
+        """(pixel type, read-only) of the last frame taken: the kernels a settings change compiles for."""
         self._lock = threading.Lock()  # guards configuration swaps and the published result
         self._apply(processing, profile)
         self.previous_processing: ProcessingConfig | None = None
@@ -143,7 +145,13 @@ class FramePipeline(CompensationStage):
         # Compile or load the kernels and build lookup tables here, in the caller's thread (start-up
         # or an API request), not on the loop's first frame, which would stall it for seconds.
         estimator.warm_up(background=bool(processing.lamp_off_interval))
-        warm_up_ranging(estimator, processing)  # the paths these settings take (smoothing, fusion, water light)
+        # The paths these settings take (smoothing, fusion, water light), for the frames the camera
+        # gives once it has given one (on a cold cache each other kind compiles for seconds).
+        kind = self._frame_kind
+        if kind is None:
+            warm_up_ranging(estimator, processing)
+        else:
+            warm_up_ranging(estimator, processing, dtypes=(kind[0].type,), read_only=(kind[1],))
         # So is the backscatter compensator (0.3-0.6 s at 720p: 10-17 frames of a 30 fps loop)
         # once frames have come; before that, the loop builds it on the first frame.
         water, compensator = self.open_water, None
@@ -318,6 +326,7 @@ class FramePipeline(CompensationStage):
     def _process(self, frame: Frame) -> None:
         self._frame_shape = frame.data.shape
         self._frame_integer = bool(np.issubdtype(frame.data.dtype, np.integer))
+        self._frame_kind = (frame.data.dtype, not frame.data.flags.writeable)
         if frame.lamp_on is None and self.lamp is not None:
             # The camera cannot know: record the lamp's last reported state with the frame.
             last = getattr(self.lamp, "last_status", None)

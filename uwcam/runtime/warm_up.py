@@ -29,7 +29,7 @@ SMOOTHINGS: tuple[tuple[str, str], ...] = (
 _SIZE = (24, 32)  # rows, columns: large enough for adaptive windows to grow, small enough to be instant
 
 
-def _frames(estimator: RangeEstimator, dtypes: tuple[type, ...]) -> list[np.ndarray]:
+def _frames(estimator: RangeEstimator, dtypes: tuple[type, ...], read_only: tuple[bool, ...]) -> list[np.ndarray]:
     """Synthetic frames (H, W, N) of these pixel types, writable and read-only, whose light spans
     dark to bright, so that pixels take every branch that matters for types (valid, too dark,
     windows grown)."""
@@ -42,27 +42,27 @@ def _frames(estimator: RangeEstimator, dtypes: tuple[type, ...]) -> list[np.ndar
     frames = []
     for dtype in dict.fromkeys(dtypes):
         ceiling = min(top, float(np.iinfo(dtype).max)) if np.issubdtype(dtype, np.integer) else top
-        frame = (ramp * ceiling).astype(dtype)
-        # A driver may hand over its buffer read-only (numba compiles for those apart).
-        fixed = frame.copy()
-        fixed.flags.writeable = False
-        frames += [frame, fixed]
+        for fixed in read_only:  # a driver may hand over its buffer read-only (numba compiles for those apart)
+            frame = (ramp * ceiling).astype(dtype)
+            frame.flags.writeable = not fixed
+            frames.append(frame)
     return frames
 
 
 def warm_up_ranging(estimator: RangeEstimator, processing: ProcessingConfig | None = None,
-                    dtypes: tuple[type, ...] = (np.uint8, np.uint16)) -> None:
+                    dtypes: tuple[type, ...] = (np.uint8, np.uint16), read_only: tuple[bool, ...] = (False, True)) -> None:
     """Range small synthetic frames of these pixel types the ways ``processing`` can range them
     (its smoothing; with light not from the lamp when it takes lamp-off frames or subtracts
     backscatter; temporal means when it fuses
     frames; judged against the water's light, which the loop may use whenever an open-water frame
     or a backscatter model is at hand), so that numba compiles or loads each kernel now. None:
-    every way the settings allow (``uwcam warmup``). Leaves ``estimator`` as it was."""
+    every way the settings allow (``uwcam warmup``). read_only: frames writable (False), read-only
+    (True) or both, as the camera's driver hands them over. Leaves ``estimator`` as it was."""
     smoothings = SMOOTHINGS if processing is None else ((processing.smoothing, processing.smoothing_stage),)
     # Light not from the lamp beside the frame: ambient (lamp-off frames) or backscatter subtracted.
     ambient = processing is None or bool(processing.lamp_off_interval) or processing.backscatter is not None
     temporal = processing is None or processing.temporal is not None
-    frames = _frames(estimator, dtypes)
+    frames = _frames(estimator, dtypes, read_only)
     shape = frames[0].shape
     water = WaterLight(np.full(shape, 0.05 * float(estimator.profile.saturation_level), np.float32), 0.05, "warm-up")
     lights = (None, np.zeros(shape, np.float32)) if ambient else (None,)
