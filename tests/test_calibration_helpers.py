@@ -408,3 +408,21 @@ def test_calibration_results_are_immutable():
     for obj, field in [(details, "profile"), (details.noise, "method"), (details.fit, "method"), (details.groups[0], "images")]:
         with pytest.raises(dataclasses.FrozenInstanceError):
             setattr(obj, field, None)
+
+
+@pytest.mark.parametrize("frames", [2, 4])
+def test_few_frames_per_distance_give_the_cameras_read_noise(frames):
+    """Fitted from the plate's bins (thousands of DN, where read noise is a few percent of the
+    variance) and a small black patch, 2-4 frames per distance gave a read noise of 0-50 DN for
+    the simulated camera's 26.4 (σ of dim pixels then too small). The light beside the plate pins
+    it. Expected: the simulator's camera, gain·√(read² + dark electrons) DN, and its gain."""
+    from uwcam.simulation import CameraModel, Lamp, water_preset
+    from uwcam.simulation.tank import calibrate_in_simulation
+
+    camera = CameraModel()
+    water = water_preset("jerlov-IB", [675.0, 575.0, 475.0])
+    profile = calibrate_in_simulation(water, Lamp(position=(0.3, 0.0, 0.0)), (320, 240), camera,
+                                      frames_per_distance=frames)
+    read = camera.gain_dn_per_e * np.sqrt(camera.read_noise_e**2 + camera.dark_current_e)
+    np.testing.assert_allclose(profile.array("read_noise"), read, rtol=0.06)
+    np.testing.assert_allclose(profile.array("shot_gain"), camera.gain_dn_per_e, rtol=0.06)

@@ -40,6 +40,7 @@ from uwcam.calibration.noise_fit import (
     NOISE_BINS,
     NoiseFit,
     NoisePoint,
+    dim_noise_points,
     fit_noise,
     mask_interior,
     noise_point,
@@ -245,6 +246,9 @@ def calibrate_with_details(frames: list[NDArray], distances_m: list[float], inpu
             triples = patch[:, 2:] & patch[:, 1:-1] & patch[:, :-2]
             if triples.sum() >= 2:  # a patch too small to measure its noise still gives backscatter
                 noise_points.append((f"black patch {distance:g} m", noise_point(stack, patch, dark)))
+        if len(stack) >= 2:
+            noise_points += dim_noise_points(stack, mean_frame, target | (black if black is not None else False),
+                                             clipped, dark, brightness[region].min(), distance)
         groups.append(DistanceGroup(distance, [names[i] for i in idx], mean_frame, usable, black))
 
     noise = fit_noise([p for _, p in noise_points], step)

@@ -31,6 +31,9 @@ class NoisePoint:
     """(N,) frame-to-frame variance from the differences between frames; None with one frame."""
     frames: int
     count: int
+    shows_fixed_pattern: bool = True
+    """Whether its spatial variance counts in the fixed-pattern fit: not for light that is not the
+    plate's (the water beside it varies from pixel to pixel by more than the sensor's pattern)."""
 
 
 def mask_interior(mask: NDArray[np.bool_], margin: int) -> NDArray[np.bool_]:
@@ -40,7 +43,8 @@ def mask_interior(mask: NDArray[np.bool_], margin: int) -> NDArray[np.bool_]:
     return cv2.erode(mask.astype(np.uint8), kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
 
 
-def noise_point(frames: list[NDArray] | NDArray, mask: ArrayLike, dark_level: ArrayLike = 0.0) -> NoisePoint:
+def noise_point(frames: list[NDArray] | NDArray, mask: ArrayLike, dark_level: ArrayLike = 0.0,
+                shows_fixed_pattern: bool = True) -> NoisePoint:
     """Noise statistics of ``frames`` (m frames (H, W, N) of one static scene) inside ``mask`` (H, W).
 
     Temporal variance: per pixel, the unbiased variance over the m frames, averaged over the
@@ -64,7 +68,40 @@ def noise_point(frames: list[NDArray] | NDArray, mask: ArrayLike, dark_level: Ar
     temporal = None
     if m_frames >= 2:
         temporal = stack[:, :, 1:-1][:, triple].var(axis=0, ddof=1).mean(axis=0)
-    return NoisePoint(centre.mean(axis=0), (centre**2).mean(axis=0), spatial, temporal, m_frames, count)
+    return NoisePoint(centre.mean(axis=0), (centre**2).mean(axis=0), spatial, temporal, m_frames, count,
+                      shows_fixed_pattern)
+
+
+DIM_BINS = 2
+"""Brightness bins of the light beside the plate dimmer than the plate, each a point of the noise fit."""
+
+
+def dim_noise_points(stack: list[NDArray], mean_frame: NDArray, occupied: NDArray[np.bool_], clipped: NDArray[np.bool_],
+                     dark_level: ArrayLike, plate_floor: float, distance: float,
+                     margin: int = 7) -> list[tuple[str, NoisePoint]]:
+    """Noise points of the light beside the target (``occupied``: the plate's and black patch's
+    regions, (H, W)) dimmer than the plate's dimmest (``plate_floor``, a 5×5 mean of the channels'
+    sum, dark-corrected): the water or tank beside it, frame to frame.
+
+    The plate's bins hold thousands of DN, where read noise is a few percent of the variance: fitted
+    from those and a small black patch over 2-4 frames, it came out 0-50 DN for a true 26. Light of
+    a few hundred DN pins it. Frame to frame only (``shows_fixed_pattern`` False): the water's light
+    varies from pixel to pixel by more than the sensor's pattern. Light that moves (particles, fish)
+    only adds temporal variance: the read noise can only come out larger, σ with it. ``stack``: the
+    frames of one distance (at least 2); ``clipped``: pixels saturated in any frame."""
+    beside = mask_interior(~occupied & ~clipped, margin)
+    brightness = cv2.blur(np.asarray(mean_frame, np.float64).sum(axis=-1), (5, 5))
+    dim = beside & (brightness < plate_floor)
+    triples = dim[:, 2:] & dim[:, 1:-1] & dim[:, :-2]
+    if triples.sum() < 64 * DIM_BINS:
+        return []
+    edges = np.quantile(brightness[dim], np.linspace(0, 1, DIM_BINS + 1))
+    points = []
+    for j in range(DIM_BINS):
+        part = dim & (brightness >= edges[j]) & (brightness <= edges[j + 1])
+        points.append((f"beside the plate {distance:g} m, level {j + 1}",
+                       noise_point(stack, part, dark_level, shows_fixed_pattern=False)))
+    return points
 
 
 def _nonnegative_least_squares(a: NDArray, y: NDArray, w: NDArray) -> NDArray:
@@ -119,10 +156,12 @@ def fit_noise(points: list[NoisePoint], quantisation_step: float = 1.0) -> Noise
             t = np.array([p.temporal_variance[k] for p in temporal])
             w = 1.0 / np.maximum(t, q + 1e-12) ** 2
             read2[k], gain[k] = _nonnegative_least_squares(np.stack([np.ones_like(e), e], 1), t - q, w)
-            e2 = np.array([p.mean_square[k] for p in temporal])
-            s = np.array([p.spatial_variance[k] for p in temporal])
+            patterned = [p for p in temporal if p.shows_fixed_pattern] or temporal
+            e = np.array([p.mean[k] for p in patterned])
+            e2 = np.array([p.mean_square[k] for p in patterned])
+            s = np.array([p.spatial_variance[k] for p in patterned])
             t_model = read2[k] + gain[k] * np.maximum(e, 0) + q
-            m = np.array([p.frames for p in temporal], dtype=np.float64)
+            m = np.array([p.frames for p in patterned], dtype=np.float64)
             ws = 1.0 / np.maximum(s, q + 1e-12) ** 2
             fpn2[k] = _nonnegative_least_squares(e2[:, None], s - t_model / m, ws)[0]
         else:
