@@ -122,8 +122,9 @@ def drop_unresolved(result: RangeResult, max_relative_sd: float = MAX_RELATIVE_S
 
 
 MAX_PASSES = 4
-"""Most passes of range → backscatter → subtract per frame: the configured ``iterations`` at least,
-more while the depths the backscatter was subtracted for still move (see :data:`SETTLED`)."""
+"""Most passes of range → backscatter → subtract per frame where ``iterations`` is 2 or more: the
+configured number at least, more (up to this) while the depths the backscatter was subtracted for
+still move (see :data:`SETTLED`). ``iterations`` 1 is one pass, as before."""
 
 SETTLED = 0.02
 """A block of the backscatter's grid has settled when the pass that subtracted the backscatter in
@@ -249,7 +250,9 @@ class BackscatterCompensator:
         scale = 1.0 if background_scale is None else np.asarray(background_scale, np.float32)
         depth = self._block_depth(result.range)
         settled = np.zeros(depth.shape, bool)
-        for passes in range(1, MAX_PASSES):
+        # One pass is one, as configured; more than one go on while the depths move.
+        most = max(MAX_PASSES, self.iterations) if self.iterations > 1 else 1
+        for passes in range(1, most):
             if passes >= self.iterations and settled.all():
                 break
             background = self._level_at(depth, coarse=True, scale=scale)
