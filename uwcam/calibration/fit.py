@@ -247,7 +247,7 @@ def calibrate_with_details(frames: list[NDArray], distances_m: list[float], inpu
             if triples.sum() >= 2:  # a patch too small to measure its noise still gives backscatter
                 noise_points.append((f"black patch {distance:g} m", noise_point(stack, patch, dark)))
         if len(stack) >= 2:
-            noise_points += dim_noise_points(stack, mean_frame, target | (black if black is not None else False),
+            noise_points += dim_noise_points(stack, brightness, target if black is None else target | black,
                                              clipped, dark, brightness[region].min(), distance)
         groups.append(DistanceGroup(distance, [names[i] for i in idx], mean_frame, usable, black))
 

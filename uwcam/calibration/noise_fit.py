@@ -76,12 +76,13 @@ DIM_BINS = 2
 """Brightness bins of the light beside the plate dimmer than the plate, each a point of the noise fit."""
 
 
-def dim_noise_points(stack: list[NDArray], mean_frame: NDArray, occupied: NDArray[np.bool_], clipped: NDArray[np.bool_],
+def dim_noise_points(stack: list[NDArray], brightness: NDArray, occupied: NDArray[np.bool_], clipped: NDArray[np.bool_],
                      dark_level: ArrayLike, plate_floor: float, distance: float,
                      margin: int = 7) -> list[tuple[str, NoisePoint]]:
     """Noise points of the light beside the target (``occupied``: the plate's and black patch's
-    regions, (H, W)) dimmer than the plate's dimmest (``plate_floor``, a 5×5 mean of the channels'
-    sum, dark-corrected): the water or tank beside it, frame to frame.
+    regions, (H, W)) dimmer than the plate's dimmest (``plate_floor``, of ``brightness``: the (H, W)
+    box mean of the channels' sum, dark-corrected, that the plate's bins are made of): the water or
+    tank beside it, frame to frame.
 
     The plate's bins hold thousands of DN, where read noise is a few percent of the variance: fitted
     from those and a small black patch over 2-4 frames, it came out 0-50 DN for a true 26. Light of
@@ -90,7 +91,6 @@ def dim_noise_points(stack: list[NDArray], mean_frame: NDArray, occupied: NDArra
     only adds temporal variance: the read noise can only come out larger, σ with it. ``stack``: the
     frames of one distance (at least 2); ``clipped``: pixels saturated in any frame."""
     beside = mask_interior(~occupied & ~clipped, margin)
-    brightness = cv2.blur(np.asarray(mean_frame, np.float64).sum(axis=-1), (5, 5))
     dim = beside & (brightness < plate_floor)
     triples = dim[:, 2:] & dim[:, 1:-1] & dim[:, :-2]
     if triples.sum() < 64 * DIM_BINS:

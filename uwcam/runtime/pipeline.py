@@ -78,10 +78,9 @@ class FramePipeline(CompensationStage):
         self._compensation_ms: collections.deque[float] = collections.deque(maxlen=100)
         self._frame_shape: tuple[int, ...] | None = None
         """(H, W, N) of the last frame taken, for building the compensator before it is needed."""
-        self._frame_integer: bool | None = None
-        """Whether the last frame taken held integer DN (None: no frame yet), to check profiles against."""
         self._frame_kind: tuple[np.dtype, bool] | None = None
-        """(pixel type, read-only) of the last frame taken: the kernels a settings change compiles for."""
+        """(pixel type, read-only) of the last frame taken (None: no frame yet): the kernels a
+        settings change compiles for, and whether frames hold integer DN, to check profiles against."""
         self._lock = threading.Lock()  # guards configuration swaps and the published result
         self._apply(processing, profile)
         self.previous_processing: ProcessingConfig | None = None
@@ -118,7 +117,8 @@ class FramePipeline(CompensationStage):
         if self._frame_shape is not None:
             check_intrinsics_fit(profile.intrinsics, self._frame_shape[1], self._frame_shape[0])
         # A response curve gives each code its own width (uwcam.imaging.response): its step 0 is right.
-        if self._frame_integer and profile.quantisation_step == 0 and profile.response is None:
+        integer = self._frame_kind is not None and np.issubdtype(self._frame_kind[0], np.integer)
+        if integer and profile.quantisation_step == 0 and profile.response is None:
             raise ValueError(f"profile '{profile.name}' has quantisation_step 0 (float data) but the camera delivers "
                              "integer values; calibrate with this camera")
         estimator = RangeEstimator(profile, pair=processing.pair, path_length_bounds=processing.path_length_bounds)
@@ -325,7 +325,6 @@ class FramePipeline(CompensationStage):
 
     def _process(self, frame: Frame) -> None:
         self._frame_shape = frame.data.shape
-        self._frame_integer = bool(np.issubdtype(frame.data.dtype, np.integer))
         self._frame_kind = (frame.data.dtype, not frame.data.flags.writeable)
         if frame.lamp_on is None and self.lamp is not None:
             # The camera cannot know: record the lamp's last reported state with the frame.
