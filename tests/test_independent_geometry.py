@@ -101,6 +101,9 @@ def test_lamp_on_the_optical_axis_and_beside_the_camera():
     assert np.isfinite(camera_range_from_path_length(1.01 * s, LAMP))
     with pytest.raises(ValueError, match=r"lamp_position must be \(x, y, z\)"):
         camera_range_from_path_length(3.0, (0.1, 0.2))
+    # The forward direction refuses it too (numpy would broadcast a 2-vector against rays).
+    with pytest.raises(ValueError, match=r"lamp_position must be \(x, y, z\)"):
+        path_length_from_camera_range(1.5, (0.1, 0.2))
 
 
 def test_plane_camera_range_is_distance_over_the_axial_component():

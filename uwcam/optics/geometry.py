@@ -57,10 +57,15 @@ def camera_range_equidistant(path_length: ArrayLike) -> NDArray[np.float64]:
     return np.asarray(path_length, dtype=np.float64) / 2.0
 
 
-def _lamp_terms(lamp_position: ArrayLike, rays: ArrayLike | None) -> tuple[NDArray, float]:
+def _lamp_vector(lamp_position: ArrayLike) -> NDArray[np.float64]:
     s = np.asarray(lamp_position, dtype=np.float64)
     if s.shape != (3,):
         raise ValueError(f"lamp_position must be (x, y, z) in metres, got shape {s.shape}")
+    return s
+
+
+def _lamp_terms(lamp_position: ArrayLike, rays: ArrayLike | None) -> tuple[NDArray, float]:
+    s = _lamp_vector(lamp_position)
     u = _AXIS if rays is None else np.asarray(rays, dtype=np.float64)
     return u @ s, float(s @ s)
 
@@ -100,9 +105,12 @@ def path_length_from_camera_range(
     lamp_position: ArrayLike = (0.0, 0.0, 0.0),
     rays: ArrayLike | None = None,
 ) -> NDArray[np.float64]:
-    """Forward geometry: d_T = d_c + |d_c·u − S| (m)."""
+    """Path length d_T (m) from camera range d_c (m), the forward geometry: d_T = d_c + |d_c·u − S|.
+
+    rays: (..., 3) unit rays matching camera_range's shape, or None for the optical axis.
+    """
+    s = _lamp_vector(lamp_position)
     dc = np.asarray(camera_range, dtype=np.float64)
-    s = np.asarray(lamp_position, dtype=np.float64)
     u = _AXIS if rays is None else np.asarray(rays, dtype=np.float64)
     point = dc[..., None] * u
     return dc + np.linalg.norm(point - s, axis=-1)
