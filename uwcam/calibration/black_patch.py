@@ -64,18 +64,25 @@ def locate_black_patch(signal: NDArray, black_mask: NDArray[np.bool_], plate_mas
 
 @dataclass(frozen=True)
 class BackscatterEstimate:
+    """The water's light and the plate's at the black patch, at one distance.
+
+    Attributes:
+        level: (N,) backscatter in DN (dark-corrected) at the black patch; may be slightly
+            negative from noise.
+        variance: (N,) its variance from pixel noise, DN².
+        black_mean: (N,) mean signal of the black patch, DN.
+        plate_log: (N,) ln of the plate's own light (backscatter excluded pixel by pixel) at the
+            patch's pixels.
+        plate_log_variance: (N,) its variance from pixel noise.
+        pixels: (H, W) the patch pixels used.
+    """
+
     level: NDArray[np.float64]
-    """(N,) backscatter in DN (dark-corrected) at the black patch; may be slightly negative from noise."""
     variance: NDArray[np.float64]
-    """(N,) its variance from pixel noise, DN²."""
     black_mean: NDArray[np.float64]
-    """(N,) mean signal of the black patch, DN."""
     plate_log: NDArray[np.float64]
-    """(N,) ln of the plate's own light (backscatter excluded pixel by pixel) at the patch's pixels."""
     plate_log_variance: NDArray[np.float64]
-    """(N,) its variance from pixel noise."""
     pixels: NDArray[np.bool_]
-    """(H, W) the patch pixels used."""
 
 
 def backscatter_at_black_patch(

@@ -175,18 +175,22 @@ _PATTERN_STEP = 8  # pixels between the rays the physical open-water pattern is 
 
 @dataclass(frozen=True)
 class BackscatterModel:
-    """bs_k(p, z) = pattern[p, k] · F_k(p, z); F tabulated over depths on a coarse grid."""
+    """bs_k(p, z) = pattern[p, k] · F_k(p, z); F tabulated over depths on a coarse grid.
+
+    Attributes:
+        depths: (T,) depth samples, metres.
+        shares: (gh, gw, T, N) F at the grid points, or (1, 1, T, N) when uniform over the image.
+        pattern: (H, W, N) open-water backscatter in DN, smoothed, or (1, 1, N).
+        grid_step: pixels between the grid points of ``shares``; 0 when uniform over the image.
+        response: (H, W, N) each pixel's response relative to the smoothed pattern (from several
+            open-water frames), or None (1 everywhere).
+    """
 
     depths: NDArray[np.float64]
-    """(T,) depth samples, metres."""
     shares: NDArray[np.float64]
-    """(gh, gw, T, N) F at the grid points, or (1, 1, T, N) when uniform over the image."""
     pattern: NDArray[np.float64]
-    """(H, W, N) open-water backscatter in DN, smoothed, or (1, 1, N)."""
     grid_step: int
     response: NDArray[np.float64] | None = None
-    """(H, W, N) each pixel's response relative to the smoothed pattern (from several open-water
-    frames), or None (1 everywhere)."""
 
     @classmethod
     def from_profile(cls, profile: CalibrationProfile, open_water: NDArray | None = None,
