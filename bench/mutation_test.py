@@ -314,15 +314,17 @@ def execute(trees: list[Path], target: Target, mutants: list[dict], progress: st
     # The unmutated tests, once in every copy (this also fills each copy's compilation cache).
     # A copy's first run compiles numba's kernels for it (its cache is keyed by the sources' paths):
     # where a test waits on a request that compiles (a settings change), it may time out that once.
-    for attempt in (1, 2):
-        children = {_fork_pytest(tree, args, target.env): tree for tree in trees}
-        failed = [(tree, outcome) for pid, tree in children.items()
-                  if (outcome := _outcome(os.waitpid(pid, 0)[1])) != "survived"]
-        if not failed:
-            break
-        if attempt == 2:
-            tree, outcome = failed[0]
-            raise SystemExit(f"{target.path}: the unmutated tests do not pass in a forked run in {tree} ({outcome})")
+    # A copy that fails then runs again alone (the copies compiling side by side on a small,
+    # shared machine is what times a request out), twice at most.
+    children = {_fork_pytest(tree, args, target.env): tree for tree in trees}
+    failed = [tree for pid, tree in children.items() if _outcome(os.waitpid(pid, 0)[1]) != "survived"]
+    for tree in failed:
+        for attempt in (2, 3):
+            outcome = _outcome(os.waitpid(_fork_pytest(tree, args, target.env), 0)[1])
+            if outcome == "survived":
+                break
+            if attempt == 3:
+                raise SystemExit(f"{target.path}: the unmutated tests do not pass in a forked run in {tree} ({outcome})")
     original = (trees[0] / target.path).read_text()
     free = list(trees)
     todo = list(reversed(mutants))
