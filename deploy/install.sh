@@ -18,18 +18,33 @@ if ! python3 -c 'import ensurepip, venv' 2>/dev/null; then
 fi
 [ -x .venv/bin/python ] || python3 -m venv .venv
 export PIP_DISABLE_PIP_VERSION_CHECK=1
-.venv/bin/python -m pip install --quiet --upgrade pip
+# uv installs the same packages from the same index as pip, in seconds where pip takes one to two
+# minutes; where uv cannot be had or fails, pip does it. uv reads its own settings: pip's index
+# settings, where they are set, are handed on.
+if [ -n "${PIP_INDEX_URL:-}" ]; then export UV_INDEX_URL="${UV_INDEX_URL:-$PIP_INDEX_URL}"; fi
+if [ -n "${PIP_EXTRA_INDEX_URL:-}" ]; then export UV_EXTRA_INDEX_URL="${UV_EXTRA_INDEX_URL:-$PIP_EXTRA_INDEX_URL}"; fi
+if [ -n "${PIP_FIND_LINKS:-}" ]; then export UV_FIND_LINKS="${UV_FIND_LINKS:-$PIP_FIND_LINKS}"; fi
+.venv/bin/python -m pip install --quiet uv > /dev/null 2>&1 || true
+install() {
+  if [ -x .venv/bin/uv ] && .venv/bin/uv pip install --quiet --python .venv/bin/python "$@"; then
+    return
+  fi
+  echo "installing with pip instead of uv" >&2
+  .venv/bin/python -m pip install --quiet --upgrade pip
+  .venv/bin/python -m pip install --quiet "$@"
+}
 if [ -z "$extras" ]; then
   # A user's install: a plain (non-editable) one, as the container image has it.
-  .venv/bin/python -m pip install --quiet ".[cluster,reports,zenoh]"
+  install ".[cluster,reports,zenoh]"
 elif [ "$extras" = "lean" ]; then
-  .venv/bin/python -m pip install --quiet .
+  install .
 else
   # A developer's: editable, so that the tests run the checkout's code as it is edited.
-  .venv/bin/python -m pip install --quiet -e ".[$extras]"
+  install -e ".[$extras]"
+  # numba compiles the kernels into its cache beside the sources: all of them now (two minutes
+  # on 2 cores), so that no test waits on a compilation. A user's install does not wait for it:
+  # `uwcam run` compiles what its first frames need and starts `uwcam warmup` for the rest in the
+  # background, once (README, "Set-up").
+  .venv/bin/uwcam warmup
 fi
-# numba compiles the kernels once into its cache beside the sources: do it now (two minutes on
-# 2 cores), so the first `uwcam run` ranges within seconds and no change of settings makes the
-# frame loop stop to compile (16 s for smoothing before the transform).
-.venv/bin/uwcam warmup
 echo "uwcam installed in $(pwd)/.venv: run it as .venv/bin/uwcam" >&2

@@ -40,6 +40,15 @@ def processed(daemon: UserDaemon) -> int:
     return status(daemon)["frames"]["processed"]
 
 
+def runs_warmup(pid: int) -> bool:
+    """Whether process ``pid`` is (still) a ``uwcam warmup``."""
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as fh:
+            return b"warmup" in fh.read()
+    except OSError:
+        return False
+
+
 def log_problems(output: str) -> list[str]:
     """Warnings and errors the daemon logged, and any word of a missing library."""
     return [line for line in output.splitlines()
@@ -79,6 +88,18 @@ def test_the_install_is_quiet_and_the_daemon_logs_no_warning(installed):
     assert not re.search(r"BuildBackendWarning|SetuptoolsDeprecationWarning|absent from the .packages.|"
                          r"Editable installation|Traceback", install), install
     assert log_problems(daemon_output(out)) == [], out
+
+
+def test_the_first_start_compiles_every_other_setting_in_the_background(clone, installed):
+    """The user's install does not wait for every kernel to compile: the first start compiles
+    what its frames need and leaves the rest to a child at the lowest priority, which ends by
+    marking the cache full (so the next start starts none)."""
+    started = re.search(r"compiling the kernels of every setting in the background \(process (\d+)", installed.output)
+    assert started, installed.output
+    installed.wait_until(lambda: "the kernels of every setting are compiled" in installed.output, 900.0,
+                         "the background compilation's end")
+    markers = list(clone.glob(".venv/lib/python3*/site-packages/uwcam/__pycache__/warmed-up-*"))
+    assert len(markers) == 1, markers
 
 
 def test_runtime_environment_has_no_test_extras(clone):
@@ -186,6 +207,10 @@ def test_ctrl_c_stops_the_daemon_cleanly_with_the_lamp_off(clone, installed, tmp
         daemon.kill()
     out = daemon.output
     assert code == 0, out
+    # Its background compilation, if it started one (the first daemon's may have ended), is stopped with it.
+    child = re.search(r"compiling the kernels of every setting in the background \(process (\d+)", out)
+    if child:
+        assert not runs_warmup(int(child.group(1))), out
     # Said by the simulated lamp itself (the device on the serial line), not by the daemon.
     off = daemon.seconds_until(r"simulated lamp: OFF")
     assert off is not None, out

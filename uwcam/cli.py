@@ -149,6 +149,9 @@ def build_parser() -> argparse.ArgumentParser:
     warm = sub.add_parser("warmup", help="compile the ranging and simulation kernels now (deploy/install.sh runs it), "
                                          "so the first start compiles nothing")
     warm.add_argument("--timeout", type=float, default=600.0, metavar="S", help="give up after S seconds (default 600)")
+    warm.add_argument("--profile", metavar="PROFILE.yaml",
+                      help="only the ranging kernels, for this calibration profile's channels (uwcam run starts this "
+                           "in the background when the cache lacks them)")
     warm.set_defaults(func=cmd_warmup)
 
     rep = sub.add_parser("reprocess", help="range recorded dives (MCAP) again, here or on a Dask cluster")

@@ -100,6 +100,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise UserInputError(f"cannot listen on {host}:{port}: {exc.strerror or exc}; choose another --port or --host") from None
     daemon = Daemon(config)
+    daemon.warm_up_in_background = True  # numba's cache filled for every setting, once per install
     try:
         app = create_app(config, daemon)
         daemon.start()  # devices and calibration: a configuration that cannot work fails here, in one line
@@ -131,12 +132,12 @@ def cmd_warmup(args: argparse.Namespace) -> int:
     import logging
     import time
 
-    import numpy as np
-
     from uwcam.config import default_config
     from uwcam.runtime.daemon import Daemon
     from uwcam.optics import kernels
-    from uwcam.runtime.warm_up import warm_up_ranging
+    from uwcam.ranging.estimator import RangeEstimator
+    from uwcam.runtime.background_warm_up import mark_warmed_up
+    from uwcam.runtime.warm_up import warm_up_everything
 
     if not 1.0 <= args.timeout <= 86400.0:  # also refuses nan
         raise UserInputError(f"--timeout must be 1 to 86400 seconds, got {args.timeout}")
@@ -145,6 +146,16 @@ def cmd_warmup(args: argparse.Namespace) -> int:
         return 0
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     started = time.monotonic()
+    if args.profile is not None:
+        # The ranging kernels for this profile's channels only (uwcam run starts this in the background).
+        from uwcam.calibration.profile import load_profile
+
+        profile = load_profile(args.profile)
+        warm_up_everything(RangeEstimator(profile))
+        mark_warmed_up(len(profile.channels))
+        print(f"compiled uwcam's ranging kernels for {len(profile.channels)} channels in "
+              f"{time.monotonic() - started:.0f} s (kept in numba's cache)")
+        return 0
     daemon = Daemon(default_config())
     try:
         daemon.start()
@@ -154,8 +165,8 @@ def cmd_warmup(args: argparse.Namespace) -> int:
                 raise UserInputError(f"no range within {args.timeout:g} s; try again with a longer --timeout")
             time.sleep(0.05)
         # Every other way the settings can range a frame, so that a later change compiles nothing either.
-        warm_up_ranging(daemon.pipeline.estimator)
-        daemon.pipeline.estimator.warm_up(dtypes=(np.uint8, np.uint16, np.float32))
+        warm_up_everything(daemon.pipeline.estimator)
+        mark_warmed_up(daemon.pipeline.estimator.n_channels)
     finally:
         daemon.stop()
     print(f"compiled uwcam's kernels in {time.monotonic() - started:.0f} s (kept in numba's cache)")

@@ -262,20 +262,23 @@ class RangeEstimator:
             raise ValueError(f"need {self.n_channels} finite log constants, got {b}")
         self.log_constant = b
 
-    def warm_up(self, dtypes: tuple[type, ...] = (np.uint8, np.uint16), background: bool = True) -> None:
+    def warm_up(self, dtypes: tuple[type, ...] = (np.uint8, np.uint16), background: bool = True,
+                strided: bool = True) -> None:
         """Compile the kernels (or load them from numba's on-disk cache) and build the lookup tables
         for frames of these pixel types, and for frames with a background when ``background``, so
-        that the first real frame is as fast as the rest. Call it before the frame loop starts."""
+        that the first real frame is as fast as the rest. Call it before the frame loop starts.
+        strided: also for strided views (e.g. BGR reordered), which numba compiles apart; a caller
+        that knows its frames are contiguous saves those compilations (seconds each, cold)."""
         zeros = np.zeros((2, 8, self.n_channels), np.float32)
         if self.response is not None:  # codes of the curve's depth, and the linearised (float) frames
             dtypes = tuple(d for d in dtypes if np.dtype(d).itemsize * 8 == self.response.bits) + (np.float32,)
         for dtype in dtypes:
             frame = np.zeros((2, 8, self.n_channels), dtype)
-            self(frame)
-            self(frame[:, :, ::-1])  # a strided view (e.g. BGR reordered) is compiled apart
-            if background:  # the background kernel is compiled for each pixel type and layout
-                self(frame, background=zeros)
-                self(frame[:, :, ::-1], background=zeros)
+            layouts = (frame, frame[:, :, ::-1]) if strided else (frame,)
+            for data in layouts:
+                self(data)
+                if background:  # the background kernel is compiled for each pixel type and layout
+                    self(data, background=zeros)
         if background:
             self(zeros, background=zeros)
 

@@ -23,6 +23,7 @@ from uwcam.drivers.base import CameraSettings, ConfigurationError, DriverError
 from uwcam.drivers.supervisor import SupervisedCamera
 from uwcam.fileio import UserInputError, atomic_write
 from uwcam.outputs.mavlink import MavlinkOutput
+from uwcam.runtime.background_warm_up import BackgroundWarmUp
 from uwcam.runtime.pipeline import FramePipeline
 from uwcam.calibration.profile import CalibrationProfile, load_profile, save_profile
 from uwcam.runtime.simulated_rig import PATCH_SCENES, simulated_calibration, simulated_patch, simulated_vehicle_mask
@@ -70,6 +71,9 @@ class Daemon:
         self.mavlink: MavlinkOutput | None = None
         self.profile_name = ""
         self.profiles: dict[str, CalibrationProfile] = {}
+        self.warm_up_in_background = False
+        """Start :class:`uwcam.runtime.background_warm_up.BackgroundWarmUp` (``uwcam run`` does)."""
+        self.background_warm_up = BackgroundWarmUp()
         """Calibration profiles known to the daemon by name; the active one is ``profile_name``."""
         self._profiles_lock = threading.RLock()  # one profile change at a time, validated then applied
         self._state_lock = threading.Lock()  # one state file write at a time
@@ -95,6 +99,27 @@ class Daemon:
             return {"rig": self.rig, **options}
         return dict(options)
 
+    def _start_background_warm_up(self) -> None:
+        """Before the devices open, where the profile is at hand without them (a file, or the one
+        that ships for the simulated rig): the child then compiles beside the start's own compiling
+        (the simulator's), on the other core; otherwise once the profile is known."""
+        cfg = self.config
+        try:
+            if cfg.calibration is not None:
+                profile = load_profile(cfg.calibration)
+            elif cfg.camera.driver in SIMULATED:
+                from uwcam.runtime.simulated_rig import shipped_calibration_path
+
+                path = shipped_calibration_path(self._options(cfg.camera.driver, {})["rig"])
+                if not os.path.exists(path):
+                    return
+                profile = load_profile(path)
+            else:
+                return
+        except UserInputError:
+            return  # the start says what is wrong, below
+        self.background_warm_up.start(profile)
+
     def start(self) -> None:
         cfg = self.config
         for folder in {cfg.profiles_dir, self.state_dir} - {None}:
@@ -107,6 +132,8 @@ class Daemon:
 
             require_zenoh()
         try:
+            if self.warm_up_in_background:
+                self._start_background_warm_up()
             driver = registry.create("camera", cfg.camera.driver, **self._options(cfg.camera.driver, options["camera"]))
             if cfg.lamp is not None:
                 lamp = registry.create("lamp", cfg.lamp.driver, **self._options(cfg.lamp.driver, options["lamp"]))
@@ -126,6 +153,8 @@ class Daemon:
             else:
                 raise UserInputError("no calibration profile configured")
             self.profile_name = profile.name
+            if self.warm_up_in_background and self.background_warm_up.state == "not started":
+                self.background_warm_up.start(profile)
             self._load_profiles_dir()
             self.profiles[profile.name] = profile
             if saved is not None and saved.profile in self.profiles and saved.profile != profile.name:
@@ -299,6 +328,7 @@ class Daemon:
 
     def stop(self) -> None:
         """Stop the outputs and the loop, switch the lamp off, release every device. Safe to call twice."""
+        self.background_warm_up.stop()
         if self.alerts is not None:
             self.alerts.close()  # first: its events go to the outputs stopped below
             self.alerts = None

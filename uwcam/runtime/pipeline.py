@@ -78,9 +78,10 @@ class FramePipeline(CompensationStage):
         self._compensation_ms: collections.deque[float] = collections.deque(maxlen=100)
         self._frame_shape: tuple[int, ...] | None = None
         """(H, W, N) of the last frame taken, for building the compensator before it is needed."""
-        self._frame_kind: tuple[np.dtype, bool] | None = None
-        """(pixel type, read-only) of the last frame taken (None: no frame yet): the kernels a
-        settings change compiles for, and whether frames hold integer DN, to check profiles against."""
+        self._frame_kind: tuple[np.dtype, bool, bool] | None = None
+        """(pixel type, read-only, C-contiguous) of the last frame taken (None: no frame yet): the
+        kernels a settings change compiles for, and whether frames hold integer DN, to check
+        profiles against."""
         self._lock = threading.Lock()  # guards configuration swaps and the published result
         self._apply(processing, profile)
         self.previous_processing: ProcessingConfig | None = None
@@ -142,16 +143,13 @@ class FramePipeline(CompensationStage):
         from uwcam.runtime.stages.hdr import HdrMerger
 
         hdr = HdrMerger(profile.saturation_level) if exposure is not None and exposure.bracketing else None
-        # Compile or load the kernels and build lookup tables here, in the caller's thread (start-up
-        # or an API request), not on the loop's first frame, which would stall it for seconds.
-        estimator.warm_up(background=bool(processing.lamp_off_interval))
-        # The paths these settings take (smoothing, fusion, water light), for the frames the camera
-        # gives once it has given one (on a cold cache each other kind compiles for seconds).
-        kind = self._frame_kind
-        if kind is None:
-            warm_up_ranging(estimator, processing)
-        else:
-            warm_up_ranging(estimator, processing, dtypes=(kind[0].type,), read_only=(kind[1],))
+        # Compile or load the kernels the paths these settings take (smoothing, fusion, water light)
+        # need for the frames the camera gives, and build lookup tables, here, in the caller's thread
+        # (an API request), not in the loop, which would stall for seconds. Before the first frame
+        # its kind is not known: the loop readies them for it then (_ready_for), and only for it (on
+        # a cold cache every other kind costs seconds more of the first start).
+        if self._frame_kind is not None:
+            self._ready(estimator, processing, self._frame_kind)
         # So is the backscatter compensator (0.3-0.6 s at 720p: 10-17 frames of a 30 fps loop)
         # once frames have come; before that, the loop builds it on the first frame.
         water, compensator = self.open_water, None
@@ -169,6 +167,27 @@ class FramePipeline(CompensationStage):
             self._hdr = hdr
             # An open-water frame taken meanwhile makes the one built here stale: the loop builds anew.
             self._compensator = compensator if self.open_water is water else None
+
+    def _ready(self, estimator: RangeEstimator, processing: ProcessingConfig, kind: tuple[np.dtype, bool, bool]) -> None:
+        """Compile or load the kernels ``estimator`` needs to range frames of ``kind`` (pixel type,
+        read-only, C-contiguous) with ``processing``."""
+        dtype, read_only, contiguous = kind
+        estimator.warm_up(dtypes=(dtype.type,), background=bool(processing.lamp_off_interval), strided=not contiguous)
+        warm_up_ranging(estimator, processing, dtypes=(dtype.type,), read_only=(read_only,))
+
+    def _ready_for(self, frame: Frame) -> None:
+        """Before ranging a frame of a kind not met before (the first frame, or a camera that
+        changed its pixel type): ready the kernels for it, in the loop, once."""
+        kind = (frame.data.dtype, not frame.data.flags.writeable, bool(frame.data.flags.c_contiguous))
+        if kind == self._frame_kind:
+            return
+        started = time.monotonic()
+        with self._lock:
+            estimator, processing = self.estimator, self.processing
+        self._ready(estimator, processing, kind)
+        self._frame_kind = kind
+        log.info("readied the kernels for %s%s frames in %.1f s", kind[0], " read-only" if kind[1] else "",
+                 time.monotonic() - started)
 
     def check(self, processing: ProcessingConfig | None = None, profile: CalibrationProfile | None = None) -> None:
         """ValueError if these settings or this profile would not work; changes nothing."""
@@ -325,7 +344,7 @@ class FramePipeline(CompensationStage):
 
     def _process(self, frame: Frame) -> None:
         self._frame_shape = frame.data.shape
-        self._frame_kind = (frame.data.dtype, not frame.data.flags.writeable)
+        self._ready_for(frame)
         if frame.lamp_on is None and self.lamp is not None:
             # The camera cannot know: record the lamp's last reported state with the frame.
             last = getattr(self.lamp, "last_status", None)

@@ -78,3 +78,16 @@ def warm_up_ranging(estimator: RangeEstimator, processing: ProcessingConfig | No
             for light in lights:
                 for judge in (None, water):
                     range_frame(estimator, data, smoothing, stage, light, (), None, judge, None, samples)
+
+
+def warm_up_everything(estimator: RangeEstimator) -> None:
+    """Every kernel ranging with ``estimator``'s channels can need, in the order a first start needs
+    them (:mod:`uwcam.runtime.background_warm_up`): float frames with a background (backscatter
+    compensation's coarse passes), then 16- and 8-bit frames as the default settings range them,
+    then every other setting, pixel type and layout."""
+    estimator.warm_up(dtypes=(), background=True)
+    for dtype in (np.uint16, np.uint8):
+        estimator.warm_up(dtypes=(dtype,), background=True, strided=False)
+        warm_up_ranging(estimator, ProcessingConfig(), dtypes=(dtype,), read_only=(False,))
+    warm_up_ranging(estimator)
+    estimator.warm_up(dtypes=(np.uint8, np.uint16, np.float32))

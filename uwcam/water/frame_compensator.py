@@ -140,9 +140,12 @@ class BackscatterCompensator:
     """Subtracts modelled backscatter from frames of one size, for one profile."""
 
     def __init__(self, profile: CalibrationProfile, shape: tuple[int, int], iterations: int = 2,
-                 open_water: NDArray | None = None, **estimator_options) -> None:
+                 open_water: NDArray | None = None, frame_dtypes: tuple[type, ...] = (np.uint8, np.uint16),
+                 strided: bool = True, **estimator_options) -> None:
         """shape: (H, W) of the frames; open_water: a lamp-lit frame (H, W, N) of open water, raw, or
         several (K, H, W, N), which also give each pixel's own response (:func:`uwcam.water.backscatter.pixel_response`).
+        frame_dtypes, strided: the pixel types and layouts of the frames it will see, whose kernels
+        it readies (:meth:`uwcam.ranging.estimator.RangeEstimator.warm_up`).
         Raises UserInputError if the profile has no backscatter measurements."""
         self.model = BackscatterModel.from_profile(profile, open_water, shape)
         self.iterations = iterations
@@ -188,8 +191,10 @@ class BackscatterCompensator:
                 "fx": reduced.fx, "fy": reduced.fy, "cx": reduced.cx, "cy": reduced.cy}})
         self._coarse = RangeEstimator(coarse_profile, calibration_variance=False, **options)
         self._axis_cos_coarse = cv2.resize(self._axis_cos, coarse, interpolation=cv2.INTER_AREA)
-        for est in (self.estimator, self._coarse):  # compiled (or loaded from the cache) now, not mid-frame
-            est.warm_up()
+        # Compiled (or loaded from the cache) now, not mid-frame: the full frames' kernels for their
+        # pixel types, the coarse estimator's for float means with a background.
+        self.estimator.warm_up(dtypes=frame_dtypes, strided=strided)
+        self._coarse.warm_up(dtypes=())
         self.water = WaterLight(self.model.open_water_level(shape).astype(np.float32), self.uncertainty,
                                 "open-water frame" if self.open_water else "black-patch measurements")
         """The open-water light of the same model, that each pixel must be clearly above."""

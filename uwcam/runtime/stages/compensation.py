@@ -154,8 +154,10 @@ class CompensationStage:
         built_from = getattr(current, "built_from", None)
         if built_from is not None and _same_inputs(built_from, inputs):
             return current
+        kind = self._frame_kind  # its kernels readied for the frames the camera gives, once known
+        ready = {} if kind is None else {"frame_dtypes": (kind[0].type,), "strided": not kind[2]}
         compensator = BackscatterCompensator(profile, inputs[2], inputs[3], water, pair=processing.pair,
-                                             path_length_bounds=processing.path_length_bounds)
+                                             path_length_bounds=processing.path_length_bounds, **ready)
         compensator.built_from = inputs
         return compensator
 
