@@ -51,8 +51,8 @@ def copy_checkout(destination: Path) -> Path:
 
 def user_environment(home: Path) -> dict[str, str]:
     """A new user's environment: an empty home (so an empty ~/.cache/uwcam), no virtual
-    environment active, none of this test run's variables. pip keeps its download cache: what is
-    tested is what gets installed, not how fast the registry is."""
+    environment active, none of this test run's variables. pip and uv keep their download caches:
+    what is tested is what gets installed, not how fast the registry is."""
     keep = ("PATH", "LANG", "LC_ALL", "TERM", "TZ", "PIP_INDEX_URL", "PIP_EXTRA_INDEX_URL",
             "PIP_FIND_LINKS", "PIP_CONSTRAINT", "PIP_CERT", "PIP_DEFAULT_TIMEOUT", "http_proxy",
             "https_proxy", "no_proxy", "HTTP_PROXY", "HTTPS_PROXY", "NO_PROXY")
@@ -62,6 +62,7 @@ def user_environment(home: Path) -> dict[str, str]:
     env["HOME"] = str(home)
     pip_cache = os.environ.get("PIP_CACHE_DIR") or os.path.expanduser("~/.cache/pip")
     env["PIP_CACHE_DIR"] = pip_cache
+    env["UV_CACHE_DIR"] = os.environ.get("UV_CACHE_DIR") or os.path.expanduser("~/.cache/uv")  # likewise uv's
     env["PIP_DISABLE_PIP_VERSION_CHECK"] = "1"
     env["PIP_ROOT_USER_ACTION"] = "ignore"
     return env

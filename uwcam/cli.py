@@ -16,6 +16,12 @@ from uwcam.commands.ranging import cmd_range, cmd_simulate
 from uwcam.commands.recordings import cmd_repair, cmd_reprocess
 
 
+def add_channels_and_lamp(parser: argparse.ArgumentParser, channels: str, channels_help: str, lamp_help: str) -> None:
+    """--channels (its form ``channels``) and --lamp-offset, alike in `uwcam calibrate` and `uwcam simulate`."""
+    parser.add_argument("--channels", metavar=channels, help=channels_help)
+    parser.add_argument("--lamp-offset", metavar="X,Y,Z", help=f"lamp position in metres, camera frame {lamp_help}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="uwcam", description="Underwater ranging camera: calibrate, range, simulate, run.")
     parser.add_argument("--version", action="version", version=f"uwcam {__version__}")
@@ -31,9 +37,9 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--rig", metavar="RIG.yaml", help="rig file describing the target (calibration_rigs/)")
     cal.add_argument("--roi", metavar="X,Y,W,H", help="target region in pixels (default: the whole image)")
     cal.add_argument("--black-roi", metavar="X,Y,W,H", help="black patch region in pixels, for the noise floor")
-    cal.add_argument("--channels", metavar="NAME[:NM],...", help="channel names, optionally with centre wavelengths (R:675,G:575,B:475)")
+    add_channels_and_lamp(cal, "NAME[:NM],...", "channel names, optionally with centre wavelengths (R:675,G:575,B:475)",
+                          "(x right, y down, z forward)")
     cal.add_argument("--reference", metavar="NAME", help="reference channel (default: the first)")
-    cal.add_argument("--lamp-offset", metavar="X,Y,Z", help="lamp position in metres, camera frame (x right, y down, z forward)")
     cal.add_argument("--lamp-radius", type=float, metavar="R",
                      help="effective lamp radius sqrt(A0/Ω) in metres (0: point source); enables absolute attenuation")
     cal.add_argument("--intrinsics", metavar="FX,FY,CX,CY", help="pinhole intrinsics in pixels")
@@ -107,8 +113,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="JPEG-compress the frame at quality Q (1–100), as an MJPEG camera does; needs --bits 8")
     sim.add_argument("--size", default="640x480", metavar="WxH", help="image size (default 640x480)")
     sim.add_argument("--fov", type=float, default=60.0, metavar="DEG", help="horizontal field of view (default 60)")
-    sim.add_argument("--channels", metavar="NAME:NM,...", help="channel names and centre wavelengths (default R:675,G:575,B:475)")
-    sim.add_argument("--lamp-offset", metavar="X,Y,Z", help="lamp position in metres, camera frame (default at the camera)")
+    add_channels_and_lamp(sim, "NAME:NM,...", "channel names and centre wavelengths (default R:675,G:575,B:475)", "(default at the camera)")
     sim.add_argument("--lamp-off", action="store_true", help="lamp off: dark current, noise and any ambient light only")
     sim.add_argument("--ambient", metavar="I[,I,...]", help="daylight from above, relative to the lamp")
     sim.add_argument("--peak", type=float, metavar="DN",
