@@ -61,7 +61,12 @@ def test_nothing_starts_where_the_cache_is_known_full(tmp_path, monkeypatch, pro
 
 
 @pytest.mark.slow
-def test_the_child_compiles_at_low_priority_and_marks_the_cache_full(profile, no_marker):
+def test_the_child_compiles_at_low_priority_and_marks_the_cache_full(profile, no_marker, tmp_path, monkeypatch):
+    # Started from a folder with a package of uwcam's name in it, as from a checkout: the child
+    # must run the installed uwcam (`python -m` looks in the working folder first).
+    (tmp_path / "uwcam").mkdir()
+    (tmp_path / "uwcam" / "__init__.py").write_text("raise ImportError('not the installed uwcam')\n")
+    monkeypatch.chdir(tmp_path)
     warm = BackgroundWarmUp()
     try:
         warm.start(profile)

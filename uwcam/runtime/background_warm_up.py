@@ -89,9 +89,11 @@ class BackgroundWarmUp:
         save_profile(profile, path)
         self._log = open(os.path.join(self._folder.name, "warmup.log"), "w+b")
         # A session of its own: Ctrl-C in the daemon's terminal is for the daemon, which stops it.
+        # Started in its temporary folder: `python -m` looks in the working folder first, and a
+        # checkout's (the daemon started from one) is not the installed package.
         self._process = subprocess.Popen(
             [sys.executable, "-m", "uwcam", "warmup", "--profile", path], stdin=subprocess.DEVNULL,
-            stdout=self._log, stderr=subprocess.STDOUT, start_new_session=True)
+            stdout=self._log, stderr=subprocess.STDOUT, start_new_session=True, cwd=self._folder.name)
         try:
             os.setpriority(os.PRIO_PROCESS, self._process.pid, 19)
         except OSError:  # gone already, or not allowed: it still only fills the cache
