@@ -98,6 +98,19 @@ def test_bad_processing_settings_are_refused_with_the_reason(server, body, messa
     assert server.http.get("/api/v1/config").json() == before
 
 
+@pytest.mark.parametrize("body", [{"smoothing_target": 0.7}, {"path_length_bounds": [5.0, 1.0]}])
+def test_settings_refused_as_a_whole_name_the_field_and_do_not_echo_the_settings(server, body):
+    """Checked once merged with the settings in use (the bounds and the order of the bounds are the
+    whole settings' rules): the 422 names the field and the rule, without quoting back the input,
+    which is the whole merged settings there."""
+    r = patch(server, body)
+    assert r.status_code == 422, r.text
+    detail = r.json()["detail"]
+    assert detail and all(set(error) == {"type", "loc", "msg"} for error in detail), detail
+    field = next(iter(body))
+    assert any(field in error["loc"] or field in error["msg"] for error in detail), detail
+
+
 def test_good_processing_settings_apply_and_restore(server):
     before = server.http.get("/api/v1/config").json()
     try:

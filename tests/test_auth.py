@@ -289,3 +289,28 @@ def test_the_oldest_browser_session_is_forgotten_beyond_256(server):
                                                              "X-CSRF-Token": first_csrf}).status_code == 401
     assert server.http.put("/api/v1/lamp", json={}, headers={"Cookie": f"{COOKIE}={second}",
                                                              "X-CSRF-Token": second_csrf}).status_code == 200
+
+
+class FixedWait:
+    """A sign-in throttle that tells every address to wait ``wait`` s more, and records what it is told."""
+
+    def __init__(self, wait: float) -> None:
+        self.wait, self.recorded = wait, []
+
+    def wait_s(self, address: str = "") -> float:
+        return self.wait
+
+    def record(self, ok: bool, address: str = "") -> None:
+        self.recorded.append(ok)
+
+
+@pytest.mark.parametrize("wait, status, retry_after", [(0.4, 429, "1"), (2.2, 429, "3"), (0.0, 401, None)])
+def test_a_wrong_token_within_the_wait_is_refused_at_once_with_the_seconds_left(server, monkeypatch, wait, status, retry_after):
+    """Any wait left, however short, is a 429 saying the whole seconds to wait (a wait under a
+    second included); none left, the token is checked, found wrong, and counted."""
+    throttle = FixedWait(wait)
+    monkeypatch.setattr(server.app.state.guard, "throttle", throttle)
+    r = server.http.post(SESSION_PATH, json={"token": "wrong"})
+    assert r.status_code == status, r.text
+    assert r.headers.get("Retry-After") == retry_after
+    assert throttle.recorded == ([] if status == 429 else [False])
