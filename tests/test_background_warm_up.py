@@ -67,12 +67,15 @@ def test_the_child_compiles_at_low_priority_and_marks_the_cache_full(profile, no
     (tmp_path / "uwcam").mkdir()
     (tmp_path / "uwcam" / "__init__.py").write_text("raise ImportError('not the installed uwcam')\n")
     monkeypatch.chdir(tmp_path)
+    from uwcam.config import ProcessingConfig
+
     warm = BackgroundWarmUp()
     try:
-        warm.start(profile)
+        warm.start(profile, ProcessingConfig(smoothing="mean"))  # its kernels first
         assert warm.state == "running"
         assert os.getpriority(os.PRIO_PROCESS, warm._process.pid) == 19
         assert os.getpgid(warm._process.pid) != os.getpgid(0)  # Ctrl-C in the terminal does not reach it
+        assert os.getsid(warm._process.pid) == os.getsid(0)  # its nice value counts against the daemon's
         assert wait_for(lambda: warm.state != "running", 900.0), "the background warm-up did not end"
         assert warm.state == "done", warm.state
         assert no_marker.exists()  # written by the child, read by the next start

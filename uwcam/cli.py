@@ -157,6 +157,8 @@ def build_parser() -> argparse.ArgumentParser:
     warm.add_argument("--profile", metavar="PROFILE.yaml",
                       help="only the ranging kernels, for this calibration profile's channels (uwcam run starts this "
                            "in the background when the cache lacks them)")
+    warm.add_argument("--processing", metavar="SETTINGS.json",
+                      help="with --profile: processing settings (as GET /api/v1/config gives them) whose kernels come first")
     warm.set_defaults(func=cmd_warmup)
 
     rep = sub.add_parser("reprocess", help="range recorded dives (MCAP) again, here or on a Dask cluster")

@@ -151,7 +151,13 @@ def cmd_warmup(args: argparse.Namespace) -> int:
         from uwcam.calibration.profile import load_profile
 
         profile = load_profile(args.profile)
-        warm_up_everything(RangeEstimator(profile))
+        first = None
+        if args.processing is not None:
+            from uwcam.config import ProcessingConfig
+            from uwcam.fileio import load_yaml_mapping
+
+            first = ProcessingConfig.model_validate(load_yaml_mapping(args.processing, "processing settings"))
+        warm_up_everything(RangeEstimator(profile), first)
         mark_warmed_up(len(profile.channels))
         print(f"compiled uwcam's ranging kernels for {len(profile.channels)} channels in "
               f"{time.monotonic() - started:.0f} s (kept in numba's cache)")

@@ -75,8 +75,10 @@ class BackgroundWarmUp:
         self.state = "not started"
         """"not started", "not needed", "running", "done", "stopped" or "failed (…)"."""
 
-    def start(self, profile) -> None:
-        """Start it for ``profile`` (a :class:`uwcam.calibration.profile.CalibrationProfile`) if needed."""
+    def start(self, profile, processing=None) -> None:
+        """Start it for ``profile`` (a :class:`uwcam.calibration.profile.CalibrationProfile`) if
+        needed, the kernels of ``processing`` (a :class:`uwcam.config.ProcessingConfig`, the
+        daemon's) first."""
         from uwcam.calibration.profile import save_profile
         from uwcam.optics import kernels
 
@@ -87,13 +89,21 @@ class BackgroundWarmUp:
         self._folder = tempfile.TemporaryDirectory(prefix="uwcam-warmup-")
         path = os.path.join(self._folder.name, "profile.yaml")
         save_profile(profile, path)
+        command = [sys.executable, "-m", "uwcam", "warmup", "--profile", path]
+        if processing is not None:
+            settings = os.path.join(self._folder.name, "processing.json")
+            with open(settings, "w", encoding="utf-8") as fh:
+                fh.write(processing.model_dump_json())
+            command += ["--processing", settings]
         self._log = open(os.path.join(self._folder.name, "warmup.log"), "w+b")
-        # A session of its own: Ctrl-C in the daemon's terminal is for the daemon, which stops it.
+        # A process group of its own: Ctrl-C in the daemon's terminal is for the daemon, which
+        # stops it. Not a session of its own: Linux shares the CPU fairly between sessions
+        # (autogroups) whatever their nice values, and the daemon's start then compiled half as fast.
         # Started in its temporary folder: `python -m` looks in the working folder first, and a
         # checkout's (the daemon started from one) is not the installed package.
         self._process = subprocess.Popen(
-            [sys.executable, "-m", "uwcam", "warmup", "--profile", path], stdin=subprocess.DEVNULL,
-            stdout=self._log, stderr=subprocess.STDOUT, start_new_session=True, cwd=self._folder.name)
+            command, stdin=subprocess.DEVNULL,
+            stdout=self._log, stderr=subprocess.STDOUT, process_group=0, cwd=self._folder.name)
         try:
             os.setpriority(os.PRIO_PROCESS, self._process.pid, 19)
         except OSError:  # gone already, or not allowed: it still only fills the cache

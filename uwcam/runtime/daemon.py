@@ -118,7 +118,7 @@ class Daemon:
                 return
         except UserInputError:
             return  # the start says what is wrong, below
-        self.background_warm_up.start(profile)
+        self.background_warm_up.start(profile, cfg.processing)
 
     def start(self) -> None:
         cfg = self.config
@@ -154,7 +154,7 @@ class Daemon:
                 raise UserInputError("no calibration profile configured")
             self.profile_name = profile.name
             if self.warm_up_in_background and self.background_warm_up.state == "not started":
-                self.background_warm_up.start(profile)
+                self.background_warm_up.start(profile, cfg.processing)
             self._load_profiles_dir()
             self.profiles[profile.name] = profile
             if saved is not None and saved.profile in self.profiles and saved.profile != profile.name:

@@ -80,14 +80,16 @@ def warm_up_ranging(estimator: RangeEstimator, processing: ProcessingConfig | No
                     range_frame(estimator, data, smoothing, stage, light, (), None, judge, None, samples)
 
 
-def warm_up_everything(estimator: RangeEstimator) -> None:
+def warm_up_everything(estimator: RangeEstimator, first: ProcessingConfig | None = None) -> None:
     """Every kernel ranging with ``estimator``'s channels can need, in the order a first start needs
-    them (:mod:`uwcam.runtime.background_warm_up`): float frames with a background (backscatter
-    compensation's coarse passes), then 16- and 8-bit frames as the default settings range them,
-    then every other setting, pixel type and layout."""
-    estimator.warm_up(dtypes=(), background=True)
+    them (:mod:`uwcam.runtime.background_warm_up`): 16-bit frames ranged with the settings ``first``
+    (the daemon's; default settings when None), then with a background (backscatter compensation),
+    then float frames with a background (its coarse passes), then the same for 8-bit frames, then
+    every other setting, pixel type and layout."""
+    first = first or ProcessingConfig()
     for dtype in (np.uint16, np.uint8):
+        warm_up_ranging(estimator, first, dtypes=(dtype,), read_only=(False,))
         estimator.warm_up(dtypes=(dtype,), background=True, strided=False)
-        warm_up_ranging(estimator, ProcessingConfig(), dtypes=(dtype,), read_only=(False,))
+        estimator.warm_up(dtypes=(), background=True)
     warm_up_ranging(estimator)
     estimator.warm_up(dtypes=(np.uint8, np.uint16, np.float32))
