@@ -24,7 +24,9 @@ import time
 import urllib.request
 
 import numpy as np
-from tests.ports import free_port
+
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+from tests.ports import free_port  # noqa: E402
 
 
 def status(url: str) -> dict:

@@ -46,7 +46,7 @@ def cache_key(n_channels: int) -> str:
 
 def marker(n_channels: int) -> Path:
     """The file whose presence says the cache holds every kernel for ``n_channels`` channels."""
-    return _PACKAGE / "__pycache__" / f"warmed-up-{cache_key(n_channels)}"
+    return _PACKAGE / "__pycache__" / f"warmed-up-{n_channels}-{cache_key(n_channels)}"
 
 
 def is_warmed_up(n_channels: int) -> bool:
@@ -59,6 +59,9 @@ def mark_warmed_up(n_channels: int) -> None:
     try:
         path.parent.mkdir(exist_ok=True)
         path.touch()
+        for stale in path.parent.glob(f"warmed-up-{n_channels}-*"):  # of sources since edited
+            if stale != path:
+                stale.unlink(missing_ok=True)
     except OSError as exc:
         log.info("could not mark numba's cache as complete (%s): the next start fills it again", exc)
 
