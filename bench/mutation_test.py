@@ -117,7 +117,11 @@ TARGETS: dict[str, Target] = {
     "calibration.noise_fit": Target("uwcam/calibration/noise_fit.py", CALIBRATION_TESTS),
     "calibration.line_fit": Target("uwcam/calibration/line_fit.py", CALIBRATION_TESTS),
     "calibration.black_patch": Target("uwcam/calibration/black_patch.py", CALIBRATION_TESTS),
-    "api.security": Target("uwcam/api/security.py", "tests/test_security_rules.py tests/test_auth.py", annotations_inert=False),
+    "api.security": Target("uwcam/api/security.py",
+                           "tests/test_security_rules.py tests/test_auth.py "
+                           "tests/test_hardening_second.py::test_the_throttle_counts_per_address_and_forgets_the_oldest "
+                           "tests/test_hardening_second.py::test_the_throttle_waits_a_quarter_second_more_per_wrong_token_up_to_five_and_remembers_4096_addresses",
+                           annotations_inert=False),
     "api.session": Target("uwcam/api/session.py",
                           "tests/test_auth.py "
                           "tests/test_hardening_second.py::test_a_flood_of_wrong_sign_ins_holds_up_neither_the_api_nor_a_right_token_from_elsewhere "

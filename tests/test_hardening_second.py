@@ -161,6 +161,25 @@ def test_the_throttle_counts_per_address_and_forgets_the_oldest(monkeypatch):
     assert throttle.wait_s("c") == 0.0
 
 
+def test_the_throttle_waits_a_quarter_second_more_per_wrong_token_up_to_five_and_remembers_4096_addresses(monkeypatch):
+    now = [50.0]
+    monkeypatch.setattr("uwcam.api.security.time.monotonic", lambda: now[0])
+    throttle = SignInThrottle()
+    assert throttle.wait_s("x") == 0.0 and throttle.delay_s("x") == 0.0  # never wrong: no wait
+    throttle.record(False, "x")
+    assert throttle.wait_s("x") == pytest.approx(0.25) and throttle.delay_s("x") == pytest.approx(0.25)
+    for _ in range(29):
+        throttle.record(False, "x")
+    assert throttle.wait_s("x") == pytest.approx(5.0) and throttle.delay_s("x") == pytest.approx(5.0)  # at most 5 s
+    now[0] += 5.0
+    assert throttle.wait_s("x") == 0.0
+    for k in range(4095):  # with "x": 4096 addresses remembered
+        throttle.record(False, f"10.1.{k // 256}.{k % 256}")
+    assert throttle.delay_s("x") == pytest.approx(5.0) and throttle.delay_s("10.1.0.0") == pytest.approx(0.25)
+    throttle.record(False, "one more")  # the 4097th: the least recently used, "x", is forgotten
+    assert throttle.delay_s("x") == 0.0 and throttle.delay_s("10.1.0.0") == pytest.approx(0.25)
+
+
 # -- 2: lone surrogates and every other JSON value ----------------------------------------------
 
 @pytest.mark.parametrize("path, body", [
