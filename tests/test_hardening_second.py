@@ -173,6 +173,8 @@ def test_the_throttle_waits_a_quarter_second_more_per_wrong_token_up_to_five_and
     assert throttle.wait_s("x") == pytest.approx(5.0) and throttle.delay_s("x") == pytest.approx(5.0)  # at most 5 s
     now[0] += 5.0
     assert throttle.wait_s("x") == 0.0
+    now[0] += 60.0
+    assert throttle.wait_s("x") == 0.0  # long past: no wait, never a negative one
     for k in range(4095):  # with "x": 4096 addresses remembered
         throttle.record(False, f"10.1.{k // 256}.{k % 256}")
     assert throttle.delay_s("x") == pytest.approx(5.0) and throttle.delay_s("10.1.0.0") == pytest.approx(0.25)
