@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import hashlib
 import json
 import os
 import random
@@ -538,9 +539,13 @@ def report(names: list[str]) -> None:
             continue
         eq = sum(1 for s in r["survivors"] if _key(s) in equivalent.get(name, set()))
         rest = r["mutants"] - eq
+        # Figures of an earlier version of the module are shown, and said to be: run it again.
+        source = (ROOT / TARGETS[name].path).read_text() if name in TARGETS else ""
+        older = r.get("source_sha256") != hashlib.sha256(source.encode()).hexdigest()
         print(f"{name:20s} {r['mutants']:7d} {r['killed']:7d} {r['survived']:9d} {eq:11d}  "
               f"{100 * r['kill_rate']:12.1f} %  {100 * (r['killed'] / rest if rest else 1):12.1f} %"
-              + (f"  ({r['not_run']} not run)" if r.get("not_run") else ""))
+              + (f"  ({r['not_run']} not run)" if r.get("not_run") else "")
+              + ("  (of an earlier source: run again)" if older else ""))
     for name in names:
         r = results.get(name)
         if not r or not r["survivors"]:
