@@ -85,7 +85,7 @@ class Target:
 
 
 RANGING_TESTS = ("tests/test_independent_estimator.py tests/test_independent_geometry.py "
-                                          "tests/test_smoothing.py tests/test_independent_validity.py "
+                                          "tests/test_smoothing.py tests/test_window_light.py tests/test_independent_validity.py "
                                           "tests/test_estimator.py tests/test_statistics.py tests/test_calibration_statistics.py "
                                           "tests/test_backscatter_terms.py tests/test_calibration_variance_edges.py "
                                           "tests/test_vehicle_mask.py::test_range_frame_masks_before_smoothing_so_the_vehicle_lends_no_range "
