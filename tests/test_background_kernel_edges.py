@@ -73,3 +73,26 @@ def test_the_compiled_background_kernel_equals_the_numpy_terms_at_the_edges(case
     np.testing.assert_allclose(got.variance, ref[1], rtol=2e-5, equal_nan=True)
     if state == ChannelState.USABLE:
         assert ref[2][0, 0] == Reason.VALID
+
+
+@pytest.mark.skipif(kernels.fuse_background is None, reason="numba is not installed: no compiled background kernel")
+def test_the_compiled_background_kernel_takes_the_noise_of_means_as_the_numpy_terms_do():
+    """Values that are means of several (smoothing before the transform, temporal fusion): their
+    noise variance is the single value's over their count, in the kernel as in the numpy terms."""
+    profile = make_profile(RGB_ATTENUATION, B, read_noise=2.0, shot_gain=0.5, quantisation_step=0.0)
+    est = RangeEstimator(profile, calibration_variance=False)
+    rng = np.random.default_rng(3)
+    v = surface(400.0) * rng.uniform(0.8, 1.2, (4, 5, 3))
+    bg = np.full(v.shape, 5.0, np.float32)
+    raw = (v + bg + profile.array("dark_level")).astype(np.float32)
+    samples = rng.integers(2, 10, v.shape).astype(np.float32)
+    y, weight, states = est.channel_terms(raw, bg.astype(np.float64), samples)
+    got = est(raw, background=bg, samples=samples)
+    pairs = kernels.pack_pairs(y, weight, states, ChannelState.SATURATED, ChannelState.BACKSCATTER_ONLY)
+    ref = [np.empty(v.shape[:2], np.float32), np.empty(v.shape[:2], np.float32), np.empty(v.shape[:2], np.uint8)]
+    kernels.fuse_arrays_numpy(pairs, est._c, (0.0,) * 3, est._geo, est.bounds, *ref)
+    assert (ref[2] == Reason.VALID).all()
+    np.testing.assert_allclose(got.range, ref[0], rtol=2e-6)
+    np.testing.assert_allclose(got.variance, ref[1], rtol=2e-5)
+    single = est(raw, background=bg)  # the same values taken as single pixels: noisier
+    assert (got.variance < single.variance).all()
