@@ -102,7 +102,7 @@ def test_the_first_start_compiles_every_other_setting_in_the_background(clone, i
     assert len(markers) == 1, markers
 
 
-def test_runtime_environment_has_no_test_extras(clone):
+def test_runtime_environment_has_no_test_extras(clone, installed):
     """The daemon's .venv is the user's: none of the test tools that could hide a missing runtime
     dependency (the WebSocket library used to come only with them)."""
     listed = subprocess.run([str(clone / ".venv/bin/python"), "-m", "pip", "list", "--format=json"],
