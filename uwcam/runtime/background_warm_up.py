@@ -4,9 +4,10 @@
 empty cache). Run before the first start, it would stand between a new user and the page; not
 run at all, every later change of a setting would compile in its request (seconds each). So
 ``uwcam run`` starts it beside the daemon, as a child at the lowest CPU priority, when this
-install's cache is not known to be full: the kernels of a first start come first in its order (a
-float frame with a background, then 16- and 8-bit frames), so that the daemon, compiling the
-simulator's meanwhile on its own core, finds them in the cache; the rest follow. The
+install's cache is not known to be full: the kernels of a first start come first in its order
+(:func:`uwcam.runtime.warm_up.warm_up_everything`: the daemon's own settings on 16-bit frames,
+with and without a background), so that the daemon, compiling the simulator's meanwhile on its
+own core, finds them in the cache; the rest follow. The
 compilations are shared through numba's on-disk cache (files replaced whole, so a kernel
 compiled by both is only compiled twice, never broken).
 
