@@ -166,3 +166,24 @@ def test_with_the_lamp_at_the_camera_the_calibrations_column_stands():
     valid = np.isfinite(e)
     assert valid.mean() > 0.85
     assert abs(np.median(e[valid])) < 0.02 and np.sqrt(np.mean(e[valid] ** 2)) < 0.05
+
+
+def test_the_footprints_backscatter_is_that_of_the_whole_frame_there():
+    """The reflectance corrector's footprint gets the backscatter the whole frame's model gives at
+    its pixels (a surface at the reading's range there, open water elsewhere), computed for the
+    footprint alone: at any place, clipped at the frame's edge, with each pixel's own response."""
+    water = water_preset("jerlov-II", [675.0, 575.0, 475.0])
+    lamp, camera = Lamp(position=(0.3, 0.0, 0.0)), CameraModel()
+    profile = calibrate_in_simulation(water, lamp, (160, 120), camera, frames_per_distance=1)
+    view = SimulatedWorld(scene="open-water", distance=3.0, size=(160, 120), water=water, lamp=lamp, camera=camera, seed=6)
+    for shape, open_water in (((123, 171), None), ((120, 160), np.stack([view.frame(i) for i in range(3)]))):
+        comp = BackscatterCompensator(profile, shape, 2, open_water)
+        assert (comp._response is not None) == (open_water is not None)
+        scale = np.array([1.1, 0.9, 1.0], np.float32)
+        for x, y, w, h in ((10, 20, 37, 29), (0, 0, 8, 8), (150, 100, 64, 64), (0, 0, shape[1], shape[0]), (3, 5, 1, 1)):
+            surface = np.full(shape, np.nan, np.float32)
+            surface[y : y + h, x : x + w] = 2.7
+            whole = comp.level(surface, scale=scale)[y : y + h, x : x + w]
+            got = comp.footprint_level(2.7, (x, y, w, h), scale)
+            assert got.shape == whole.shape
+            np.testing.assert_allclose(got, whole, rtol=1e-6)

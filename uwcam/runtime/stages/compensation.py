@@ -188,7 +188,8 @@ class CompensationStage:
 
     def _light_before_footprint(self, frame: Frame, corrector, transform, ambient: NDArray | None,
                                 scale: NDArray | None) -> NDArray | None:
-        """The light (DN) in the rangefinder's footprint that is not the surface's: the ambient
+        """The light (DN) in the rangefinder's footprint that is not the surface's ((h, w, N), the
+        footprint clipped to the frame; or the whole frame's ambient light): the ambient
         light and, where backscatter is subtracted before ranging, the water's own light in front
         of a surface at the reading's range. The corrector's log constants must describe the
         surface's light alone, as the ranges they enter are made from it: fitted to light with the
@@ -198,12 +199,11 @@ class CompensationStage:
         reading = corrector.rangefinder.latest()
         if transform is None or comp is None or reading is None or not np.isfinite(reading.range_m):
             return ambient
-        x, y, w, h = corrector.config.footprint
-        # The reading's range over the footprint's blocks, open water (no surface) elsewhere.
-        at = np.full(frame.data.shape[:2], np.nan, np.float32)
-        at[y : y + h, x : x + w] = reading.range_m
-        water = comp.level(at, scale=1.0 if scale is None else np.asarray(scale, np.float32))
-        return water if ambient is None else water + ambient
+        x, y, w, h = footprint = tuple(corrector.config.footprint)
+        # The reading's range over the footprint's blocks, open water (no surface) elsewhere; the
+        # footprint's pixels only, which are all the corrector reads.
+        water = comp.footprint_level(reading.range_m, footprint, 1.0 if scale is None else np.asarray(scale, np.float32))
+        return water if ambient is None else water + ambient[y : y + h, x : x + w]
 
     def backscatter_status(self) -> dict:
         """Whether backscatter is compensated, with what, and its cost per frame."""

@@ -81,7 +81,8 @@ class ReflectanceCorrector:
 
     def update(self, frame: Frame, attenuation_differences: NDArray, background: NDArray | None = None,
                exposure_shift: NDArray | None = None) -> NDArray[np.float64] | None:
-        """background: light (DN) not from the lamp, e.g. the ambient frame, subtracted first;
+        """background: light (DN) not from the lamp, e.g. the ambient frame, subtracted first: of
+        the frame's size (H, W, N), or of the footprint's (clipped to the frame) alone;
         exposure_shift: ln m_k of the frame's exposure against the calibration's (the estimator's)."""
         rf = self.rangefinder
         health = rf.health
@@ -100,7 +101,9 @@ class ReflectanceCorrector:
         pixels = frame.data[y : y + h, x : x + w].reshape(-1, frame.data.shape[-1]).astype(np.float64)
         e = pixels - self.profile.array("dark_level")
         if background is not None:
-            e = e - background[y : y + h, x : x + w].reshape(-1, frame.data.shape[-1])
+            if background.shape[:2] == frame.data.shape[:2]:
+                background = background[y : y + h, x : x + w]
+            e = e - background.reshape(-1, frame.data.shape[-1])
         ok = np.all((e > self.profile.array("noise_floor")) & (pixels < self.profile.saturation_level), axis=1)
         if ok.sum() < max(4, pixels.shape[0] // 4):
             self.state = "paused: footprint too dark or saturated"
