@@ -176,9 +176,13 @@ def test_the_footprints_backscatter_is_that_of_the_whole_frame_there():
     lamp, camera = Lamp(position=(0.3, 0.0, 0.0)), CameraModel()
     profile = calibrate_in_simulation(water, lamp, (160, 120), camera, frames_per_distance=1)
     view = SimulatedWorld(scene="open-water", distance=3.0, size=(160, 120), water=water, lamp=lamp, camera=camera, seed=6)
-    for shape, open_water in (((123, 171), None), ((120, 160), np.stack([view.frame(i) for i in range(3)]))):
-        comp = BackscatterCompensator(profile, shape, 2, open_water)
+    no_column = profile.model_copy(update={"lamp_radius_m": None})  # the patch measurements interpolated, no grid
+    cases = (((123, 171), None, profile), ((120, 160), np.stack([view.frame(i) for i in range(3)]), profile),
+             ((120, 160), None, no_column))
+    for shape, open_water, used in cases:
+        comp = BackscatterCompensator(used, shape, 2, open_water)
         assert (comp._response is not None) == (open_water is not None)
+        assert (comp.model.grid_step == 0) == (used is no_column)
         scale = np.array([1.1, 0.9, 1.0], np.float32)
         for x, y, w, h in ((10, 20, 37, 29), (0, 0, 8, 8), (150, 100, 64, 64), (0, 0, shape[1], shape[0]), (3, 5, 1, 1)):
             surface = np.full(shape, np.nan, np.float32)

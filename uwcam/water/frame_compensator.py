@@ -222,8 +222,14 @@ class BackscatterCompensator:
             unit = np.full(self.shape, np.nan, np.float32)
             unit[rows[:, None], cols[None, :]] = 1.0
             self._footprint_depths = {region: self._block_depth(unit)}
-        small = self._grid_levels(self._footprint_depths[region] * np.float32(range_m), scale)
-        out = _upsampled_window(small, self.shape, rows, cols)
+        n = self._pattern.shape[-1]
+        if rows.size == 0 or cols.size == 0:
+            return np.zeros((rows.size, cols.size, n), np.float32)
+        # Only the grid's blocks whose centres the footprint's pixels interpolate between.
+        taps_y, taps_x = _taps(rows, self.shape[0], self._grid[0]), _taps(cols, self.shape[1], self._grid[1])
+        window = (slice(taps_y[0][0], taps_y[1][-1] + 1), slice(taps_x[0][0], taps_x[1][-1] + 1))
+        small = self._grid_levels(self._footprint_depths[region][window] * np.float32(range_m), scale, window)
+        out = _bilinear(small, _shifted(taps_y, window[0].start), _shifted(taps_x, window[1].start))
         if self._response is not None:
             out *= self._response[rows[:, None], cols[None, :]]
         return out
@@ -251,10 +257,14 @@ class BackscatterCompensator:
             out *= response
         return out
 
-    def _grid_levels(self, block_depth: NDArray, scale: NDArray | float) -> NDArray[np.float32]:
-        """(gh, gw, N) backscatter at the block centres for surfaces at these block depths."""
-        fraction = self.model.fraction(block_depth, self._rows, self._cols, self._corners)
-        return (self._pattern * fraction * scale).astype(np.float32)
+    def _grid_levels(self, block_depth: NDArray, scale: NDArray | float,
+                     window: tuple[slice, slice] = (slice(None), slice(None))) -> NDArray[np.float32]:
+        """(gh, gw, N) backscatter at the block centres for surfaces at these block depths; or at
+        the blocks of ``window`` (rows, columns of the grid) only, ``block_depth`` being theirs."""
+        corners = None if self._corners is None else tuple(c[(slice(None), *window)] for c in self._corners)
+        fraction = self.model.fraction(block_depth, self._rows[window], self._cols[window], corners)
+        pattern = self._pattern[window] if self._pattern.shape[0] > 1 else self._pattern
+        return (pattern * fraction * scale).astype(np.float32)
 
     def range(self, frame: NDArray, attenuation_differences: NDArray, log_constants: NDArray,
               ambient: NDArray | None = None, samples: NDArray | None = None,
@@ -337,21 +347,28 @@ class BackscatterCompensator:
         result.reasons[rows[lit], cols[lit]] = Reason.BACKSCATTER_ONLY
 
 
-def _upsampled_window(small: NDArray[np.float32], shape: tuple[int, int], rows: NDArray, cols: NDArray) -> NDArray[np.float32]:
-    """The pixels (rows × cols) of ``small`` (gh, gw, N) enlarged to ``shape`` (H, W) as OpenCV's
-    bilinear resize (INTER_LINEAR) does: pixel centres aligned, edges held. (len(rows), len(cols), N)."""
+def _taps(dst: NDArray, n_dst: int, n_src: int) -> tuple[NDArray, NDArray, NDArray]:
+    """For destination pixels ``dst`` of a side of ``n_dst`` enlarged from ``n_src`` as OpenCV's
+    bilinear resize (INTER_LINEAR) does (pixel centres aligned, edges held): the two source
+    pixels each lies between and the weight of the second (float32)."""
+    at = (dst + 0.5) * (n_src / n_dst) - 0.5
+    first = np.floor(at).astype(int)
+    frac = (at - first).astype(np.float32)
+    frac[first < 0] = 0.0
+    first = np.clip(first, 0, n_src - 1)
+    frac[first >= n_src - 1] = 0.0
+    return first, np.minimum(first + 1, n_src - 1), frac
 
-    def taps(dst: NDArray, n_dst: int, n_src: int) -> tuple[NDArray, NDArray, NDArray]:
-        at = (dst + 0.5) * (n_src / n_dst) - 0.5
-        first = np.floor(at).astype(int)
-        frac = (at - first).astype(np.float32)
-        frac[first < 0] = 0.0
-        first = np.clip(first, 0, n_src - 1)
-        frac[first >= n_src - 1] = 0.0
-        return first, np.minimum(first + 1, n_src - 1), frac
 
-    y0, y1, fy = taps(rows, shape[0], small.shape[0])
-    x0, x1, fx = taps(cols, shape[1], small.shape[1])
+def _shifted(taps: tuple[NDArray, NDArray, NDArray], offset: int) -> tuple[NDArray, NDArray, NDArray]:
+    """:func:`_taps` counted from source pixel ``offset``."""
+    return taps[0] - offset, taps[1] - offset, taps[2]
+
+
+def _bilinear(small: NDArray[np.float32], taps_y: tuple, taps_x: tuple) -> NDArray[np.float32]:
+    """``small`` (gh, gw, N) at the destination pixels of these :func:`_taps` (rows × columns, N)."""
+    y0, y1, fy = taps_y
+    x0, x1, fx = taps_x
     fy, fx = fy[:, None, None], fx[None, :, None]
     top = small[y0][:, x0] * (1 - fx) + small[y0][:, x1] * fx
     bottom = small[y1][:, x0] * (1 - fx) + small[y1][:, x1] * fx
