@@ -59,6 +59,29 @@ def test_simulated_camera_streams_with_metadata(rig, serial):
     assert cam.health.state == HealthState.STOPPED
 
 
+def test_the_simulated_sensor_renders_at_the_lowest_priority_and_the_caller_alone_is_lowered(rig, serial):
+    """The thread that reads the simulated camera (the supervisor's) renders at nice 19, read
+    from the kernel for that thread; the rest of the process keeps its priority."""
+    import threading
+
+    cam = SimulatedCamera(rig, fps=100.0, serial_number=serial)
+    cam.open()
+    cam.start()
+    seen = {}
+
+    def read() -> None:
+        cam.read(5.0)
+        seen["nice"] = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+
+    before = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    reader = threading.Thread(target=read)
+    reader.start()
+    reader.join(30.0)
+    cam.close()
+    assert seen["nice"] == 19
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == before
+
+
 def test_lamp_off_leaves_dark_current_only(rig, serial):
     cam = SimulatedCamera(rig, fps=100.0, serial_number=serial)
     cam.open(); cam.start()
