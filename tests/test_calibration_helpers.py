@@ -426,3 +426,83 @@ def test_few_frames_per_distance_give_the_cameras_read_noise(frames):
     read = camera.gain_dn_per_e * np.sqrt(camera.read_noise_e**2 + camera.dark_current_e)
     np.testing.assert_allclose(profile.array("read_noise"), read, rtol=0.06)
     np.testing.assert_allclose(profile.array("shot_gain"), camera.gain_dn_per_e, rtol=0.06)
+
+
+def _located(dark_boxes, box, shape=(80, 90), dark=50.0, plate=1000.0, plate_mask=None):
+    """locate_black_patch on a frame of lit plate (``plate`` DN summed over three channels) with
+    these dark rectangles ((x, y, w, h), ``dark`` DN summed), the pose's patch at ``box``: the
+    located mask and the projected one."""
+    from uwcam.calibration.black_patch import locate_black_patch
+
+    light = np.full(shape, plate)
+    for x, y, w, h in dark_boxes:
+        light[y : y + h, x : x + w] = dark
+    projected = np.zeros(shape, bool)
+    x, y, w, h = box
+    projected[y : y + h, x : x + w] = True
+    mask = np.ones(shape, bool) if plate_mask is None else plate_mask
+    signal = np.repeat(light[..., None] / 3.0, 3, axis=-1)
+    return locate_black_patch(signal, projected, mask & ~projected), projected
+
+
+def _box_mask(shape, box):
+    x, y, w, h = box
+    out = np.zeros(shape, bool)
+    out[y : y + h, x : x + w] = True
+    return out
+
+
+@pytest.mark.parametrize("side, margin", [(18, 5), (28, 7)])
+def test_the_patch_is_found_as_far_off_as_the_search_margin_and_no_farther(side, margin):
+    """The search reaches a quarter of the projected box's smaller side beyond it, at least 5 px:
+    a patch off by exactly that much is found whole; one pixel more and the part beyond is cut
+    off, so what is found is not the patch."""
+    box = (30, 25, side + 4, side)
+    for off in (margin, margin + 1):
+        true = (box[0] + off, box[1], box[2], box[3])
+        located, projected = _located([true], box)
+        assert np.array_equal(located, _box_mask(projected.shape, true)) == (off == margin), off
+
+
+def test_a_patch_that_barely_stands_out_is_not_searched_for():
+    """The plate beside the patch must be brighter than 1.5 times the patch's light (in the
+    sums of the channels) for the image to tell where the patch is: at exactly 1.5 the
+    projection is kept; just above it the patch is located."""
+    box, true = (30, 25, 20, 18), (32, 25, 20, 18)
+    kept, projected = _located([true], box, dark=100.0, plate=150.0)
+    np.testing.assert_array_equal(kept, projected)
+    found, _ = _located([true], box, dark=100.0, plate=150.5)
+    np.testing.assert_array_equal(found, _box_mask(projected.shape, true))
+
+
+def test_a_dark_region_of_implausible_size_leaves_the_projection():
+    """The dark region found must hold from half to 1.6 times the projected box's pixels: a
+    box of 20×20 (400 px) with a dark region of 630 px inside the search is taken, 660 px is
+    not; of two dark regions inside the box, split by a stripe of plate, the larger is taken
+    when it holds half the box (200 px), not when it holds 180."""
+    box = (35, 30, 20, 20)
+    for rows, taken in ((21, True), (22, False)):
+        dark = (30, 30, 30, rows)  # 30 wide: the box and the 5-px margin either side
+        located, projected = _located([dark], box)
+        expected = _box_mask(projected.shape, dark) if taken else projected
+        np.testing.assert_array_equal(located, expected)
+    for first, taken in ((8, True), (9, False)):
+        second = 18 - first  # rows: first, a stripe of 2 rows of plate, the rest
+        a, b = (35, 30, 20, first), (35, 30 + first + 2, 20, second)
+        located, projected = _located([a, b], box)
+        expected = _box_mask(projected.shape, b) if taken else projected
+        np.testing.assert_array_equal(located, expected)
+
+
+def test_too_little_plate_around_the_box_leaves_the_projection():
+    """The plate's light is measured on a ring around the box (from 2 px beyond the margin to
+    twice the margin and 2 px): with only 15 of its pixels on the plate, the projection is kept;
+    with 16 the patch is located."""
+    shape, box, true = (80, 90), (30, 25, 20, 18), (32, 25, 20, 18)
+    # margin 5: the ring spans 7 to 12 px beyond the box; its pixels on one row above the box.
+    for count, located_patch in ((15, False), (16, True)):
+        plate_mask = np.zeros(shape, bool)
+        plate_mask[25 - 8, 30 : 30 + count] = True
+        located, projected = _located([true], box, plate_mask=plate_mask)
+        expected = _box_mask(shape, true) if located_patch else projected
+        np.testing.assert_array_equal(located, expected)

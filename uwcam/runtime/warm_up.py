@@ -90,6 +90,7 @@ def warm_up_everything(estimator: RangeEstimator, first: ProcessingConfig | None
     for dtype in (np.uint16, np.uint8):
         warm_up_ranging(estimator, first, dtypes=(dtype,), read_only=(False,))
         estimator.warm_up(dtypes=(dtype,), background=True, strided=False)
-        estimator.warm_up(dtypes=(), background=True)
+        if dtype == np.uint16:  # float means with a background: the coarse passes, whatever the camera's type
+            estimator.warm_up(dtypes=(), background=True)
     warm_up_ranging(estimator)
     estimator.warm_up(dtypes=(np.uint8, np.uint16, np.float32))
