@@ -106,34 +106,40 @@ def _smooth_mean_py(range_m, variance, calibration, with_calibration, out_range,
     """The 3×3 mean of :func:`smooth_range_map` in one pass over (H, W) float32 maps: each valid
     pixel's mean over the n valid pixels of its window (clipped at the border), variance
     Σ(σ_k² − cal_k)/n² + cal (``calibration`` read only where ``with_calibration``); NaN where
-    the pixel itself has no range. Sums in float64, by columns of three rows first."""
+    the pixel itself has no range. Sums in float64, by columns of three rows first; without
+    branches (a choice of value instead), which the compiler turns into vector instructions."""
     h, w = range_m.shape
     nan = np.float32(np.nan)
-    for i in prange(h):
-        count = np.zeros(w + 2)  # the column sums of rows i−1..i+1, one column of zeros either side
-        total = np.zeros(w + 2)
-        noise = np.zeros(w + 2)
+    count = np.zeros(w + 2)  # the column sums of rows i−1..i+1, one column of zeros either side
+    total = np.zeros(w + 2)
+    noise = np.zeros(w + 2)
+    for i in range(h):
+        for x in range(w + 2):
+            count[x] = 0.0
+            total[x] = 0.0
+            noise[x] = 0.0
         for y in range(max(i - 1, 0), min(i + 2, h)):
             for x in range(w):
                 r = range_m[y, x]
-                if np.isfinite(r):
-                    count[x + 1] += 1.0
-                    total[x + 1] += r
-                    noise[x + 1] += variance[y, x] - calibration[y, x] if with_calibration else variance[y, x]
+                ok = r - r == 0.0  # finite
+                count[x + 1] += 1.0 if ok else 0.0
+                total[x + 1] += r if ok else 0.0
+                own = variance[y, x] - calibration[y, x] if with_calibration else variance[y, x]
+                noise[x + 1] += own if ok else 0.0
         for j in range(w):
-            if not np.isfinite(range_m[i, j]):
-                out_range[i, j] = nan
-                out_variance[i, j] = nan
-                continue
+            r = range_m[i, j]
+            ok = r - r == 0.0
             n = count[j] + count[j + 1] + count[j + 2]
-            out_range[i, j] = (total[j] + total[j + 1] + total[j + 2]) / n
             common = calibration[i, j] if with_calibration else 0.0
-            out_variance[i, j] = (noise[j] + noise[j + 1] + noise[j + 2]) / (n * n) + common
+            out_range[i, j] = (total[j] + total[j + 1] + total[j + 2]) / n if ok else nan
+            out_variance[i, j] = (noise[j] + noise[j + 1] + noise[j + 2]) / (n * n) + common if ok else nan
 
 
 # Compiled: numpy's box filters and temporaries took 43 ms per 720p map on the 2-core test
-# machine, a fifth of the frame loop's time; this pass 8.7 ms, the same values to 1 float32 ulp.
-_smooth_mean = njit(parallel=True, cache=True, nogil=True)(_smooth_mean_py) if HAVE_NUMBA else None
+# machine, a fifth of the frame loop's time; this pass 8.6 ms on one core, the same values to 1
+# float32 ulp. Not parallel: split over rows it was no faster (8.7 ms, quiet machine) and took
+# 2–3× as long to compile, which a first start waits for.
+_smooth_mean = njit(cache=True, nogil=True)(_smooth_mean_py) if HAVE_NUMBA else None
 
 
 def smooth_range_map(result: RangeResult, kind: str = "mean") -> RangeResult:
