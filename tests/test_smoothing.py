@@ -48,7 +48,44 @@ def result(range_map, variance, reasons=None) -> RangeResult:
     return RangeResult(r, np.where(np.isfinite(r), np.asarray(variance, np.float32), np.nan).astype(np.float32), reasons)
 
 
-def test_mean_of_a_constant_variance_map_divides_the_variance_by_the_window_count():
+@pytest.fixture(params=["compiled", "numpy"])
+def mean_path(request, monkeypatch):
+    """The 3×3 mean through the compiled pass and through its numpy twin (platforms without numba)."""
+    from uwcam.ranging import smoothing
+
+    if request.param == "numpy":
+        monkeypatch.setattr(smoothing, "_smooth_mean", None)
+    elif smoothing._smooth_mean is None:
+        pytest.skip("numba is not installed: only the numpy path exists")
+    return request.param
+
+
+def test_the_compiled_mean_stays_inside_its_arrays():
+    """The compiled pass, compiled again here with numba's bounds checks on, reads and writes
+    nothing outside its arrays (without the checks an index one past the end reads whatever
+    memory follows, which no value test can be sure to see), and gives the naive reference."""
+    numba = pytest.importorskip("numba")
+    from uwcam.ranging import smoothing
+
+    checked = numba.njit(boundscheck=True)(smoothing._smooth_mean_py)
+    rng = np.random.default_rng(5)
+    for shape in ((1, 1), (1, 6), (7, 1), (9, 13)):
+        r = rng.uniform(1.0, 4.0, shape)
+        r[rng.random(shape) < 0.3] = np.nan
+        var = rng.uniform(1e-4, 4e-2, shape)
+        cal = rng.uniform(0.0, 1e-3, shape)
+        maps = [np.ascontiguousarray(a, np.float32) for a in (r, var + cal, cal)]
+        for with_calibration in (True, False):
+            out_r, out_v = np.empty(shape, np.float32), np.empty(shape, np.float32)
+            checked(*maps, with_calibration, out_r, out_v)
+            ref_r, ref_v = naive(maps[0], np.where(np.isfinite(r), var if with_calibration else var + cal, np.nan).astype(np.float32), "mean")
+            if with_calibration:
+                ref_v = ref_v + np.where(np.isfinite(r), cal, np.nan)
+            np.testing.assert_allclose(out_r, ref_r, rtol=1e-6, equal_nan=True)
+            np.testing.assert_allclose(out_v, ref_v, rtol=1e-5, equal_nan=True)
+
+
+def test_mean_of_a_constant_variance_map_divides_the_variance_by_the_window_count(mean_path):
     r = np.full((5, 6), 2.0)
     out = smooth_range_map(result(r, np.full((5, 6), 0.09)), "mean")
     np.testing.assert_allclose(out.range, 2.0)
@@ -58,7 +95,7 @@ def test_mean_of_a_constant_variance_map_divides_the_variance_by_the_window_coun
     assert out.variance[0, 0] == pytest.approx(0.09 / 4, rel=1e-6)
 
 
-def test_mean_matches_the_naive_reference_with_unequal_variances_and_holes():
+def test_mean_matches_the_naive_reference_with_unequal_variances_and_holes(mean_path):
     rng = np.random.default_rng(7)
     r = rng.uniform(1.0, 4.0, (9, 11))
     var = rng.uniform(1e-4, 4e-2, (9, 11))
@@ -132,7 +169,7 @@ def test_invalid_pixels_stay_invalid_with_their_reasons(kind):
     assert np.isnan(before.range[2, 2]) and before.range[3, 1] == np.float32(1e6)
 
 
-def test_a_hole_next_to_a_pixel_does_not_count_in_its_mean():
+def test_a_hole_next_to_a_pixel_does_not_count_in_its_mean(mean_path):
     r = np.array([[1.0, np.nan, 3.0]])
     var = np.array([[0.04, 9.0, 0.16]])
     out = smooth_range_map(result(r, var), "mean")
@@ -140,7 +177,7 @@ def test_a_hole_next_to_a_pixel_does_not_count_in_its_mean():
     assert out.variance[0, 0] == pytest.approx(0.04) and np.isnan(out.range[0, 1])
 
 
-def test_two_pixels_average_and_their_variance_is_the_variance_of_the_mean():
+def test_two_pixels_average_and_their_variance_is_the_variance_of_the_mean(mean_path):
     r = np.array([[1.0, 3.0]])
     var = np.array([[0.04, 0.16]])
     out = smooth_range_map(result(r, var), "mean")
