@@ -477,14 +477,15 @@ def test_a_patch_that_barely_stands_out_is_not_searched_for():
 
 def test_a_dark_region_of_implausible_size_leaves_the_projection():
     """The dark region found must hold from half to 1.6 times the projected box's pixels: a
-    box of 20×20 (400 px) with a dark region of 630 px inside the search is taken, 660 px is
-    not; of two dark regions inside the box, split by a stripe of plate, the larger is taken
+    box of 20×20 (400 px) with a dark region of 630 or 640 px inside the search is taken, 660 px
+    is not; of two dark regions inside the box, split by a stripe of plate, the larger is taken
     when it holds half the box (200 px), not when it holds 180."""
     box = (35, 30, 20, 20)
-    for rows, taken in ((21, True), (22, False)):
-        dark = (30, 30, 30, rows)  # 30 wide: the box and the 5-px margin either side
-        located, projected = _located([dark], box)
-        expected = _box_mask(projected.shape, dark) if taken else projected
+    for regions, taken in (([(30, 30, 30, 21)], True), ([(30, 30, 30, 21), (30, 51, 10, 1)], True),
+                           ([(30, 30, 30, 22)], False)):
+        # 30 wide: the box and the 5-px margin either side; 630, 640 (1.6 × 400 exactly) and 660 px
+        located, projected = _located(regions, box)
+        expected = np.any([_box_mask(projected.shape, r) for r in regions], axis=0) if taken else projected
         np.testing.assert_array_equal(located, expected)
     for first, taken in ((8, True), (9, False)):
         second = 18 - first  # rows: first, a stripe of 2 rows of plate, the rest
