@@ -13,13 +13,19 @@ of its own) runs with:
 
 Every --sample-s it samples the processed frame rate (processed frames over the interval), the
 daemon's resident memory (RSS), the frames captured and dropped (status), the recorder's
-counts, the lamp's health and the reader's newest map age, and prints a row. At the end it stops
+counts, the lamp's health and the reader's newest map age, the frames the page painted, and
+where the machine's CPU went (the daemon's CPU ms per processed frame, which includes the
+simulated camera's rendering; the daemon's and Chromium's share of a core; the machine's idle
+and stolen shares), and prints a row. At the end it stops
 the recording, reads its files, and judges:
 
-* fps: every interval's rate within 10 % of the median of the intervals (the first, start-up,
-  left out);
-* RSS: every sample from --reference-minute on within 10 % of its value then (the minute is 5;
-  in a run shorter than 10 minutes, the middle of the run);
+* fps: the processed rate over each whole cycle of the vehicle's altitude (120 s in the default
+  rig; shorter windows measure how two cores share out their time among the loop, Chromium and
+  the simulated camera: see ``scene_cycle_s``) within 10 % of the median of the cycles (the
+  first, start-up, left out);
+* RSS: the peak of every interval (sampled each 0.5 s: the once-a-second ``malloc_trim`` hands
+  memory back, so a single sample catches a phase of it) from --reference-minute on within 10 % of
+  its value then (the minute is 5; in a run shorter than 10 minutes, the middle of the run);
 * recording: every camera frame between the file's first and last is in the file (its metadata
   record, with or without its raw image), or counted as dropped by the camera in the status
   (camera.stats.dropped, part of frames.dropped; frames skipped for a newer one are recorded all
@@ -101,6 +107,42 @@ def post(url: str) -> dict:
     request = urllib.request.Request(url, data=b"", method="POST")
     with urllib.request.urlopen(request, timeout=30.0) as r:
         return json.loads(r.read())
+
+
+def cpu_s(pids: list[int]) -> float:
+    """CPU seconds (user + system) the processes ``pids`` have used so far (gone ones count 0)."""
+    total = 0
+    for pid in pids:
+        try:
+            with open(f"/proc/{pid}/stat") as fh:
+                fields = fh.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        total += int(fields[11]) + int(fields[12])  # utime, stime (fields 14 and 15 of proc(5))
+    return total / os.sysconf("SC_CLK_TCK")
+
+
+def chromium_pids() -> list[int]:
+    """Every process of Debian's Chromium (the page's browser, its renderer and GPU processes)."""
+    pids = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/cmdline", "rb") as fh:
+                    if b"chromium" in fh.read().split(b"\0", 1)[0]:
+                        pids.append(int(entry))
+            except OSError:
+                pass
+    return pids
+
+
+def machine_times() -> tuple[float, float, float]:
+    """The machine's CPU seconds so far, summed over its cores: busy, idle, stolen (by the
+    hypervisor for other guests: time this machine wanted and did not get)."""
+    with open("/proc/stat") as fh:
+        user, nice, system, idle, iowait, irq, softirq, steal = (int(v) for v in fh.readline().split()[1:9])
+    tick = os.sysconf("SC_CLK_TCK")
+    return (user + nice + system + irq + softirq) / tick, (idle + iowait) / tick, steal / tick
 
 
 def rss_mb(pid: int) -> float:
@@ -230,10 +272,14 @@ def run_samples(args, base: str, daemon: subprocess.Popen, page, reader: SlowRea
     last = (start, status["frames"]["processed"])
     rows: list[dict] = []
     lamp_phase = "before"
+    cpu = (cpu_s([daemon.pid]), cpu_s(chromium_pids()), *machine_times())
+    painted = page.evaluate("window.uwcam.stats.displayed")
     print(f"{'t_min':>6} {'fps':>6} {'rss_MB':>7} {'captured':>9} {'dropped':>8} {'rec_written':>11} "
-          f"{'rec_dropped':>11} {'rec_lost':>8} {'lamp':>22} {'reader_age_s':>12} {'latency_ms':>10} {'page':>5}", flush=True)
+          f"{'rec_dropped':>11} {'rec_lost':>8} {'lamp':>22} {'reader_age_s':>12} {'latency_ms':>10} {'page':>5} "
+          f"{'painted':>7} {'rf_m':>5} {'cpu_ms/frame':>12} {'daemon%':>7} {'chromium%':>9} {'idle%':>5} {'steal%':>6}", flush=True)
     while len(rows) * args.sample_s + args.sample_s <= total_s + 0.01:
         next_sample = start + (len(rows) + 1) * args.sample_s
+        peak_rss = 0.0
         while time.monotonic() < next_sample:
             now = time.monotonic() - start
             if lamp_phase == "before" and now >= silent_from:
@@ -244,6 +290,7 @@ def run_samples(args, base: str, daemon: subprocess.Popen, page, reader: SlowRea
                 daemon.stdin.write("answer\n")
                 daemon.stdin.flush()
                 lamp_phase = "after"
+            peak_rss = max(peak_rss, rss_mb(daemon.pid))  # the interval's peak: growth, not malloc_trim's phase
             time.sleep(min(0.5, max(0.0, next_sample - time.monotonic())))
         status = get(f"{base}/api/v1/status")
         t = time.monotonic()
@@ -253,30 +300,71 @@ def run_samples(args, base: str, daemon: subprocess.Popen, page, reader: SlowRea
         lamp = status["lamp"]["health"] if status.get("lamp") else {"state": "none", "reason": ""}
         latency = status.get("latency_ms")  # capture → processed, as the daemon measures it
         latency = "/".join(f"{latency[k]:.0f}" for k in ("p50", "p99") if k in latency) if isinstance(latency, dict) else str(latency)
-        row = {"t_s": t - start, "fps": (processed - last[1]) / (t - last[0]), "rss_mb": rss_mb(daemon.pid),
+        now_cpu = (cpu_s([daemon.pid]), cpu_s(chromium_pids()), *machine_times())
+        used = [b - a for a, b in zip(cpu, now_cpu)]
+        cpu = now_cpu
+        wall = t - last[0]
+        now_painted = page.evaluate("window.uwcam.stats.displayed")
+        row = {"t_s": t - start, "processed": processed, "fps": (processed - last[1]) / wall, "rss_mb": max(peak_rss, rss_mb(daemon.pid)),
+               "painted_fps": (now_painted - painted) / wall,
+               "rf_m": ((status.get("rangefinder") or {}).get("range_m") or float("nan")),
+               "daemon_ms_per_frame": 1e3 * used[0] / max(processed - last[1], 1),
+               "daemon_pct": 100 * used[0] / wall, "chromium_pct": 100 * used[1] / wall,
+               "idle_pct": 100 * used[3] / max(used[2] + used[3] + used[4], 1e-9),
+               "steal_pct": 100 * used[4] / max(used[2] + used[3] + used[4], 1e-9),
                "captured": status["frames"]["captured"], "dropped": status["frames"]["dropped"],
                "recording": status["recording"], "lamp_state": lamp["state"], "lamp_reason": lamp.get("reason", ""),
                "lamp_phase": lamp_phase, "ages": ages, "page": page_alive}
         last = (t, processed)
+        painted = now_painted
         rows.append(row)
         rec = row["recording"] or {}
         print(f"{row['t_s'] / 60:6.2f} {row['fps']:6.1f} {row['rss_mb']:7.0f} {row['captured']:9d} {row['dropped']:8d} "
               f"{rec.get('frames_written', 0):11d} {rec.get('frames_dropped', 0):11d} {rec.get('frames_lost', 0):8d} "
               f"{(lamp['state'] + '/' + lamp_phase)[:22]:>22} {max(ages, default=float('nan')):12.2f} "
               f"{latency:>10} "
-              f"{'ok' if page_alive else 'gone':>5}", flush=True)
+              f"{'ok' if page_alive else 'gone':>5} {row['painted_fps']:7.1f} {row['rf_m']:5.2f} {row['daemon_ms_per_frame']:12.0f} "
+              f"{row['daemon_pct']:7.0f} {row['chromium_pct']:9.0f} {row['idle_pct']:5.0f} {row['steal_pct']:6.1f}", flush=True)
     return rows
+
+
+def scene_cycle_s() -> float:
+    """Seconds after which the default rig's vehicle repeats its altitude: windows of whole cycles
+    each hold the same ranges. (A 5-minute run with 10-s samples: the rate did not follow the
+    altitude, correlation 0.14; the 10-s rates spread over 7.4-9.2 fps, the 30-s ones of a 10-minute
+    run over 8.2-9.9: the two cores' scheduling between the loop, Chromium and the simulated camera.
+    A window of a cycle averages that jitter out and still shows a trend within a few minutes.)"""
+    from uwcam.config import default_config
+
+    return float(default_config().simulation["altitude_period"])
+
+
+def cycle_rates(rows: list[dict], cycle_s: float) -> list[float]:
+    """Processed frames per second in consecutive windows of ``cycle_s`` (from the samples at or
+    just after each window's end; a trailing partial window is left out)."""
+    rates, start_t, start_n = [], 0.0, rows[0]["processed"] - rows[0]["fps"] * rows[0]["t_s"]
+    for row in rows:
+        if row["t_s"] >= start_t + cycle_s - 1.0:
+            rates.append((row["processed"] - start_n) / (row["t_s"] - start_t))
+            start_t, start_n = row["t_s"], row["processed"]
+    return rates
 
 
 def judge(args, rows: list[dict], files: list[str], recording: dict, dropped: tuple[int, int], reader: SlowReader,
           page_errors: list[str]) -> list[tuple[str, bool, str]]:
     verdicts = []
-    rates = [r["fps"] for r in rows[1:]]
-    median = statistics.median(rates)
-    worst = max(abs(f / median - 1.0) for f in rates)
-    verdicts.append(("fps within 10 %", worst <= 0.10,
-                     f"median {median:.1f} fps over {len(rates)} intervals, min {min(rates):.1f}, max {max(rates):.1f} "
-                     f"(worst {worst * 100:.1f} % off)"))
+    cycle_s = scene_cycle_s()
+    windows = cycle_rates(rows, cycle_s)[1:]  # the first cycle holds the start-up
+    if len(windows) >= 2:
+        median = statistics.median(windows)
+        worst = max(abs(f / median - 1.0) for f in windows)
+        samples = [r["fps"] for r in rows[1:]]
+        verdicts.append(("fps within 10 %", worst <= 0.10,
+                         f"median {median:.2f} fps over {len(windows)} windows of one scene cycle ({cycle_s:g} s): "
+                         f"{', '.join(f'{f:.2f}' for f in windows)} (worst {worst * 100:.1f} % off); the "
+                         f"{args.sample_s:g}-s samples {min(samples):.1f}-{max(samples):.1f}"))
+    else:
+        verdicts.append(("fps within 10 %", False, f"the run holds fewer than 3 scene cycles of {cycle_s:g} s: run longer"))
     total_min = args.minutes
     reference_min = args.reference_minute if total_min >= 2 * args.reference_minute else total_min / 2
     reference = next(r for r in rows if r["t_s"] >= reference_min * 60.0 - 1.0)

@@ -106,6 +106,24 @@ def test_soak_runs_and_judges():
     assert result.returncode == (0 if "soak passed" in out else 1), out
 
 
+def test_soak_judges_fps_over_whole_scene_cycles():
+    """The soak's fps windows: frames over each whole altitude cycle of the default scene, from
+    the samples at the cycle's end, a trailing partial cycle left out. Counts written out by hand:
+    30-s samples, 270 frames in each of the first cycle's, 240 in the second's, 300 in the third's."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("soak", ROOT / "bench" / "soak.py")
+    soak = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(soak)
+    assert soak.scene_cycle_s() == 120.0  # uwcam/config.py default_config: altitude_period 120 s
+    per_sample = [270] * 4 + [240] * 4 + [300] * 4 + [500] * 2
+    rows, processed = [], 1000
+    for i, n in enumerate(per_sample, start=1):
+        processed += n
+        rows.append({"t_s": 30.0 * i, "processed": processed, "fps": n / 30.0})
+    assert soak.cycle_rates(rows, 120.0) == pytest.approx([1080 / 120, 960 / 120, 1200 / 120])
+
+
 @pytest.mark.slow
 def test_adaptive_smoothing_benchmark_runs():
     out = subprocess.run([sys.executable, str(ROOT / "bench" / "bench_adaptive_smoothing.py"), "--size", "160x120",
