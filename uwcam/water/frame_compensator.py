@@ -171,7 +171,8 @@ class BackscatterCompensator:
         # Each pixel's own response (several open-water frames), at full and at the coarse resolution.
         response = self.model.response
         self._response = None if response is None else response.astype(np.float32)
-        self._footprint_depths: dict[tuple[int, int, int, int], NDArray] = {}
+        self._footprint_depths: tuple[tuple[int, int, int, int], NDArray] | None = None
+        """(region, its blocks' depths for a range of 1 m): the rangefinder's footprint, one at a time."""
         self._coarse_size = coarse = (max(w // COARSE, 1), max(h // COARSE, 1))  # (w, h)
         self._response_coarse = None if response is None else cv2.resize(
             self._response, coarse, interpolation=cv2.INTER_AREA).reshape(coarse[1], coarse[0], -1)
@@ -216,19 +217,19 @@ class BackscatterCompensator:
         x, y, w, h = region
         rows = np.arange(min(y, self.shape[0]), min(y + h, self.shape[0]))
         cols = np.arange(min(x, self.shape[1]), min(x + w, self.shape[1]))
-        if region not in self._footprint_depths:
+        if self._footprint_depths is None or self._footprint_depths[0] != region:
             # The blocks' depths are proportional to the range (each block's mean of range · cosine
             # over its pixels in the region): computed once per region for a range of 1 m.
             unit = np.full(self.shape, np.nan, np.float32)
             unit[rows[:, None], cols[None, :]] = 1.0
-            self._footprint_depths = {region: self._block_depth(unit)}
+            self._footprint_depths = (region, self._block_depth(unit))
         n = self._pattern.shape[-1]
         if rows.size == 0 or cols.size == 0:
             return np.zeros((rows.size, cols.size, n), np.float32)
         # Only the grid's blocks whose centres the footprint's pixels interpolate between.
         taps_y, taps_x = _taps(rows, self.shape[0], self._grid[0]), _taps(cols, self.shape[1], self._grid[1])
         window = (slice(taps_y[0][0], taps_y[1][-1] + 1), slice(taps_x[0][0], taps_x[1][-1] + 1))
-        small = self._grid_levels(self._footprint_depths[region][window] * np.float32(range_m), scale, window)
+        small = self._grid_levels(self._footprint_depths[1][window] * np.float32(range_m), scale, window)
         out = _bilinear(small, _shifted(taps_y, window[0].start), _shifted(taps_x, window[1].start))
         if self._response is not None:
             out *= self._response[rows[:, None], cols[None, :]]
