@@ -92,3 +92,37 @@ def test_stopping_the_daemon_stops_the_child(profile, no_marker):
     assert warm.state == "stopped"
     assert not no_marker.exists()  # cut short: the next start goes on with it
     warm.stop()  # twice is harmless
+
+
+def test_a_configured_profile_is_read_once_and_the_child_warms_up_the_one_the_daemon_ranges_with(
+        tmp_path, monkeypatch):
+    """The calibration file is read before the devices open (for the child) and not again: a file
+    replaced in between could otherwise give the child and the daemon different profiles."""
+    from uwcam.calibration.profile import load_profile, save_profile
+    from uwcam.config import default_config
+    from uwcam.runtime import daemon as daemon_module
+    from uwcam.runtime.daemon import Daemon
+    from uwcam.runtime.simulated_rig import shipped_calibration_path
+
+    config = default_config()
+    config.api.port = 0
+    config.calibration = str(tmp_path / "rig.yaml")
+    save_profile(load_profile(shipped_calibration_path(Daemon(default_config())._options("sim", {})["rig"])),
+                 config.calibration)
+    reads, children = [], []
+    monkeypatch.setattr(daemon_module, "load_profile", lambda path: reads.append(path) or load_profile(path))
+
+    def start(self, profile, processing):  # the child itself is the other tests' subject
+        children.append(profile)
+        self.state = "running"
+
+    monkeypatch.setattr(BackgroundWarmUp, "start", start)
+    config.state_dir = str(tmp_path / "state")
+    daemon = Daemon(config)
+    daemon.warm_up_in_background = True
+    daemon.start()
+    try:
+        assert reads == [config.calibration]
+        assert len(children) == 1 and children[0] is daemon.profiles[daemon.profile_name]
+    finally:
+        daemon.stop()

@@ -99,10 +99,11 @@ class Daemon:
             return {"rig": self.rig, **options}
         return dict(options)
 
-    def _start_background_warm_up(self) -> None:
+    def _start_background_warm_up(self) -> CalibrationProfile | None:
         """Before the devices open, where the profile is at hand without them (a file, or the one
         that ships for the simulated rig): the child then compiles beside the start's own compiling
-        (the simulator's), on the other core; otherwise once the profile is known."""
+        (the simulator's), on the other core; otherwise once the profile is known. Returns the
+        configured calibration file's profile when it read it (the start uses it, not a second read)."""
         cfg = self.config
         try:
             if cfg.calibration is not None:
@@ -112,13 +113,15 @@ class Daemon:
 
                 path = shipped_calibration_path(self._options(cfg.camera.driver, {})["rig"])
                 if not os.path.exists(path):
-                    return
-                profile = load_profile(path)
+                    return None
+                self.background_warm_up.start(load_profile(path), cfg.processing)
+                return None
             else:
-                return
+                return None
         except UserInputError:
-            return  # the start says what is wrong, below
+            return None  # the start says what is wrong, below
         self.background_warm_up.start(profile, cfg.processing)
+        return profile
 
     def start(self) -> None:
         cfg = self.config
@@ -132,8 +135,7 @@ class Daemon:
 
             require_zenoh()
         try:
-            if self.warm_up_in_background:
-                self._start_background_warm_up()
+            configured = self._start_background_warm_up() if self.warm_up_in_background else None
             driver = registry.create("camera", cfg.camera.driver, **self._options(cfg.camera.driver, options["camera"]))
             if cfg.lamp is not None:
                 lamp = registry.create("lamp", cfg.lamp.driver, **self._options(cfg.lamp.driver, options["lamp"]))
@@ -147,7 +149,7 @@ class Daemon:
                 self.rangefinder = registry.create("rangefinder", cfg.rangefinder.driver,
                                                    **self._options(cfg.rangefinder.driver, options["rangefinder"]))
             if cfg.calibration is not None:
-                profile = load_profile(cfg.calibration)
+                profile = configured if configured is not None else load_profile(cfg.calibration)
             elif self.rig is not None:
                 profile = simulated_calibration(self.rig)
             else:
