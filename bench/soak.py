@@ -375,14 +375,9 @@ def scene_cycle_s() -> float:
     return float(default_config().simulation["altitude_period"])
 
 
-def cycle_rates(rows: list[dict], cycle_s: float) -> list[float]:
-    """Processed frames per second in consecutive windows of ``cycle_s`` (from the samples at or
-    just after each window's end; a trailing partial window is left out)."""
-    return [rate for rate, _ in cycle_windows(rows, cycle_s)]
-
-
 def cycle_windows(rows: list[dict], cycle_s: float) -> list[tuple[float, list[dict]]]:
-    """(processed frames per second, the samples) of each window of :func:`cycle_rates`."""
+    """(processed frames per second, the samples) in consecutive windows of ``cycle_s`` (each
+    ending at the sample at or just after its end; a trailing partial window is left out)."""
     windows, start_t, start_n = [], 0.0, rows[0]["processed"] - rows[0]["fps"] * rows[0]["t_s"]
     held: list[dict] = []
     for row in rows:
@@ -393,10 +388,15 @@ def cycle_windows(rows: list[dict], cycle_s: float) -> list[tuple[float, list[di
     return windows
 
 
+def window_probes(windows: list[tuple[float, list[dict]]]) -> list[float]:
+    """Each window's median probe CPU ms (:class:`MachineProbe`)."""
+    return [statistics.median(r["probe_ms"] for r in held) for _, held in windows]
+
+
 def machine_normalised(windows: list[tuple[float, list[dict]]]) -> list[float]:
     """Each window's rate on a machine of constant speed: times the window's probe CPU ms over the
     median probe of all windows (a window whose core ran 10 % faster counts 10 % fewer frames)."""
-    probes = [statistics.median(r["probe_ms"] for r in held) for _, held in windows]
+    probes = window_probes(windows)
     reference = statistics.median(probes)
     return [rate * probe / reference for (rate, _), probe in zip(windows, probes)]
 
@@ -409,7 +409,7 @@ def judge(args, rows: list[dict], files: list[str], recording: dict, dropped: tu
     if len(windows) >= 2:
         raw = [rate for rate, _ in windows]
         steady = machine_normalised(windows)
-        probes = [statistics.median(r["probe_ms"] for r in held) for _, held in windows]
+        probes = window_probes(windows)
 
         def spread(rates: list[float]) -> tuple[float, float]:
             median = statistics.median(rates)

@@ -121,7 +121,7 @@ def test_soak_judges_fps_over_whole_scene_cycles():
     for i, n in enumerate(per_sample, start=1):
         processed += n
         rows.append({"t_s": 30.0 * i, "processed": processed, "fps": n / 30.0})
-    assert soak.cycle_rates(rows, 120.0) == pytest.approx([1080 / 120, 960 / 120, 1200 / 120])
+    assert [rate for rate, _ in soak.cycle_windows(rows, 120.0)] == pytest.approx([1080 / 120, 960 / 120, 1200 / 120])
     # On a machine of constant speed: the second cycle's core ran 10 % slower (its probe took
     # 11 ms, the others 10 ms; the median is 10), so its 8 fps count as 8.8.
     for row, probe_ms in zip(rows, [10.0] * 4 + [11.0] * 4 + [10.0] * 6):

@@ -102,8 +102,8 @@ class Daemon:
     def _start_background_warm_up(self) -> CalibrationProfile | None:
         """Before the devices open, where the profile is at hand without them (a file, or the one
         that ships for the simulated rig): the child then compiles beside the start's own compiling
-        (the simulator's), on the other core; otherwise once the profile is known. Returns the
-        configured calibration file's profile when it read it (the start uses it, not a second read)."""
+        (the simulator's), on the other core; otherwise once the profile is known. Returns the profile
+        it read, if any (the start uses a configured file's, not a second read)."""
         cfg = self.config
         try:
             if cfg.calibration is not None:
@@ -114,8 +114,7 @@ class Daemon:
                 path = shipped_calibration_path(self._options(cfg.camera.driver, {})["rig"])
                 if not os.path.exists(path):
                     return None
-                self.background_warm_up.start(load_profile(path), cfg.processing)
-                return None
+                profile = load_profile(path)
             else:
                 return None
         except UserInputError:
