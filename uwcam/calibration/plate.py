@@ -24,6 +24,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from uwcam.imaging.markers import find_markers
 from uwcam.optics.geometry import Intrinsics
 from uwcam.calibration.rig import Area, Rig
 
@@ -58,20 +59,6 @@ class PlatePose:
     target_in_view: bool = True
     """Whether the whole target region lies inside the image (a box cut by the image's edge
     measures only part of the plate)."""
-
-
-def _detector(dictionary: str):
-    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
-    return cv2.aruco.ArucoDetector(d, cv2.aruco.DetectorParameters())
-
-
-def grey_for_detection(frame: NDArray) -> NDArray[np.uint8]:
-    """The brightest channel stretched to 8 bits (markers are black on a lit plate)."""
-    data = np.asarray(frame)
-    k = int(np.argmax(data.reshape(-1, data.shape[-1])[::97].mean(axis=0)))
-    channel = data[:, :, k].astype(np.float32)
-    top = float(np.percentile(channel[::4, ::4], 99.5)) or 1.0
-    return np.clip(channel * (255.0 / top), 0, 255).astype(np.uint8)
 
 
 def _project(points: NDArray, rvec: NDArray, tvec: NDArray, intr: Intrinsics) -> NDArray:
@@ -134,16 +121,16 @@ def sight_plate(frame: NDArray, rig: Rig, intrinsics: Intrinsics, *, ignore_ids:
     board = rig.plate.markers
     if board is None:
         raise ValueError(f"rig {rig.name} has no markers to locate the plate by")
-    corners, ids, _ = _detector(board.dictionary).detectMarkers(grey_for_detection(frame))
-    if ids is None:
+    corners, ids = find_markers(frame, board.dictionary)
+    if not ids:
         return PlateSighting([], [], None, f"no marker of rig {rig.name} in view")
     ignored_ids = {int(i) for i in ignore_ids}
     known = {m.id: m for m in board.markers if m.id not in ignored_ids}
     obj, img, found, ignored = [], [], [], []
     s = board.marker_size_m / 2
-    outside = [not _inside(c.reshape(4, 2).mean(axis=0), ignore_regions) for c in corners]
-    seen = [int(i) for i, out in zip(ids.ravel(), outside) if out]
-    for c, i, out in zip(corners, (int(i) for i in ids.ravel()), outside):
+    outside = [not _inside(c.mean(axis=0), ignore_regions) for c in corners]
+    seen = [i for i, out in zip(ids, outside) if out]
+    for c, i, out in zip(corners, ids, outside):
         # An id seen twice (outside the regions left out): one copy is not on the plate, and
         # nothing says which; use neither.
         if not out or i not in known or seen.count(i) > 1:
@@ -152,7 +139,7 @@ def sight_plate(frame: NDArray, rig: Rig, intrinsics: Intrinsics, *, ignore_ids:
         mx, my = known[i].centre_m
         # OpenCV's corner order: top-left, top-right, bottom-right, bottom-left.
         obj += [[mx - s, my - s, 0], [mx + s, my - s, 0], [mx + s, my + s, 0], [mx - s, my + s, 0]]
-        img += list(c.reshape(4, 2))
+        img += list(c)
         found.append(i)
     found, ignored = sorted(found), sorted(ignored)
     if len(found) < MIN_MARKERS:

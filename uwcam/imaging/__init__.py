@@ -1,1 +1,1 @@
-"""Frames in and out: image files and camera response curves (docs/architecture.md)."""
+"""Frames in and out: image files, camera response curves and the markers found in a frame (docs/architecture.md)."""

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from uwcam.config import PatchConfig
 from uwcam.calibration.profile import CalibrationProfile
+from uwcam.imaging.markers import find_markers
 
 
 @dataclass
@@ -26,7 +26,6 @@ class PatchTracker:
     last_reason: str = "no frame yet"
 
     def __post_init__(self) -> None:
-        self._detector = None
         self.region = self.config.region
         self.calibrated = self.profile.array("attenuation_difference")
         self.tracked = self.calibrated.copy()
@@ -40,17 +39,10 @@ class PatchTracker:
         if self.config.marker is None:
             return self.config.region
         m = self.config.marker
-        if self._detector is None:
-            dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, m.dictionary))
-            self._detector = cv2.aruco.ArucoDetector(dictionary, cv2.aruco.DetectorParameters())
-        # Detect on the brightest channel, stretched to 8 bits.
-        channel = data[:, :, int(np.argmax(data.reshape(-1, data.shape[-1])[:: 97].mean(axis=0)))].astype(np.float32)
-        top = float(np.percentile(channel[::4, ::4], 99.5)) or 1.0
-        grey = np.clip(channel * (255.0 / top), 0, 255).astype(np.uint8)
-        corners, ids, _ = self._detector.detectMarkers(grey)
-        if ids is None or m.id not in ids.ravel():
+        corners, ids = find_markers(data, m.dictionary)
+        if m.id not in ids:
             return None
-        c = corners[list(ids.ravel()).index(m.id)].reshape(4, 2)
+        c = corners[ids.index(m.id)]
         side = float(np.mean([np.linalg.norm(c[1] - c[0]), np.linalg.norm(c[3] - c[0])]))
         x, y = c[0] + np.array(m.offset) * side
         w, h = np.array(m.size) * side
