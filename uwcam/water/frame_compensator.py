@@ -133,7 +133,13 @@ short left most of the water's light in, which ranged it short again: Jerlov III
 lamp 0.3 m aside, two passes left 160 of 49 000 pixels reading 2 m for 5 m, 143 of them beyond 3σ;
 passes until the depths settle find none of them resolvable. A block that has not settled after
 :data:`MAX_PASSES` passes has no range (reason 3). Where backscatter matters, this costs a third
-pass on the frame reduced 4×4 (settled is known only once a pass has used the depth before)."""
+pass on the frame reduced 4×4 (settled is known only once a pass has used the depth before).
+
+A depth can settle and still be wrong: 40–60 % short, its own backscatter subtracted, the rest of
+the water's red light read as the seabed's, as self-consistent as the true depth. Passes started
+from the far side (the open water's light subtracted first) do not reach it, so they run too, and
+a block whose two starts settle apart has no range (reason 3): in the water study (Jerlov III, one
+frame) that left 0 of the 11 to 25 wrong pixels a cell had."""
 
 
 class BackscatterCompensator:
@@ -290,22 +296,14 @@ class BackscatterCompensator:
         # lookup-table kernel for integer frames: the same terms as with a zero background).
         result = self._coarse(small, background=small_ambient)
         scale = 1.0 if background_scale is None else np.asarray(background_scale, np.float32)
-        depth = self._block_depth(result.range)
-        settled = np.zeros(depth.shape, bool)
         # One pass is one, as configured; more than one go on while the depths move.
         most = max(MAX_PASSES, self.iterations) if self.iterations > 1 else 1
-        for passes in range(1, most):
-            if passes >= self.iterations and settled.all():
-                break
-            background = self._level_at(depth, coarse=True, scale=scale)
-            if small_ambient is not None:
-                background += small_ambient
-            result = self._coarse(small, background=background)
-            found = self._block_depth(result.range)
-            # Settled: the depth found is the one whose backscatter was subtracted (or both open water).
-            with np.errstate(invalid="ignore"):
-                settled = (np.isnan(found) & np.isnan(depth)) | (np.abs(found - depth) <= SETTLED * depth)
-            depth = found
+        depth, settled = self._settle(small, small_ambient, scale, self._block_depth(result.range), most)
+        if self.iterations > 1:
+            # The same passes from the far side: the open water's light subtracted first. Where the
+            # two settle on different depths, both explain the frame and nothing tells them apart.
+            far, far_settled = self._settle(small, small_ambient, scale, np.full_like(depth, np.nan), most)
+            settled &= far_settled & _same_depth(far, depth)
         background = self._level_at(depth, scale=scale)
         if ambient is not None:
             background += ambient
@@ -315,6 +313,25 @@ class BackscatterCompensator:
         if self.iterations > 1:
             self._drop_unsettled(result, settled)
         return result
+
+    def _settle(self, small: NDArray, small_ambient: NDArray | None, scale: NDArray | float, depth: NDArray,
+                most: int) -> tuple[NDArray, NDArray[np.bool_]]:
+        """Coarse passes from the block depths ``depth`` ((gh, gw) m along the axis, NaN: open water),
+        each subtracting the backscatter in front of the depths the last found, at least
+        ``self.iterations`` − 1 and fewer than ``most``, until every block has settled: → the depths
+        and whether each block settled (:data:`SETTLED`)."""
+        settled = np.zeros(depth.shape, bool)
+        for passes in range(1, most):
+            if passes >= self.iterations and settled.all():
+                break
+            background = self._level_at(depth, coarse=True, scale=scale)
+            if small_ambient is not None:
+                background += small_ambient
+            found = self._block_depth(self._coarse(small, background=background).range)
+            # Settled: the depth found is the one whose backscatter was subtracted (or both open water).
+            settled = _same_depth(found, depth)
+            depth = found
+        return depth, settled
 
     def _drop_unsettled(self, result: RangeResult, settled: NDArray[np.bool_]) -> None:
         """In place: the pixels of the blocks whose depth has not settled (``settled``, (gh, gw),
@@ -346,6 +363,12 @@ class BackscatterCompensator:
         lit = np.any(light > self.estimator.floor[active].astype(np.float32), axis=-1)
         rows, cols = np.nonzero(dim)
         result.reasons[rows[lit], cols[lit]] = Reason.BACKSCATTER_ONLY
+
+
+def _same_depth(found: NDArray, depth: NDArray) -> NDArray[np.bool_]:
+    """Blocks where ``found`` is within :data:`SETTLED` of ``depth`` (m), or both are open water (NaN)."""
+    with np.errstate(invalid="ignore"):
+        return (np.isnan(found) & np.isnan(depth)) | (np.abs(found - depth) <= SETTLED * depth)
 
 
 def _taps(dst: NDArray, n_dst: int, n_src: int) -> tuple[NDArray, NDArray, NDArray]:
