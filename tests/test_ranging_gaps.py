@@ -126,3 +126,111 @@ def test_without_a_recorded_exposure_channels_are_taken_relative_to_their_geomet
     est = RangeEstimator(profile_with((1000.0,) * 3))
     est.set_exposure((1000.0,) * 3, g)
     np.testing.assert_allclose(est.exposure_shift, (g - g.mean()) * np.log(10.0) / 20.0, rtol=0, atol=1e-12)
+
+
+def test_adaptive_smoothing_aims_at_two_percent_of_the_range_unless_told():
+    """docs/physics.md: ``processing.smoothing_target`` 0.02 by default, σ no more than 2 % of the range.
+    A plate whose plain σ lies about 2 % of its range (1.8–2.2 % across it): with the default,
+    exactly the pixels a 0.02 target re-ranges are, some but not all of them."""
+    from uwcam.config import ProcessingConfig
+    from uwcam.ranging.estimator import range_frame
+
+    assert ProcessingConfig().smoothing_target == 0.02
+    light, _ = scene()
+    frame = (light * 0.2 + DARK).astype(np.float32)
+    est = RangeEstimator(profile_with(read_noise=3.0, shot_gain=0.5))
+    plain = est(frame)
+    relative = np.sqrt(plain.variance) / plain.range
+    assert np.nanmin(relative) < 0.02 < np.nanmax(relative)
+    default = range_frame(est, frame, smoothing="adaptive")
+    told = range_frame(est, frame, smoothing="adaptive", smoothing_target=0.02)
+    np.testing.assert_array_equal(default.range, told.range)
+    np.testing.assert_array_equal(default.variance, told.variance)
+    changed = default.variance != plain.variance
+    assert 0 < changed.sum() < changed.size
+    np.testing.assert_array_equal(changed, relative > 0.02)
+
+
+def test_frames_fused_over_time_and_then_smoothed_count_both():
+    """A 3×3 mean (smoothing before the transform) of values that are each a mean of 4 frames is a
+    mean of 36 pixels' noise: inside the image, a quarter of the variance the 3×3 mean of single
+    frames has (a plate, read and shot noise, no calibration share)."""
+    from uwcam.ranging.estimator import range_frame
+
+    light, _ = scene()
+    frame = (light + DARK).astype(np.float32)
+    est = RangeEstimator(profile_with(read_noise=3.0, shot_gain=0.5))
+    single = range_frame(est, frame, smoothing="mean", stage="before")
+    fused = range_frame(est, frame, smoothing="mean", stage="before", samples=np.full(frame.shape, 4.0, np.float32))
+    inside = (slice(1, -1), slice(1, -1))
+    np.testing.assert_allclose(fused.variance[inside], single.variance[inside] / 4.0, rtol=1e-5)
+    np.testing.assert_array_equal(fused.range, single.range)
+
+
+def test_a_gamma_cameras_least_variance_is_the_width_of_the_code_the_light_came_from():
+    """uwcam.imaging.response: a linearised value is known only to its code's width (half the
+    distance between its neighbours' linear values), variance width²/12, the least it can have.
+    The code is that of the raw value, dark level included: an 8-bit sRGB camera with a dark level
+    of 40 linear DN and no other noise, codes 120 to 250, against the widths worked out here from
+    the IEC 61966-2-1 curve (a code read 80 DN lower, the dark level taken off twice, is 21–93 % narrower)."""
+    from tests.synthetic import make_profile
+
+    def linear(code):  # IEC 61966-2-1, 8-bit codes to linear DN (0 … 255)
+        v = np.asarray(code, np.float64) / 255.0
+        return 255.0 * np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+
+    base = make_profile([0.5, 0.2, 0.1], [0.0, 0.0, 0.0], dark_level=40.0, saturation_level=255.0,
+                        quantisation_step=0.01)
+    from uwcam.calibration.profile import ResponseRecord
+
+    profile = base.model_copy(update={"response": ResponseRecord(kind="srgb", bits=8, method="srgb standard")})
+    est = RangeEstimator(profile)
+    codes = np.arange(120, 251)
+    raw = np.repeat(linear(codes)[:, None], 3, axis=1)
+    _, weight, _ = est.channel_terms(raw)
+    light = raw - 40.0
+    variance = light * light / weight
+    width = (linear(codes + 1) - linear(codes - 1)) / 2.0
+    np.testing.assert_allclose(variance, np.repeat(width[:, None] ** 2 / 12.0, 3, axis=1), rtol=1e-6)
+
+
+def srgb_plate() -> tuple:
+    """An 8-bit sRGB camera's frame of the plate (codes from the IEC 61966-2-1 curve written out,
+    dark level 5 linear DN) and its profile with the curve."""
+    from uwcam.calibration.profile import ResponseRecord
+    from tests.synthetic import make_profile
+    from tests.test_exposure import B, C
+
+    light, truth = scene()
+    linear = light * (200.0 / light.max()) + 5.0
+    v = linear / 255.0
+    codes = np.rint(255.0 * np.where(v <= 0.0031308, 12.92 * v, 1.055 * v ** (1 / 2.4) - 0.055)).astype(np.uint8)
+    profile = make_profile(C, B, dark_level=5.0, saturation_level=255.0, read_noise=0.5, shot_gain=0.05)
+    return codes, profile.model_copy(update={"response": ResponseRecord(kind="srgb", bits=8, method="srgb standard")}), truth
+
+
+def test_a_gamma_cameras_codes_are_linearised_on_every_path():
+    """Ranged alone (the lookup tables, per code), with a background of no light, or as means of
+    one frame, a gamma camera's codes are its linear light: the three agree, and range the plate
+    (a code's rounding, up to half a code, moves a range by a few per cent at most)."""
+    codes, profile, truth = srgb_plate()
+    est = RangeEstimator(profile)
+    alone = est(codes)
+    zero = np.zeros(codes.shape, np.float32)
+    with_background = est(codes, background=zero)
+    as_means = est(codes, samples=np.ones(codes.shape, np.float32))
+    valid = np.isfinite(truth)
+    assert np.isfinite(alone.range[valid]).all()
+    np.testing.assert_allclose(with_background.range, alone.range, rtol=1e-4)
+    np.testing.assert_allclose(as_means.range, alone.range, rtol=1e-4)
+    assert np.nanmax(np.abs(alone.range[valid] / truth[valid] - 1.0)) < 0.05
+
+
+def test_a_gamma_cameras_frames_of_another_bit_depth_are_refused():
+    from uwcam.fileio import UserInputError
+
+    codes, profile, _ = srgb_plate()
+    est = RangeEstimator(profile)
+    est(codes)  # its own 8 bits: ranged
+    with pytest.raises(UserInputError, match="8-bit codes; this frame has 16-bit pixels"):
+        est(codes.astype(np.uint16))
