@@ -101,7 +101,7 @@ RANGING_TESTS = ("tests/test_independent_estimator.py tests/test_independent_geo
 CALIBRATION_TESTS = ("tests/test_noise_beside_the_plate.py tests/test_calibration_helpers.py tests/test_independent_calibration.py tests/test_calibration_details.py "
                                                   "tests/test_calibration_closed_forms.py "
                                                   "tests/test_calibration.py tests/test_calibration_statistics.py "
-                                                  "tests/test_calibration_gaps.py")
+                                                  "tests/test_calibration_gaps.py tests/test_calibration_fixed_pattern.py")
 
 TARGETS: dict[str, Target] = {
     "optics.noise": Target("uwcam/optics/noise.py", "tests/test_independent_noise.py tests/test_noise_model_terms.py"),

@@ -694,3 +694,41 @@ def test_covariance_between_distances_enters_the_generalised_least_squares():
     np.testing.assert_allclose(fit.covariance, cov, rtol=1e-8)  # χ² well within its bound: unscaled
     independent = fit_attenuation_differences(ln_e, d, ref, lv)
     assert not np.allclose(independent.covariance, fit.covariance, rtol=1e-3)
+
+
+def test_several_frames_per_distance_without_a_black_patch_calibrate():
+    """Two frames per distance give the light beside the plate its noise points (docs/calibration.md,
+    "Noise model"); without a black patch only the plate is left out of that light: the fit runs,
+    with points of the light beside the plate at both distances."""
+    distances = [1.0, 1.0, 1.5, 1.5]
+    frames = [_textured(d, seed=i) for i, d in enumerate(distances)]
+    target_box = (30, 4, 22, 32)  # the right, brighter part: the dimmer left is light beside the plate
+    details = calibrate_with_details(frames, distances, _inputs(target_box=target_box))
+    beside = [label for label, _ in details.noise_points if not label.startswith(("plate", "black patch"))]
+    assert {label.split(" m,")[0] for label in beside} == {"beside the plate 1", "beside the plate 1.5"}, beside
+    assert np.all(np.isfinite(details.profile.array("attenuation_difference")))
+
+
+def test_one_frame_per_distance_takes_no_points_from_the_light_beside_the_plate():
+    """The light beside the plate counts only its temporal noise, so it needs two frames or more
+    of a distance (uwcam.calibration.noise_fit.dim_noise_points); from one frame each, the points
+    are the plate's alone, and so is the read noise they give."""
+    distances = [1.0, 1.5]
+    frames = [_textured(d, seed=i) for i, d in enumerate(distances)]
+    details = calibrate_with_details(frames, distances, _inputs(target_box=(30, 4, 22, 32)))
+    assert [label.split(",")[0] for label, _ in details.noise_points] == ["plate 1 m"] * 4 + ["plate 1.5 m"] * 4
+
+
+def test_the_black_patch_is_never_taken_for_light_beside_the_plate():
+    """The black patch is dim, as the water beside the plate is, but it lies on the plate: its noise
+    is measured as the black patch's, and the light beside the plate leaves it out with the plate
+    (docs/calibration.md, "Noise model"). A plate filling the view but a 4-pixel rim, with a large
+    black patch, two frames per distance: no point of light beside the plate."""
+    distances = [1.0, 1.0, 1.5, 1.5]
+    frames = [_textured(d, seed=i) for i, d in enumerate(distances)]
+    patch = (20, 12, 24, 16)
+    for f in frames:
+        f[_box(SHAPE, *patch)] *= 0.1
+    details = calibrate_with_details(frames, distances, _inputs(target_box=(4, 4, 48, 32), black_boxes=[patch] * 4,
+                                                                black_reflectance=RHO_B))
+    assert [label for label, _ in details.noise_points] == ["plate 1 m", "black patch 1 m", "plate 1.5 m", "black patch 1.5 m"]
