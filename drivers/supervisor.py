@@ -33,9 +33,16 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class CameraStats:
+    """What the camera's thread has counted since it started.
+
+    ``captured``: frames the driver delivered whole; ``dropped``: frames pushed out of the full
+    queue, oldest first; ``corrupt``: frames the driver reported damaged, not passed on;
+    ``timeouts``: reads that waited the read timeout for no frame; ``reconnects``: times the
+    driver was opened and started, the first time included.
+    """
+
     captured: int = 0
     dropped: int = 0
-    """Frames pushed out of the full queue, oldest first."""
     corrupt: int = 0
     timeouts: int = 0
     reconnects: int = 0

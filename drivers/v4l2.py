@@ -69,15 +69,15 @@ class V4L2Camera(CameraDriver):
                  fourcc: str | None = None, channel_names: tuple[str, ...] = ("R", "G", "B"),
                  backend: str = "auto", white_balance_k: float | None = None,
                  gain_db_per_step: float | None = None) -> None:
+        self.device = device
+        self.serial_number = serial_number
         if api not in APIS:
             raise ConfigurationError(f"unknown OpenCV api '{api}'; known: {', '.join(APIS)}")
+        self.api = api
         if backend not in ("auto", "native", "opencv"):
             raise ConfigurationError(f"unknown V4L2 backend '{backend}'; known: auto, native, opencv")
         if backend == "native" and api != "v4l2":
             raise ConfigurationError("backend 'native' drives V4L2 devices only; use api: v4l2 (or backend: opencv)")
-        self.device = device
-        self.serial_number = serial_number
-        self.api = api
         self.backend = backend
         self.fourcc = fourcc
         self.white_balance_k = white_balance_k
@@ -252,12 +252,14 @@ class V4L2Camera(CameraDriver):
             self._native.stop()
 
     def close(self) -> None:
-        if self._native is not None:
-            self._native.close()
-            self._native = None
-        if self._cap is not None:
-            self._cap.release()
-            self._cap = None
+        # Each handle is dropped before it is closed, so a close that raises is not retried on a
+        # handle already half closed.
+        native, self._native = self._native, None
+        if native is not None:
+            native.close()
+        cap, self._cap = self._cap, None
+        if cap is not None:
+            cap.release()
 
     @property
     def exposure_control(self) -> str:  # type: ignore[override]

@@ -37,6 +37,8 @@ INACTIVE_UNLESS = {0x009A0902: (0x009A0901, {1}), 0x0098091A: (0x0098090C, {0})}
 
 @dataclass
 class FakeControl:
+    """One control as the kernel's struct v4l2_queryctrl describes it, its menu and its value."""
+
     id: int
     name: str
     type: int
@@ -44,9 +46,9 @@ class FakeControl:
     maximum: int = 1
     step: int = 1
     default: int = 0
+    menu: dict[int, str] = field(default_factory=dict)
     value: int = 0
     flags: int = 0
-    menu: dict[int, str] = field(default_factory=dict)
 
 
 @dataclass
@@ -78,7 +80,7 @@ def parse_table(path: Path) -> tuple[dict[int, FakeControl], list[FakeFormat]]:
                 kind = TYPES[m.group(3)]
                 last = FakeControl(int(m.group(2), 16), m.group(1), kind, int(values.get("min", 0)),
                                    int(values.get("max", 1)), int(values.get("step", 1)), int(values["default"]),
-                                   int(values["value"]), flags)
+                                   value=int(values["value"]), flags=flags)
                 controls[last.id] = last
             elif (m := re.match(r"\s+(\d+): (.+)$", line)) and last is not None:
                 last.menu[int(m.group(1))] = m.group(2).strip()

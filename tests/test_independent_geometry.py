@@ -14,15 +14,9 @@ import numpy as np
 import pytest
 
 from tests.synthetic import make_profile
-from uwcam.optics import (
-    Intrinsics,
-    camera_range_derivative,
-    camera_range_equidistant,
-    camera_range_from_path_length,
-    path_length_from_camera_range,
-    pixel_rays,
-    plane_camera_range,
-)
+from uwcam.optics import Intrinsics, pixel_rays, plane_camera_range
+from uwcam.optics import camera_range_derivative, camera_range_equidistant
+from uwcam.optics import camera_range_from_path_length, path_length_from_camera_range
 from uwcam.optics.validity import Reason
 from uwcam.ranging.estimator import RangeEstimator
 

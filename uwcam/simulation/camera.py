@@ -38,9 +38,11 @@ class CameraModel:
     """Sensor noise and digitisation. Electrons (e⁻) and digital numbers (DN)."""
 
     bits: int = 16
+    """Bit depth of the output codes: 8, 12 or 16."""
     full_well_e: float = 20000.0
     """Electrons at the top code: sets DN per electron."""
     read_noise_e: float = 5.0
+    """Rms of the readout's Gaussian noise, e⁻."""
     dark_current_e: float = 40.0
     """Mean dark electrons per exposure (non-zero mean, with its own shot noise)."""
     prnu: float = 0.01

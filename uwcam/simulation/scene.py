@@ -91,6 +91,8 @@ def _hit_points(t: NDArray, rays: NDArray, centre: NDArray) -> NDArray:
 
 @dataclass(frozen=True)
 class Sphere:
+    """Sphere of ``radius`` (metres) about ``centre`` (metres, camera frame)."""
+
     centre: tuple[float, float, float]
     radius: float
     material: str
@@ -104,7 +106,11 @@ class Sphere:
 
 @dataclass(frozen=True)
 class Box:
-    """Axis-aligned box in a frame rotated by ``yaw_deg`` about the camera z axis."""
+    """Axis-aligned box in a frame rotated by ``yaw_deg`` about the camera z axis.
+
+    ``centre`` in metres, camera frame; ``half_size``: half the edge lengths along the box's own
+    x, y and z, metres.
+    """
 
     centre: tuple[float, float, float]
     half_size: tuple[float, float, float]
@@ -132,7 +138,11 @@ class Box:
 
 @dataclass(frozen=True)
 class Cylinder:
-    """Finite cylinder (no end caps: its ends lie outside the view or on the seabed)."""
+    """Finite cylinder (no end caps: its ends lie outside the view or on the seabed).
+
+    ``centre``: the midpoint of its axis, metres, camera frame; ``axis``: a unit vector along it;
+    ``radius`` and ``half_length`` (half the length along ``axis``) in metres.
+    """
 
     centre: tuple[float, float, float]
     axis: tuple[float, float, float]
@@ -155,7 +165,11 @@ class Cylinder:
 
 @dataclass(frozen=True)
 class Torus:
-    """Torus of major radius R and tube radius r about ``axis``, found by sphere tracing."""
+    """Torus of major radius R and tube radius r about ``axis``, found by sphere tracing.
+
+    ``centre`` in metres, camera frame; ``axis``: the unit normal of the torus's plane; ``major``
+    (R, from the centre to the middle of the tube) and ``minor`` (r, the tube's radius) in metres.
+    """
 
     centre: tuple[float, float, float]
     axis: tuple[float, float, float]

@@ -1,6 +1,11 @@
 // uwcam operator page: live colour and range views, readout, pins, line profile, 3-D, health
 // and controls. Talks only to the daemon's public API, always by relative URL (so it works under
 // a reverse proxy's path prefix, e.g. BlueOS's /extensionv2/uwcam/).
+//
+// One module over 500 lines on purpose: its handlers all read and write the page's one `state`
+// (the newest frame, colour limits, pins, the status, the patch being drawn), so they stay
+// together; what stands alone lives beside it: colour maps, the view stream, the 3-D view, the
+// tank calibration panel and the alert banner.
 
 import { COLOUR_MAPS, REASON_COLOURS, cssColour, lut, reasonColour } from "./colormap.js";
 import { ViewStream, centreAndMinimum, float16, sample } from "./stream.js";
