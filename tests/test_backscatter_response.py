@@ -191,3 +191,24 @@ def test_the_footprints_backscatter_is_that_of_the_whole_frame_there():
             got = comp.footprint_level(2.7, (x, y, w, h), scale)
             assert got.shape == whole.shape
             np.testing.assert_allclose(got, whole, rtol=1e-6)
+
+
+def test_the_mean_of_a_capture_alone_finds_the_gain_map_with_the_noise_model():
+    """The daemon keeps only the mean of the frames its open-water capture averaged (and their
+    count): each pixel's response is then found with the profile's noise model for the noise of
+    that mean, as nearly as from the frames' own spread; a mean said to be of one frame finds none."""
+    from uwcam.water.backscatter import BackscatterModel
+
+    water, lamp, camera = water_preset("jerlov-II", WAVELENGTHS), Lamp(position=(0.3, 0.0, 0.0)), CameraModel()
+    profile = calibrate_in_simulation(water, lamp, SIZE, camera, frames_per_distance=2)
+    raw = np.stack([SimulatedWorld(scene="open-water", distance=5.0, size=SIZE, water=water, lamp=lamp, camera=camera,
+                                   seed=6).frame(i) for i in range(16)]).astype(np.float32)
+    truth = camera.gain_map(raw.shape[1:])
+    inner = (slice(8, -8), slice(8, -8))
+    spread = np.sqrt(np.mean((truth - 1.0)[inner] ** 2))
+    from_mean = BackscatterModel.from_profile(profile, raw.mean(axis=0), frames_averaged=16).response
+    from_frames = BackscatterModel.from_profile(profile, raw).response
+    for response in (from_mean, from_frames):
+        assert np.sqrt(np.mean((response - truth)[inner] ** 2)) < 0.5 * spread
+        assert np.corrcoef(response[inner].ravel(), truth[inner].ravel())[0, 1] > 0.85
+    assert BackscatterModel.from_profile(profile, raw.mean(axis=0)).response is None

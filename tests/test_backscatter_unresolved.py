@@ -92,7 +92,7 @@ def test_ranges_are_found_with_the_backscatter_of_their_own_depth(water_name, di
         assert abs(np.median((result.range[valid] - truth[valid]) / truth[valid])) < 0.03
 
 
-@pytest.mark.parametrize("frames, distance, lamp_x", [(1, 5.0, 0.3), (1, 3.0, 0.0)])
+@pytest.mark.parametrize("frames, distance, lamp_x", [(1, 5.0, 0.3), (1, 3.0, 0.0), (16, 5.0, 0.3)])
 def test_a_depth_that_only_the_near_side_reaches_is_no_range(frames, distance, lamp_x):
     """Jerlov III, where the seabed's red light hardly clears the water's: passes that start from
     the near side (the water's light left in) can settle on a depth 40–60 % short whose own
@@ -100,8 +100,9 @@ def test_a_depth_that_only_the_near_side_reaches_is_no_range(frames, distance, l
     depth as self-consistent as the true one (the bench's water study kept 11 to 47 such pixels per
     cell, every one beyond 3σ). The same passes started from the far side (the open water's light
     subtracted first) do not reach it: a block whose two starts settle apart has no range
-    (reason 3). The truth is the simulator's; 3×3 means as the water study ranges. (16 frames
-    fused at 3 m, lamp on the axis, still keep 3 such pixels of 49 152: both starts reach them.)"""
+    (reason 3). The truth is the simulator's; 3×3 means as the water study ranges. 16 frames fused
+    at 5 m kept 9 pixels 62 % short that both starts reach, alone in blocks where nothing else had
+    a range: a block needs a tenth of its pixels ranged for any to keep a range (MIN_SUPPORT)."""
     from uwcam.ranging.images import range_images
 
     profile, stack, open_water, truth = murky_cell(distance=distance, lamp_x=lamp_x, frames=frames)
@@ -110,3 +111,34 @@ def test_a_depth_that_only_the_near_side_reaches_is_no_range(frames, distance, l
     z = (result.range[valid] - truth[valid]) / np.sqrt(result.variance[valid])
     assert int(np.sum(np.abs(z) > 3.0)) == 0, (valid.sum(), result.range[valid][:10], truth[valid][:10])
     assert np.all(result.reasons[~valid] != Reason.VALID)
+
+
+def test_a_block_keeps_its_ranges_only_where_a_tenth_of_its_pixels_have_one(monkeypatch):
+    """Blocks of 8×8: 6 ranged pixels of 64 lose their ranges (reason 3), 7 keep theirs; pixels
+    without a range keep their own reasons."""
+    from uwcam.ranging.result import RangeResult
+    from uwcam.water.frame_compensator import BLOCK, BackscatterCompensator
+
+    comp = BackscatterCompensator.__new__(BackscatterCompensator)  # the rule alone, without a profile
+    comp.shape, comp._grid = (16, 24), (2, 3)
+    assert BLOCK == 8
+    rng = np.full((16, 24), np.nan, np.float32)
+    reasons = np.full((16, 24), Reason.BELOW_NOISE_FLOOR, np.uint8)
+    counts = {(0, 0): 6, (0, 1): 7, (0, 2): 64, (1, 0): 0, (1, 1): 1, (1, 2): 10}
+    for (by, bx), n in counts.items():
+        block = np.zeros(64, bool)
+        block[np.random.default_rng(by * 3 + bx).choice(64, n, replace=False)] = True
+        rng[by * 8:(by + 1) * 8, bx * 8:(bx + 1) * 8][block.reshape(8, 8)] = 3.0
+    reasons[np.isfinite(rng)] = Reason.VALID
+    result = RangeResult(rng.copy(), np.where(np.isfinite(rng), np.float32(0.01), np.nan).astype(np.float32),
+                         reasons.copy(), np.where(np.isfinite(rng), np.float32(0.001), np.nan).astype(np.float32))
+    comp._drop_unsupported(result)
+    for (by, bx), n in counts.items():
+        sl = (slice(by * 8, (by + 1) * 8), slice(bx * 8, (bx + 1) * 8))
+        kept = np.isfinite(result.range[sl]).sum()
+        assert kept == (n if n >= 7 else 0), ((by, bx), n, kept)
+        was = np.isfinite(rng[sl])
+        if n < 7:
+            assert np.all(result.reasons[sl][was] == Reason.BACKSCATTER_ONLY)
+            assert np.all(np.isnan(result.variance[sl][was]) & np.isnan(result.common_variance[sl][was]))
+        assert np.all(result.reasons[sl][~was] == Reason.BELOW_NOISE_FLOOR)

@@ -305,9 +305,9 @@ def test_ranging_adds_the_calibration_variance_and_smoothing_keeps_it(lamp, near
                     0, 65535).astype(np.uint16)
     plain = RangeEstimator(base)(frame)
     full = RangeEstimator(with_cov)(frame)
-    assert plain.calibration_variance is None
+    assert plain.common_variance is None
     np.testing.assert_array_equal(full.range, plain.range)
-    np.testing.assert_allclose(full.variance - plain.variance, full.calibration_variance, rtol=1e-5, atol=1e-12)
+    np.testing.assert_allclose(full.variance - plain.variance, full.common_variance, rtol=1e-5, atol=1e-12)
     # Reference: every pixel's own sensitivity from its expected signal, by the formula written out here.
     c = np.array([0.46, 0.11, 0.06])
     w = clean**2 / (25 + 0.3 * clean + 1 / 12)
@@ -321,10 +321,10 @@ def test_ranging_adds_the_calibration_variance_and_smoothing_keeps_it(lamp, near
     deriv = camera_range_derivative(path, with_cov.lamp_position_m, pixel_rays(intr, *shape))
     expected = deriv**2 * var_path
     inner = (slice(8, -8), slice(8, -8))  # the outermost blocks extrapolate
-    np.testing.assert_allclose(full.calibration_variance[inner], expected[inner], rtol=0.03)
+    np.testing.assert_allclose(full.common_variance[inner], expected[inner], rtol=0.03)
     smoothed = smooth_range_map(full, "mean")
     # Averaging 9 pixels divides the pixel noise by 9 but leaves the calibration's share whole.
-    np.testing.assert_allclose(smoothed.variance[inner], (plain.variance[inner] / 9 + full.calibration_variance[inner]),
+    np.testing.assert_allclose(smoothed.variance[inner], (plain.variance[inner] / 9 + full.common_variance[inner]),
                                rtol=0.05)
 
 

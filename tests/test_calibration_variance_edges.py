@@ -40,9 +40,9 @@ def test_with_a_background_the_weights_come_from_the_total_light_and_the_signal_
     out = est((signal + background).astype(np.float32), background=background.astype(np.float32))
     # Lamp at the camera: d_c = d_T / 2, so ∂d_c/∂d_T = ½ everywhere.
     expected = 0.25 * expected_calibration_variance(profile, signal, signal + background, path)
-    np.testing.assert_allclose(out.calibration_variance, expected, rtol=1e-3)
-    without = est(signal.astype(np.float32)).calibration_variance
-    assert np.all(np.abs(without - out.calibration_variance) > 1e-3 * out.calibration_variance)
+    np.testing.assert_allclose(out.common_variance, expected, rtol=1e-3)
+    without = est(signal.astype(np.float32)).common_variance
+    assert np.all(np.abs(without - out.common_variance) > 1e-3 * out.common_variance)
 
 
 def test_pixels_next_to_a_hole_keep_a_positive_calibration_share():
@@ -53,8 +53,8 @@ def test_pixels_next_to_a_hole_keep_a_positive_calibration_share():
     out = RangeEstimator(profile)(frame.astype(np.float32))
     valid = out.reasons == Reason.VALID
     assert valid.sum() > 0.7 * valid.size and np.all(out.reasons[20:36, 28:52] == Reason.BELOW_NOISE_FLOOR)
-    share = out.calibration_variance[valid]
-    far = out.calibration_variance[:8, :8].min()
+    share = out.common_variance[valid]
+    far = out.common_variance[:8, :8].min()
     assert np.all(share >= 0.5 * far), "pixels next to the hole got less than their share (or a negative one)"
 
 
@@ -65,7 +65,7 @@ def test_frames_smaller_than_a_block_get_the_share_of_their_mean(shape):
     signal = 4e4 * np.exp(-C * path[..., None])
     out = RangeEstimator(profile)(signal.astype(np.float32))
     expected = 0.25 * expected_calibration_variance(profile, signal, signal, path)
-    np.testing.assert_allclose(out.calibration_variance, expected, rtol=1e-3)
+    np.testing.assert_allclose(out.common_variance, expected, rtol=1e-3)
 
 
 def test_an_integer_frame_in_which_no_code_carries_signal_is_all_below_the_floor():
@@ -91,7 +91,7 @@ def test_a_frame_lower_than_a_block_is_one_row_of_blocks():
     yw = (weight * y).sum(-1, keepdims=True) / weight.sum(-1, keepdims=True)
     block_path = -(weight * (C - cw) * (y - yw)).sum(-1) / (weight * (C - cw) ** 2).sum(-1)
     expected = 0.25 * expected_calibration_variance(profile, means, means, block_path)  # (1, 5)
-    np.testing.assert_allclose(out.calibration_variance, np.repeat(np.repeat(expected, h, 0), 8, 1), rtol=1e-3)
+    np.testing.assert_allclose(out.common_variance, np.repeat(np.repeat(expected, h, 0), 8, 1), rtol=1e-3)
 
 
 def test_a_lamp_beside_the_camera_without_intrinsics_uses_the_optical_axis():
@@ -110,7 +110,7 @@ def test_a_lamp_beside_the_camera_without_intrinsics_uses_the_optical_axis():
     s2 = 0.3**2
     deriv = 0.5 * (16.0 + s2) / 16.0
     expected = deriv**2 * expected_calibration_variance(profile, signal, signal, path)
-    np.testing.assert_allclose(out.calibration_variance, expected, rtol=1e-3)
+    np.testing.assert_allclose(out.common_variance, expected, rtol=1e-3)
 
 
 def test_wrong_channel_count_and_a_pair_without_contrast_say_what_is_wrong():

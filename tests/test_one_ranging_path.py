@@ -162,3 +162,50 @@ def test_a_compensator_built_for_a_profile_replaced_meanwhile_is_not_kept(settin
     release.set()
     in_flight.join(30.0)
     assert pipeline._compensator is ours
+
+
+@pytest.mark.slow
+def test_a_captured_open_water_mean_keeps_its_count_in_the_loop_and_in_reprocessing(setting, tmp_path):
+    """The daemon's open-water capture keeps the mean of its frames and how many there were: the
+    loop finds each pixel's response from it, the recording says the count, and reprocessing
+    ranges the frame bit-identically with it; the same mean taken for a single frame ranges otherwise."""
+    import json
+
+    profile, frame, _, _ = setting
+    view = SimulatedWorld(scene="open-water", distance=4.0, size=SIZE, water=WATER, lamp=LAMP, camera=CameraModel(),
+                          fixed_exposure=SimulatedWorld(scene="seabed", distance=4.0, size=SIZE, water=WATER, lamp=LAMP,
+                                                        camera=CameraModel()).exposure, seed=6)
+    mean = np.mean([view.frame(i) for i in range(8)], axis=0).astype(np.float32)
+
+    def live(info: dict, folder: str):
+        camera = QueuedCamera()
+        pipeline = FramePipeline(camera, profile, ProcessingConfig(backscatter=BackscatterConfig()))
+        pipeline.set_open_water(mean, info)
+        published = []
+        pipeline.subscribe(published.append)
+        recorder = Recorder(pipeline, RecordingConfig(folder=str(tmp_path / folder), chunk_kb=64, results=True))
+        path = str(tmp_path / f"{folder}.mcap")
+        recorder.start(path)
+        pipeline.start()
+        try:
+            camera.put(Frame(data=frame.copy(), sequence=0, host_monotonic_ns=time.monotonic_ns(), wall_time=time.time(),
+                             lamp_on=True))
+            assert wait_for(lambda: len(published) == 1, 60.0)
+        finally:
+            pipeline.stop()
+            recorder.stop()
+        assert (pipeline._compensator.model.response is not None) == (info.get("frames", 1) > 1)
+        return published[0], path
+
+    eight, path = live({"frames": 8, "source": "test"}, "eight")
+    one, _ = live({"source": "test"}, "one")
+    assert eight.open_water_frames == 8 and one.open_water_frames == 1
+    assert not np.array_equal(eight.result.range, one.result.range, equal_nan=True)
+    records = [json.loads(d) if isinstance(d, (bytes, str)) else d for _, d in decoded(path, rec.RANGING)]
+    assert records and all(r["open_water_frames"] == 8 for r in records)
+    out = str(tmp_path / "again.mcap")
+    reprocess([path], out, progress=False)
+    for topic in (rec.DEPTH, rec.VARIANCE, rec.REASONS):
+        (_, a), = decoded(path, topic)
+        (_, b), = decoded(out, topic)
+        assert np.array_equal(image(a), image(b), equal_nan=True)

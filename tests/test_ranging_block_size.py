@@ -16,7 +16,7 @@ def test_the_frames_share_is_computed_on_the_documented_8_pixel_blocks():
     path = 2.0 + 6.0 * ((j / w) ** 2 + 0.5 * (i / h) ** 3)  # curved, so that block averages differ by size
     frame = 4e4 * np.exp(-C * path[..., None])
     est = RangeEstimator(profile)
-    got = est(frame).calibration_variance
+    got = est(frame).common_variance
     np.testing.assert_array_equal(got, est.calibration_variance(frame, block=8))
     for other in (7, 9):  # the comparison can tell the block size
         assert np.abs(est.calibration_variance(frame, block=other) - got).max() > 1e-6 * got.max()

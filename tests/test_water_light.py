@@ -145,7 +145,7 @@ def test_frames_fused_over_time_have_less_noise_and_an_honest_sigma():
     truth = seabed.camera_range
     both = np.isfinite(one.range) & np.isfinite(fused.range)
     assert both.mean() > 0.95
-    ratio = np.median(np.sqrt(one.variance[both] / (fused.variance[both] - fused.calibration_variance[both])))
+    ratio = np.median(np.sqrt(one.variance[both] / (fused.variance[both] - fused.common_variance[both])))
     assert 1.3 < ratio < np.sqrt(8.0) * 1.01, ratio
     z = (fused.range[both] - truth[both]) / np.sqrt(fused.variance[both])
     assert 0.7 < np.std(z) < 1.3, np.std(z)

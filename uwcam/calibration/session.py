@@ -304,7 +304,7 @@ class CalibrationSession:
         x, y, w, h = capture.pose.target_box
         rng = result.range[y : y + h, x : x + w].astype(np.float64)
         var = result.variance[y : y + h, x : x + w].astype(np.float64)
-        cal = result.calibration_variance
+        cal = result.common_variance
         rays = pixel_rays(self.intrinsics, *frame.shape[:2])[y : y + h, x : x + w]
         truth = plane_camera_range(capture.distance_m, rays)
         ok = np.isfinite(rng)

@@ -108,8 +108,8 @@ def adaptive_windows(single: RangeResult, frame: NDArray, ranged: Ranger, estima
     best_v = np.where(have, v1, np.nan).astype(np.float64)
     first_r, first_v = best_r.copy(), best_v.copy()
     chosen = np.zeros(r1.shape, bool)
-    # The calibration's share of each pixel's variance, of the light its range came from.
-    cal = None if single.calibration_variance is None else np.array(single.calibration_variance, np.float32)
+    # The common share of each pixel's variance (calibration, backscatter model), of the light its range came from.
+    cal = None if single.common_variance is None else np.array(single.common_variance, np.float32)
     for size in ladder:
         if not active.any():
             break
@@ -135,8 +135,8 @@ def adaptive_windows(single: RangeResult, frame: NDArray, ranged: Ranger, estima
         first = take & ~np.isfinite(first_r)
         first_r[first], first_v[first] = r[first], v[first]
         best_r[take], best_v[take] = r[take], v[take]
-        if cal is not None and result.calibration_variance is not None:
-            cal[take] = result.calibration_variance[take]
+        if cal is not None and result.common_variance is not None:
+            cal[take] = result.common_variance[take]
         chosen |= take
         # Growing stops at the target, and at the first window given up once a range is had (or
         # whose light is unlike the pixel's own): a larger one would cross the same edge.

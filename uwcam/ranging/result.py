@@ -18,6 +18,7 @@ class RangeResult:
     """Variance of ``range`` in m²; NaN where invalid."""
     reasons: NDArray[np.uint8]
     """:class:`uwcam.optics.validity.Reason` code per pixel."""
-    calibration_variance: NDArray[np.float32] | None = None
-    """The part of ``variance`` that comes from the calibration (m²), the same in every frame and
-    correlated between pixels; None when not added."""
+    common_variance: NDArray[np.float32] | None = None
+    """The part of ``variance`` that neighbouring pixels share and that no average over pixels or
+    frames reduces (m²): the calibration's uncertainty and, where the water's light was subtracted,
+    the backscatter model's; None when neither was added."""

@@ -147,7 +147,8 @@ def smooth_range_map(result: RangeResult, kind: str = "mean") -> RangeResult:
 
     kind "mean": average of the n valid pixels in each 3×3 window, with the variance of that
     average for independent neighbours, Σσ_k²/n² (σ²/n when all are equal), plus the
-    calibration's share of the variance, which neighbours have in common; "median": their
+    share of the variance that neighbours have in common (``common_variance``: the calibration's
+    and the backscatter model's); "median": their
     median, variance kept.
     Invalid pixels stay invalid with their reasons, and never leak into valid ones.
     """
@@ -155,16 +156,16 @@ def smooth_range_map(result: RangeResult, kind: str = "mean") -> RangeResult:
         raise UserInputError(f"smoothing must be 'mean' or 'median', got '{kind}'")
     r = result.range
     valid = np.isfinite(r)
-    # The calibration's share is common to neighbouring pixels: averaging does not reduce it.
-    cal = 0.0 if result.calibration_variance is None else result.calibration_variance
+    # The common share (calibration, backscatter model) is the neighbours' too: averaging does not reduce it.
+    cal = 0.0 if result.common_variance is None else result.common_variance
     if kind == "mean" and _smooth_mean is not None:
         shape = r.shape
         maps = [kernel_array(a, shape, np.float32) for a in (r, result.variance)]
-        with_calibration = result.calibration_variance is not None
-        calibration = kernel_array(result.calibration_variance, shape, np.float32) if with_calibration else maps[1]
+        with_calibration = result.common_variance is not None
+        calibration = kernel_array(result.common_variance, shape, np.float32) if with_calibration else maps[1]
         out_range, out_variance = np.empty(shape, np.float32), np.empty(shape, np.float32)
         _smooth_mean(*maps, calibration, with_calibration, out_range, out_variance)
-        return RangeResult(out_range, out_variance, result.reasons.copy(), result.calibration_variance)
+        return RangeResult(out_range, out_variance, result.reasons.copy(), result.common_variance)
     if kind == "mean":
         # Window sums as box filters (outside the image and at invalid pixels: 0, not counted),
         # in float32 like the maps themselves (sums of nine: within 3 units in the last place):
@@ -176,7 +177,7 @@ def smooth_range_map(result: RangeResult, kind: str = "mean") -> RangeResult:
         count = window_sum(valid.astype(np.float32))
         with np.errstate(invalid="ignore", divide="ignore"):
             smoothed = window_sum(np.where(valid, r, zero)) / count
-        # The noise of independent neighbours averages as Σσ_k²/n²; the calibration's share does not.
+        # The noise of independent neighbours averages as Σσ_k²/n²; the common share does not.
         noise = np.where(valid, result.variance.astype(np.float32) - np.float32(cal), zero)
         variance = window_sum(noise) / np.maximum(count, np.float32(1)) ** 2 + np.float32(cal)
     else:
@@ -191,5 +192,5 @@ def smooth_range_map(result: RangeResult, kind: str = "mean") -> RangeResult:
         np.where(valid, smoothed, np.nan).astype(np.float32),
         np.where(valid, variance, np.nan).astype(np.float32),
         result.reasons.copy(),
-        result.calibration_variance,
+        result.common_variance,
     )

@@ -55,6 +55,7 @@ def ranging_record(p: Published, profile: CalibrationProfile, processing) -> dic
                            # Fused frames are reprocessed as single frames (docs/physics.md §11).
                            "temporal": None if processing.temporal is None else processing.temporal.model_dump()},
             "water": p.water_source, "light_scale": None if p.light_scale is None else list(p.light_scale),
+            "open_water_frames": p.open_water_frames if p.open_water is not None else None,
             "depth": "metres along the optical axis (range along the pixel ray times u_z)"}
 
 

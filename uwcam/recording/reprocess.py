@@ -162,10 +162,15 @@ def _water_and_compensation(cache: dict, profile: CalibrationProfile, estimator:
     if water_frame is None and source == "open-water frame":
         raise UserInputError(f"frame {record['number']} was judged against an open-water frame that the recording "
                              "does not hold; it cannot be ranged again the same way")
-    made_for = (*key, iterations, tuple(shape), source)
+    # How many frames the open-water frame is the mean of (recordings before it was written: 1).
+    water_frames = record.get("open_water_frames") or 1
+    if not isinstance(water_frames, int) or isinstance(water_frames, bool) or not 1 <= water_frames <= 100_000:
+        raise UserInputError(f"frame {record['number']}'s record gives {water_frames!r} as the open-water frame's count of "
+                             "frames, not a count from 1 to 100000; the recording is damaged")
+    made_for = (*key, iterations, tuple(shape), source, water_frames)
     if made_for not in cache:
         comp = BackscatterCompensator(profile, tuple(shape[:2]), iterations, water_frame, pair=key[1],
-                                      path_length_bounds=key[2])
+                                      path_length_bounds=key[2], open_water_frames=water_frames)
         cache[made_for] = (comp, comp.water)
     comp, water = cache[made_for]
     scale = None if record.get("light_scale") is None else np.asarray(record["light_scale"], dtype=np.float64)

@@ -39,6 +39,9 @@ class Published:
     frames: NDArray[np.uint16] | None = None
     """(H, W) frames each pixel's range is built from under temporal fusion (0: no range); None
     when fusion is off (every range from its own frame alone)."""
+    open_water_frames: int = 1
+    """How many frames ``open_water`` is the mean of (its pixels' own response is found from it
+    when 2 or more: :meth:`uwcam.water.backscatter.BackscatterModel.from_profile`)."""
 
     @property
     def latency_s(self) -> float:

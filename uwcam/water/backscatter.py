@@ -34,6 +34,7 @@ from numpy.typing import NDArray
 
 from uwcam.fileio import UserInputError
 from uwcam.optics.geometry import pixel_rays
+from uwcam.optics.noise import signal_variance
 from uwcam.calibration.profile import CalibrationProfile
 from uwcam.compute.jit import HAVE_NUMBA, njit
 
@@ -74,11 +75,17 @@ def pixel_response(frames: NDArray, smooth: NDArray) -> NDArray[np.float64]:
     σ_g² = var q − σ_n²/K, 0 when negative). Returns (H, W, N) g ≥ 0, 1 on average.
     """
     k = frames.shape[0]
-    mean = frames.mean(axis=0)
+    return response_of_mean(frames.mean(axis=0), smooth, frames.var(axis=0, ddof=1) / k)
+
+
+def response_of_mean(mean: NDArray, smooth: NDArray, noise: NDArray) -> NDArray[np.float64]:
+    """:func:`pixel_response` from the mean of the frames alone: mean (H, W, N) dark-corrected DN,
+    smooth (H, W, N) its smoothed level, noise (H, W, N) the variance (DN²) of the mean's noise
+    (the frames' spread over K, or the camera's noise model over K where only the mean was kept)."""
     safe = np.where(smooth > 0, smooth, 1.0)
     q = np.where(smooth > 0, mean / safe - 1.0, 0.0)
-    noise = np.where(smooth > 0, frames.var(axis=0, ddof=1) / safe**2, 0.0) / k  # (H, W, N) variance of q's noise
-    noise_var = noise.reshape(-1, noise.shape[-1]).mean(axis=0)
+    relative = np.where(smooth > 0, noise / safe**2, 0.0)  # (H, W, N) variance of q's noise
+    noise_var = relative.reshape(-1, relative.shape[-1]).mean(axis=0)
     total_var = (q**2).reshape(-1, q.shape[-1]).mean(axis=0)
     response_var = np.maximum(total_var - noise_var, 0.0)
     weight = np.where(total_var > 0, response_var / np.where(total_var > 0, total_var, 1.0), 0.0)
@@ -194,11 +201,13 @@ class BackscatterModel:
 
     @classmethod
     def from_profile(cls, profile: CalibrationProfile, open_water: NDArray | None = None,
-                     shape: tuple[int, int] | None = None) -> "BackscatterModel":
+                     shape: tuple[int, int] | None = None, frames_averaged: int = 1) -> "BackscatterModel":
         """From the profile's backscatter measurements and an optional lamp-lit open-water frame (H, W, N) raw,
         or several of them (K, H, W, N): their mean is the frame, and with K ≥ 2 each pixel's own response
-        is estimated too (:func:`pixel_response`). shape: (H, W) of the frames to be ranged, when no
-        open-water frame gives it."""
+        is estimated too (:func:`pixel_response`). frames_averaged: the one frame (H, W, N) is the mean
+        of this many (the daemon keeps only the mean of its capture): with 2 or more the response is
+        estimated from it, its noise taken from the profile's noise model. shape: (H, W) of the
+        frames to be ranged, when no open-water frame gives it."""
         if profile.backscatter is None:
             raise UserInputError(
                 "the calibration profile has no backscatter measurements; calibrate with a rig that has a black patch "
@@ -262,7 +271,13 @@ class BackscatterModel:
             step = 0
         model = cls(depths, shares, np.ones((1, 1, n)), step)
         if pattern is not None:
-            response = pixel_response(frames, pattern) if frames.shape[0] >= 2 else None
+            response = None
+            if frames.shape[0] >= 2:
+                response = pixel_response(frames, pattern)
+            elif frames_averaged >= 2:
+                q = profile.quantisation_step
+                noise = signal_variance(water, profile.array("read_noise"), profile.array("shot_gain"), q) / frames_averaged
+                response = response_of_mean(water, pattern, noise)
             return cls(depths, shares, pattern, step, response)
         # No open-water frame: scale F so the model meets the last patch measurement; uniform in
         # space, or, with the physics of the column, following the lamp's place across the view.

@@ -42,7 +42,7 @@ class CompensationStage:
         compensator = None
         if self._iterations(processing, profile) is not None and shape is not None:
             try:
-                compensator = self._make_compensator(processing, profile, shape, water)
+                compensator = self._make_compensator(processing, profile, shape, water, self._frames_of(info or {}))
             except Exception:  # the frame is kept all the same; the loop tries again, and says why
                 log.exception("could not build backscatter compensation for the open-water frame")
         with self._lock:
@@ -51,6 +51,13 @@ class CompensationStage:
             # Settings or profile changed meanwhile: the loop builds one for what it has now.
             current = self.processing is processing and self.profile is profile
             self._compensator = compensator if current else None
+
+    @staticmethod
+    def _frames_of(info: dict) -> int:
+        """How many frames an open-water frame with this ``info`` is the mean of (1 where it does
+        not say, or says something that is not a count: a state file from elsewhere)."""
+        frames = info.get("frames", 1)
+        return frames if isinstance(frames, int) and not isinstance(frames, bool) and 1 <= frames <= 100_000 else 1
 
     def request_open_water(self, frames: int = 4, timeout_s: float = 10.0) -> threading.Event:
         """Average the next ``frames`` lamp-lit frames into the open-water frame; the event is set
@@ -140,23 +147,26 @@ class CompensationStage:
         return compensation_iterations(None if processing.backscatter is None else processing.backscatter.iterations, profile)
 
     def _make_compensator(self, processing: ProcessingConfig, profile: CalibrationProfile, frame_shape: tuple[int, ...],
-                          open_water: NDArray | None):
+                          open_water: NDArray | None, open_water_frames: int | None = None):
         """A backscatter compensator for frames of ``frame_shape`` (H, W, N), with the open-water
-        frame if it is of that shape: the one in use when it was built from the same inputs (a
+        frame if it is of that shape (the mean of ``open_water_frames``; None: as the one in use
+        says): the one in use when it was built from the same inputs (a
         new one costs 0.3-0.6 s at 720p, which a change of smoothing or of the page's pins must
         not pay), else a new one."""
         from uwcam.water.frame_compensator import BackscatterCompensator
 
         water = open_water if open_water is not None and open_water.shape == tuple(frame_shape) else None
         inputs = (profile, water, tuple(frame_shape[:2]), self._iterations(processing, profile), processing.pair,
-                  tuple(processing.path_length_bounds))
+                  tuple(processing.path_length_bounds),
+                  1 if water is None else open_water_frames or self._frames_of(self.open_water_info))
         current = self._compensator
         built_from = getattr(current, "built_from", None)
         if built_from is not None and _same_inputs(built_from, inputs):
             return current
         kind = self._frame_kind  # its kernels readied for the frames the camera gives, once known
         ready = {} if kind is None else {"frame_dtypes": (kind[0].type,), "strided": not kind[2]}
-        compensator = BackscatterCompensator(profile, inputs[2], inputs[3], water, pair=processing.pair,
+        compensator = BackscatterCompensator(profile, inputs[2], inputs[3], water, open_water_frames=inputs[6],
+                                             pair=processing.pair,
                                              path_length_bounds=processing.path_length_bounds, **ready)
         compensator.built_from = inputs
         return compensator

@@ -80,13 +80,13 @@ class OrientationEstimator:
             return None
         irradiance, share, usable = block_irradiance(data, result.range, p.array("dark_level"), p.array("noise_floor"),
                                                      p.saturation_level, b, background)
-        maps = [np.asarray(m, np.float32) for m in (result.range, result.variance, result.calibration_variance) if m is not None]
+        maps = [np.asarray(m, np.float32) for m in (result.range, result.variance, result.common_variance) if m is not None]
         means = block_means(cv2.merge(maps), usable, b)  # one pass over the three maps
         seed, variance = means[..., 0], means[..., 1]
         common = means[..., 2] if means.shape[-1] > 2 else 0.0
         count = share * (b * b)
         # Variances of the block means: the camera's noise model per pixel over the pixels averaged,
-        # and the fused range's own (its calibration part is common to all pixels: not averaged down).
+        # and the fused range's own (its common part, the calibration's and the backscatter model's, is not averaged down).
         with np.errstate(invalid="ignore", divide="ignore"):
             pixel_var = (p.array("read_noise") ** 2 + p.array("shot_gain") * irradiance
                          + (p.array("fixed_pattern") * irradiance) ** 2 + p.quantisation_step**2 / 12.0)
