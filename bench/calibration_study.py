@@ -85,7 +85,7 @@ def run_study(trials: int, frames: int = 4, size: tuple[int, int] = (320, 240),
             sl = (slice(h // 2 - 16, h // 2 + 16), slice(w // 2 - 16, w // 2 + 16))
             r_est, r_truth = a.range[sl].astype(np.float64), world.camera_range[sl]
             good = np.isfinite(r_est)
-            cal = a.calibration_variance[sl][good].astype(np.float64)
+            cal = a.common_variance[sl][good].astype(np.float64)
             pix = a.variance[sl][good].astype(np.float64) - cal
             err = np.mean(r_est[good] - r_truth[good])
             region_z.append(err / np.sqrt(np.mean(cal) + np.mean(pix) / good.sum()))
