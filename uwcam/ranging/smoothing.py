@@ -147,9 +147,8 @@ def smooth_range_map(result: RangeResult, kind: str = "mean") -> RangeResult:
 
     kind "mean": average of the n valid pixels in each 3×3 window, with the variance of that
     average for independent neighbours, Σσ_k²/n² (σ²/n when all are equal), plus the
-    share of the variance that neighbours have in common (``common_variance``: the calibration's
-    and the backscatter model's); "median": their
-    median, variance kept.
+    share neighbours have in common (``common_variance``: calibration, backscatter model); "median":
+    their median, variance kept.
     Invalid pixels stay invalid with their reasons, and never leak into valid ones.
     """
     if kind not in ("mean", "median"):
