@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from uwcam.water import frame_compensator as backscatter_loop
-from uwcam.water.frame_compensator import MAX_RELATIVE_SD, drop_unresolved
+from uwcam.water import unresolved
+from uwcam.water.unresolved import MAX_RELATIVE_SD, drop_unresolved
 from uwcam.optics.validity import Reason
 from uwcam.ranging.result import RangeResult
 
@@ -25,10 +25,10 @@ def sample(seed: int = 3, shape=(37, 53)) -> RangeResult:
 
 @pytest.mark.parametrize("path", ["compiled", "numpy", "strided"])
 def test_ranges_twice_as_uncertain_as_they_are_long_are_dropped(path, monkeypatch):
-    if path == "compiled" and backscatter_loop._drop_unresolved is None:
+    if path == "compiled" and unresolved._drop_unresolved is None:
         pytest.skip("numba is not installed")  # the numpy case still runs
     if path == "numpy":
-        monkeypatch.setattr(backscatter_loop, "_drop_unresolved", None)
+        monkeypatch.setattr(unresolved, "_drop_unresolved", None)
     given = sample()
     if path == "strided":  # not contiguous: the numpy rule runs whatever is installed
         wide = sample(shape=(37, 106))
@@ -115,30 +115,32 @@ def test_a_depth_that_only_the_near_side_reaches_is_no_range(frames, distance, l
 
 def test_a_block_keeps_its_ranges_only_where_a_tenth_of_its_pixels_have_one(monkeypatch):
     """Blocks of 8×8: 6 ranged pixels of 64 lose their ranges (reason 3), 7 keep theirs; pixels
-    without a range keep their own reasons."""
-    from uwcam.ranging.result import RangeResult
-    from uwcam.water.frame_compensator import BLOCK, BackscatterCompensator
+    without a range keep their own reasons; saturated pixels could have none and do not count
+    (4 ranged beside 30 saturated: 4 of 34 keep theirs)."""
+    from uwcam.water.unresolved import drop_unsupported
 
-    comp = BackscatterCompensator.__new__(BackscatterCompensator)  # the rule alone, without a profile
-    comp.shape, comp._grid = (16, 24), (2, 3)
-    assert BLOCK == 8
     rng = np.full((16, 24), np.nan, np.float32)
     reasons = np.full((16, 24), Reason.BELOW_NOISE_FLOOR, np.uint8)
-    counts = {(0, 0): 6, (0, 1): 7, (0, 2): 64, (1, 0): 0, (1, 1): 1, (1, 2): 10}
+    counts = {(0, 0): 6, (0, 1): 7, (0, 2): 64, (1, 0): 0, (1, 1): 1, (1, 2): 4}
     for (by, bx), n in counts.items():
         block = np.zeros(64, bool)
         block[np.random.default_rng(by * 3 + bx).choice(64, n, replace=False)] = True
         rng[by * 8:(by + 1) * 8, bx * 8:(bx + 1) * 8][block.reshape(8, 8)] = 3.0
     reasons[np.isfinite(rng)] = Reason.VALID
+    highlight = reasons[8:16, 16:24].copy()  # block (1, 2): 30 of its 60 unranged pixels saturated
+    flat = highlight.reshape(-1)
+    flat[np.flatnonzero(flat != Reason.VALID)[:30]] = Reason.SATURATED
+    reasons[8:16, 16:24] = flat.reshape(8, 8)
     result = RangeResult(rng.copy(), np.where(np.isfinite(rng), np.float32(0.01), np.nan).astype(np.float32),
                          reasons.copy(), np.where(np.isfinite(rng), np.float32(0.001), np.nan).astype(np.float32))
-    comp._drop_unsupported(result)
+    drop_unsupported(result, (2, 3))  # blocks of 8×8 over 24×16
     for (by, bx), n in counts.items():
         sl = (slice(by * 8, (by + 1) * 8), slice(bx * 8, (bx + 1) * 8))
         kept = np.isfinite(result.range[sl]).sum()
-        assert kept == (n if n >= 7 else 0), ((by, bx), n, kept)
+        keeps = n >= 7 or (by, bx) == (1, 2)
+        assert kept == (n if keeps else 0), ((by, bx), n, kept)
         was = np.isfinite(rng[sl])
-        if n < 7:
+        if not keeps:
             assert np.all(result.reasons[sl][was] == Reason.BACKSCATTER_ONLY)
             assert np.all(np.isnan(result.variance[sl][was]) & np.isnan(result.common_variance[sl][was]))
-        assert np.all(result.reasons[sl][~was] == Reason.BELOW_NOISE_FLOOR)
+        assert np.all(result.reasons[sl][~was] == reasons[sl][~was])

@@ -163,7 +163,8 @@ def _water_and_compensation(cache: dict, profile: CalibrationProfile, estimator:
         raise UserInputError(f"frame {record['number']} was judged against an open-water frame that the recording "
                              "does not hold; it cannot be ranged again the same way")
     # How many frames the open-water frame is the mean of (recordings before it was written: 1).
-    water_frames = record.get("open_water_frames") or 1
+    water_frames = record.get("open_water_frames")
+    water_frames = 1 if water_frames is None else water_frames
     if not isinstance(water_frames, int) or isinstance(water_frames, bool) or not 1 <= water_frames <= 100_000:
         raise UserInputError(f"frame {record['number']}'s record gives {water_frames!r} as the open-water frame's count of "
                              "frames, not a count from 1 to 100000; the recording is damaged")

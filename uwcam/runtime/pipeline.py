@@ -415,7 +415,7 @@ class FramePipeline(CompensationStage):
                                None if water is None else water.source,
                                None if scale is None else tuple(float(v) for v in np.asarray(scale).ravel()),
                                self.open_water if water is not None and water.source == "open-water frame" else None,
-                               frames, self._frames_of(self.open_water_info))
+                               frames, 1 if water is None else water.frames)
         with self._lock:
             self._latest = published
         self.processed += 1

@@ -9,7 +9,10 @@ subtraction is not 3σ of the total light's noise above zero carries only water:
 
 The backscatter varies slowly across the image, so it is evaluated on blocks of
 :data:`BLOCK` pixels (each at the median depth of its pixels, open water where none has a
-range) and interpolated; the subtraction and transform run in the compiled kernel.
+range) and interpolated; the subtraction and transform run in the compiled kernel. A block
+where only a few pixels keep a range loses them (:data:`uwcam.water.unresolved.MIN_SUPPORT`: more likely chance than a
+surface), and the model's own doubt, the same in neighbouring pixels and in every frame, is kept
+in the result's ``common_variance``, which no mean over pixels or frames divides.
 """
 
 from __future__ import annotations
@@ -21,13 +24,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from uwcam.water.backscatter import BackscatterModel
-from uwcam.compute.jit import HAVE_NUMBA, njit
 from uwcam.optics.geometry import pixel_rays
 from uwcam.optics.validity import Reason
 from uwcam.calibration.profile import CalibrationProfile
 from uwcam.ranging.result import RangeResult
 from uwcam.ranging.smoothing import block_means
 from uwcam.ranging.estimator import RangeEstimator
+from uwcam.water.unresolved import drop_unresolved, drop_unsupported
 from uwcam.water.water_light import WaterLight
 
 BLOCK = 8
@@ -80,47 +83,6 @@ def compensation_iterations(configured: int | None, profile: CalibrationProfile)
     return DEFAULT_ITERATIONS if profile.backscatter is not None else None
 
 
-MAX_RELATIVE_SD = 2.0
-"""A compensated range whose standard deviation exceeds this many times the range itself is not
-a range: what is left of the surface's light after the subtraction is within the noise and the
-model's uncertainty (reason 3), the transform's log of it anything. Murky water then leaves
-pixels without a range instead of ranges hundreds of per cent out."""
-
-
-def _drop_unresolved_py(range_m, variance, reasons, factor2, reason):
-    """In place, over flat C-contiguous arrays: where variance > range²·factor2 (float32, as numpy
-    computes it), the range and variance become NaN and the reason ``reason``. One pass instead of
-    numpy's six over the whole frame."""
-    nan = np.float32(np.nan)
-    for i in range(range_m.shape[0]):
-        r = range_m[i]
-        if variance[i] > (r * r) * factor2:
-            range_m[i] = nan
-            variance[i] = nan
-            reasons[i] = reason
-
-
-_drop_unresolved = njit(cache=True, nogil=True)(_drop_unresolved_py) if HAVE_NUMBA else None
-
-
-def drop_unresolved(result: RangeResult, max_relative_sd: float = MAX_RELATIVE_SD) -> None:
-    """Pixels of ``result`` whose standard deviation exceeds ``max_relative_sd`` times their range
-    have no range: reason 3, "backscatter only" (see :data:`MAX_RELATIVE_SD`). In place."""
-    factor2 = np.float32(max_relative_sd**2)
-    arrays = (result.range, result.variance, result.reasons)
-    if _drop_unresolved is not None and all(a.flags.c_contiguous for a in arrays):
-        _drop_unresolved(*(a.reshape(-1) for a in arrays), factor2, np.uint8(Reason.BACKSCATTER_ONLY))
-        return
-    limit = np.multiply(result.range, result.range)
-    limit *= factor2
-    with np.errstate(invalid="ignore"):
-        lost = np.greater(result.variance, limit)
-    if lost.any():
-        np.copyto(result.range, np.float32(np.nan), where=lost)
-        np.copyto(result.variance, np.float32(np.nan), where=lost)
-        np.copyto(result.reasons, np.uint8(Reason.BACKSCATTER_ONLY), where=lost)
-
-
 MAX_PASSES = 4
 """Most passes of range → backscatter → subtract per frame where ``iterations`` is 2 or more: the
 configured number at least, more (up to this) while the depths the backscatter was subtracted for
@@ -140,16 +102,6 @@ the water's red light read as the seabed's, as self-consistent as the true depth
 from the far side (the open water's light subtracted first) do not reach it, so they run too, and
 a block whose two starts settle apart has no range (reason 3): in the water study (Jerlov III, one
 frame) that left 0 of the 11 to 25 wrong pixels a cell had."""
-
-
-MIN_SUPPORT = 0.1
-"""Share of a block's pixels (:data:`BLOCK` × :data:`BLOCK`: 7 of 64) that must have a range for
-any of them to keep it, once the water's light is subtracted. Where the surface is lost in the
-water's light, a few pixels still pass each test of "clearly above it" by chance, and their
-ranges are of that noise: Jerlov III at 5 m, 16 frames fused, 9 pixels 62 % short, every one
-beyond 3σ, in blocks where nothing else had a range. Isolated like that, a pass is more likely
-chance than a surface. The cost where the light is marginal but the ranges right: Jerlov II at
-7 m, one frame, 38.8 → 38.3 % of the image keeps a range (a quarter of the block: 37.4 %)."""
 
 
 class BackscatterCompensator:
@@ -218,8 +170,9 @@ class BackscatterCompensator:
         # pixel types, the coarse estimator's for float means with a background.
         self.estimator.warm_up(dtypes=frame_dtypes, strided=strided)
         self._coarse.warm_up(dtypes=())
+        frames = 1 if open_water is None else open_water.shape[0] if np.ndim(open_water) == 4 else open_water_frames
         self.water = WaterLight(self.model.open_water_level(shape).astype(np.float32), self.uncertainty,
-                                "open-water frame" if self.open_water else "black-patch measurements")
+                                "open-water frame" if self.open_water else "black-patch measurements", frames=frames)
         """The open-water light of the same model, that each pixel must be clearly above."""
 
     def level(self, range_m: NDArray, coarse: bool = False, scale: NDArray | float = 1.0) -> NDArray[np.float32]:
@@ -300,7 +253,9 @@ class BackscatterCompensator:
         the frame reduced :data:`COARSE` times (4×4 means: a block of the backscatter's grid is
         2×2 of these pixels; half-resolution passes gave the same ranges, to 0.1 %, for 25 % more
         CPU per frame), the first with the ambient light alone, without the calibration's share of
-        the variance; the last at full resolution."""
+        the variance; the last at full resolution. Then a block with too few ranged pixels loses
+        them (:data:`uwcam.water.unresolved.MIN_SUPPORT`), and the model's share of each variance is found, on the
+        reduced frame again, and kept as common (:meth:`_with_model_share`)."""
         h, w = self.shape
         for est in (self.estimator, self._coarse, self._coarse_exact):
             est.set_attenuation_differences(attenuation_differences)
@@ -327,7 +282,7 @@ class BackscatterCompensator:
         self._name_the_water(result, frame, ambient)
         if self.iterations > 1:
             self._drop_unsettled(result, settled)
-        self._drop_unsupported(result)
+        drop_unsupported(result, self._grid)
         return self._with_model_share(result, small, small_ambient, samples, depth, scale)
 
     def _with_model_share(self, result: RangeResult, small: NDArray, small_ambient: NDArray | None,
@@ -350,7 +305,14 @@ class BackscatterCompensator:
             self._coarse_size, interpolation=cv2.INTER_AREA).reshape(small.shape)
         doubted = self._coarse(small, background=background, samples=small_samples).variance
         exact = self._coarse_exact(small, background=background, samples=small_samples).variance
-        share = cv2.resize((doubted - exact).astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
+        coarse_share = np.maximum((doubted - exact).astype(np.float32), np.float32(0.0))
+        untold = np.isnan(coarse_share)
+        if untold.any() and not untold.all():
+            # A reduced pixel without a range takes its neighbours' largest share, so one such pixel
+            # does not make the whole variance of every full-resolution pixel around it common.
+            grown = cv2.dilate(np.where(untold, np.float32(0.0), coarse_share), np.ones((3, 3), np.uint8))
+            coarse_share = np.where(untold & (grown > 0), grown, coarse_share)
+        share = cv2.resize(coarse_share, (w, h), interpolation=cv2.INTER_LINEAR)
         common = result.common_variance
         own = result.variance if common is None else result.variance - common
         # In place over whole frames (a third of the time of np.where and np.clip at 720p).
@@ -361,26 +323,6 @@ class BackscatterCompensator:
         if common is not None:
             model += common
         return RangeResult(result.range, result.variance, result.reasons, model)
-
-    def _drop_unsupported(self, result: RangeResult) -> None:
-        """In place: the pixels with a range in a block of the backscatter's grid where fewer than
-        :data:`MIN_SUPPORT` of the pixels have one lose it (reason 3): see :data:`MIN_SUPPORT`."""
-        valid = np.isfinite(result.range).astype(np.float32)
-        gh, gw = self._grid
-        share = cv2.resize(valid, (gw, gh), interpolation=cv2.INTER_AREA)
-        weak = share < MIN_SUPPORT
-        if not weak.any():
-            return
-        h, w = self.shape
-        lost = cv2.resize(weak.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
-        lost &= valid.astype(bool)
-        if not lost.any():
-            return
-        result.range[lost] = np.nan
-        result.variance[lost] = np.nan
-        result.reasons[lost] = Reason.BACKSCATTER_ONLY
-        if result.common_variance is not None:
-            result.common_variance[lost] = np.nan
 
     def _settle(self, small: NDArray, small_ambient: NDArray | None, scale: NDArray | float, depth: NDArray,
                 most: int) -> tuple[NDArray, NDArray[np.bool_]]:

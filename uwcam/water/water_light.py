@@ -109,6 +109,8 @@ class WaterLight:
     """Relative standard uncertainty of ``level``."""
     source: str
     """Where the level comes from, for status and records."""
+    frames: int = 1
+    """How many open-water frames the level was made from (1 where it comes from the calibration)."""
     _cache: dict = field(default_factory=dict, repr=False)
 
     def threshold(self, estimator, scale: NDArray | None = None, ambient: NDArray | None = None,
