@@ -151,6 +151,7 @@ def _water_and_compensation(cache: dict, profile: CalibrationProfile, estimator:
     """(transform, open-water light, light scale) for :func:`range_frame`, as the frame loop had them
     for this frame (its record says whether backscatter was compensated and what the water's light
     came from); built once per profile, settings and open-water frame (``cache``)."""
+    from uwcam.water.backscatter import MAX_FRAMES_AVERAGED, frames_averaged_count
     from uwcam.water.frame_compensator import BackscatterCompensator, compensation, compensation_iterations
 
     source = record.get("water")  # recordings made before the water's light was judged have none
@@ -163,11 +164,11 @@ def _water_and_compensation(cache: dict, profile: CalibrationProfile, estimator:
         raise UserInputError(f"frame {record['number']} was judged against an open-water frame that the recording "
                              "does not hold; it cannot be ranged again the same way")
     # How many frames the open-water frame is the mean of (recordings before it was written: 1).
-    water_frames = record.get("open_water_frames")
-    water_frames = 1 if water_frames is None else water_frames
-    if not isinstance(water_frames, int) or isinstance(water_frames, bool) or not 1 <= water_frames <= 100_000:
-        raise UserInputError(f"frame {record['number']}'s record gives {water_frames!r} as the open-water frame's count of "
-                             "frames, not a count from 1 to 100000; the recording is damaged")
+    recorded = record.get("open_water_frames")
+    water_frames = frames_averaged_count(1 if recorded is None else recorded)
+    if water_frames is None:
+        raise UserInputError(f"frame {record['number']}'s record gives {recorded!r} as the open-water frame's count of "
+                             f"frames, not a count from 1 to {MAX_FRAMES_AVERAGED}; the recording is damaged")
     made_for = (*key, iterations, tuple(shape), source, water_frames)
     if made_for not in cache:
         comp = BackscatterCompensator(profile, tuple(shape[:2]), iterations, water_frame, pair=key[1],

@@ -78,6 +78,18 @@ def pixel_response(frames: NDArray, smooth: NDArray) -> NDArray[np.float64]:
     return response_of_mean(frames.mean(axis=0), smooth, frames.var(axis=0, ddof=1) / k)
 
 
+MAX_FRAMES_AVERAGED = 100_000
+"""The most open-water frames a capture's mean is taken to be made of."""
+
+
+def frames_averaged_count(value: object) -> int | None:
+    """``value`` as the count of frames an open-water frame is the mean of: an int from 1 to
+    :data:`MAX_FRAMES_AVERAGED`; None where it is not one (a state file or record from elsewhere)."""
+    if isinstance(value, int) and not isinstance(value, bool) and 1 <= value <= MAX_FRAMES_AVERAGED:
+        return value
+    return None
+
+
 def response_of_mean(mean: NDArray, smooth: NDArray, noise: NDArray) -> NDArray[np.float64]:
     """:func:`pixel_response` from the mean of the frames alone: mean (H, W, N) dark-corrected DN,
     smooth (H, W, N) its smoothed level, noise (H, W, N) the variance (DN²) of the mean's noise

@@ -30,7 +30,7 @@ from uwcam.calibration.profile import CalibrationProfile
 from uwcam.ranging.result import RangeResult
 from uwcam.ranging.smoothing import block_means
 from uwcam.ranging.estimator import RangeEstimator
-from uwcam.water.unresolved import drop_unresolved, drop_unsupported
+from uwcam.water.unresolved import drop_blocks, drop_unresolved, drop_unsupported
 from uwcam.water.water_light import WaterLight
 
 BLOCK = 8
@@ -306,12 +306,12 @@ class BackscatterCompensator:
         doubted = self._coarse(small, background=background, samples=small_samples).variance
         exact = self._coarse_exact(small, background=background, samples=small_samples).variance
         coarse_share = np.maximum((doubted - exact).astype(np.float32), np.float32(0.0))
-        untold = np.isnan(coarse_share)
-        if untold.any() and not untold.all():
+        unranged = np.isnan(coarse_share)
+        if unranged.any() and not unranged.all():
             # A reduced pixel without a range takes its neighbours' largest share, so one such pixel
             # does not make the whole variance of every full-resolution pixel around it common.
-            grown = cv2.dilate(np.where(untold, np.float32(0.0), coarse_share), np.ones((3, 3), np.uint8))
-            coarse_share = np.where(untold & (grown > 0), grown, coarse_share)
+            grown = cv2.dilate(np.where(unranged, np.float32(0.0), coarse_share), np.ones((3, 3), np.uint8))
+            coarse_share = np.where(unranged & (grown > 0), grown, coarse_share)
         share = cv2.resize(coarse_share, (w, h), interpolation=cv2.INTER_LINEAR)
         common = result.common_variance
         own = result.variance if common is None else result.variance - common
@@ -347,16 +347,7 @@ class BackscatterCompensator:
         """In place: the pixels of the blocks whose depth has not settled (``settled``, (gh, gw),
         see :data:`SETTLED`) have no range (reason 3): a range found with the backscatter of another
         depth is no measurement."""
-        if settled.all():
-            return
-        h, w = self.shape
-        lost = cv2.resize((~settled).astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
-        lost &= np.isfinite(result.range)
-        result.range[lost] = np.nan
-        result.variance[lost] = np.nan
-        result.reasons[lost] = Reason.BACKSCATTER_ONLY
-        if result.common_variance is not None:
-            result.common_variance[lost] = np.nan
+        drop_blocks(result, ~settled)
 
     def _name_the_water(self, result: RangeResult, frame: NDArray, ambient: NDArray | None) -> None:
         """In place: a pixel too dark once the water's light is subtracted, whose light before was

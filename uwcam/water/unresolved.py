@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 from uwcam.compute.jit import HAVE_NUMBA, njit
 from uwcam.optics.validity import Reason
@@ -78,12 +79,17 @@ def drop_unsupported(result: RangeResult, grid: tuple[int, int]) -> None:
     could = (result.reasons != Reason.SATURATED).astype(np.float32)
     gh, gw = grid
     share = cv2.resize(valid, (gw, gh), interpolation=cv2.INTER_AREA)
-    weak = share < MIN_SUPPORT * cv2.resize(could, (gw, gh), interpolation=cv2.INTER_AREA)
-    if not weak.any():
+    drop_blocks(result, share < MIN_SUPPORT * cv2.resize(could, (gw, gh), interpolation=cv2.INTER_AREA))
+
+
+def drop_blocks(result: RangeResult, blocks: NDArray[np.bool_]) -> None:
+    """In place: the pixels with a range in the blocks marked in ``blocks`` ((gh, gw) over the
+    frame, each block its pixels' nearest) lose it: NaN range, variance and common share, reason 3."""
+    if not blocks.any():
         return
     h, w = result.range.shape
-    lost = cv2.resize(weak.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
-    lost &= valid.astype(bool)
+    lost = cv2.resize(blocks.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
+    lost &= np.isfinite(result.range)
     if not lost.any():
         return
     result.range[lost] = np.nan

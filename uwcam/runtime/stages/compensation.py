@@ -56,8 +56,9 @@ class CompensationStage:
     def _frames_of(info: dict) -> int:
         """How many frames an open-water frame with this ``info`` is the mean of (1 where it does
         not say, or says something that is not a count: a state file from elsewhere)."""
-        frames = info.get("frames", 1)
-        return frames if isinstance(frames, int) and not isinstance(frames, bool) and 1 <= frames <= 100_000 else 1
+        from uwcam.water.backscatter import frames_averaged_count
+
+        return frames_averaged_count(info.get("frames", 1)) or 1
 
     def request_open_water(self, frames: int = 4, timeout_s: float = 10.0) -> threading.Event:
         """Average the next ``frames`` lamp-lit frames into the open-water frame; the event is set
