@@ -11,7 +11,10 @@ black patch at 1 m and 2 m), then ranges a grey seabed square to the camera at 1
   water takes them: their mean is the pattern, their spread lets each pixel's own response be told
   from noise), 2 iterations, every pixel judged against the open water's light;
 * compensated ×16: the same with FUSED frames of the static scene fused first (the issue's goal);
-* gated: a range-gated camera (gate 0.5 m around the surface), which sees no backscatter.
+* gated: a range-gated camera (gate 0.5 m in front of the surface), which sees only the
+  backscatter of that slab of water, ranged as ``uwcam range`` ranges it with its own calibration:
+  the black-patch model is subtracted, with the doubt its own measurements show (a gated patch
+  falls from 1 m to 2 m where a lit column's light rises: :func:`uwcam.water.backscatter.patch_disagreement`).
 
 Each with 3×3 mean smoothing of the range map. Per cell: the median of the relative error, its
 rms over valid pixels, and the valid fraction, over the image's inner 80 % (the border, where
@@ -291,6 +294,14 @@ def main() -> None:
                          "pixel's noise), and uwcam's backscatter model, that of the lamp's whole lit column, scaled to it "
                          "is not the light of the gate's slab of water; the study's gated camera is hypothetical, uwcam "
                          "has no model of a gate.")
+        far_off = [(w, o, d, k, s) for w, o, d, k, s in counted if s["count"] >= FEW and abs(s["median"]) > 0.1]
+        if far_off:
+            lines.append("- Cells uwcam reports whose median is more than 10 % off, yet within their σ: "
+                         + "; ".join(f"{w} {o:g} m {dd:g} m {k}: {pct(st['median'])} %, {100 * st['valid']:.0f} % valid"
+                                     for w, o, dd, k, st in far_off)
+                         + ". Pixels whose red is lost in the noise, ranged from green and blue alone, which attenuate "
+                           "alike in this water: their σ (up to twice the range, the most a compensated range may "
+                           "have) says they are no measurement to steer by.")
         raw_worst = max(c["raw"]["inner"]["beyond"] for cells in results.values() for c in cells.values())
         lines.append(f"- Raw (the water's light left in, as with a profile that cannot tell it): up to {100 * raw_worst:.0f} % "
                      "of the valid pixels of a cell lie beyond 3σ: why uwcam subtracts the water's light wherever it is known.")

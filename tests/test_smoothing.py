@@ -2,7 +2,8 @@
 
 The reference below is a plain double loop over windows, written apart from
 ``uwcam.ranging.smoothing.smooth_range_map``: the mean of the valid neighbours, and the variance of that
-mean for independent neighbours, Var(Σ r_k / n) = Σ σ_k² / n² (σ² / n when all are equal).
+mean for independent neighbours, Var(Σ r_k / n) = Σ σ_k² / n² (σ² / n when all are equal), plus
+the neighbours' common shares, fully correlated: (Σ σ_c,k / n)².
 """
 
 from __future__ import annotations
@@ -41,6 +42,21 @@ def naive(range_map: np.ndarray, variance: np.ndarray, kind: str) -> tuple[np.nd
     return out_r, out_v
 
 
+def naive_common(range_map: np.ndarray, common: np.ndarray) -> np.ndarray:
+    """The common share of the 3×3 mean: the neighbours' common errors fully correlated, so their
+    standard deviations (not variances) average, (Σ σ_c,k / n)²."""
+    h, w = range_map.shape
+    out = np.full((h, w), np.nan)
+    for i in range(h):
+        for j in range(w):
+            if not np.isfinite(range_map[i, j]):
+                continue
+            sds = [np.sqrt(float(common[y, x])) for y in range(max(i - 1, 0), min(i + 2, h))
+                   for x in range(max(j - 1, 0), min(j + 2, w)) if np.isfinite(range_map[y, x])]
+            out[i, j] = (sum(sds) / len(sds)) ** 2
+    return out
+
+
 def result(range_map, variance, reasons=None) -> RangeResult:
     r = np.asarray(range_map, np.float32)
     if reasons is None:
@@ -76,11 +92,12 @@ def test_the_compiled_mean_stays_inside_its_arrays():
         cal = rng.uniform(0.0, 1e-3, shape)
         maps = [np.ascontiguousarray(a, np.float32) for a in (r, var + cal, cal)]
         for with_calibration in (True, False):
-            out_r, out_v = np.empty(shape, np.float32), np.empty(shape, np.float32)
-            checked(*maps, with_calibration, out_r, out_v)
+            out_r, out_v, out_c = (np.empty(shape, np.float32) for _ in range(3))
+            checked(*maps, with_calibration, out_r, out_v, out_c)
             ref_r, ref_v = naive(maps[0], np.where(np.isfinite(r), var if with_calibration else var + cal, np.nan).astype(np.float32), "mean")
             if with_calibration:
-                ref_v = ref_v + np.where(np.isfinite(r), cal, np.nan)
+                ref_v = ref_v + naive_common(maps[0], maps[2])
+                np.testing.assert_allclose(out_c, naive_common(maps[0], maps[2]), rtol=1e-5, equal_nan=True)
             np.testing.assert_allclose(out_r, ref_r, rtol=1e-6, equal_nan=True)
             np.testing.assert_allclose(out_v, ref_v, rtol=1e-5, equal_nan=True)
 
@@ -134,8 +151,43 @@ def test_mean_with_a_calibration_share_matches_the_naive_reference_in_both_paths
                                        np.where(valid, cal, np.nan).astype(np.float32)), "mean")
     ref_r, ref_noise = naive(r.astype(np.float32), np.where(valid, noise, np.nan).astype(np.float32), "mean")
     np.testing.assert_allclose(out.range, ref_r, rtol=1e-6, equal_nan=True)
-    np.testing.assert_allclose(out.variance, ref_noise + np.where(valid, cal, np.nan), rtol=1e-5, equal_nan=True)
+    common = naive_common(r, cal)
+    np.testing.assert_allclose(out.variance, ref_noise + common, rtol=1e-5, equal_nan=True)
+    np.testing.assert_allclose(out.common_variance, common, rtol=1e-5, equal_nan=True)
     assert out.range.dtype == np.float32 and out.variance.dtype == np.float32
+
+
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "numpy"])
+def test_a_neighbour_ranged_from_other_light_brings_its_common_doubt_into_the_mean(compiled, monkeypatch):
+    """Murky water, seen in the water study (Jerlov III, gated, 7 m): a pixel ranged with red, 7.1 m
+    ± 0.47 m, beside one whose red was lost, ranged from green and blue alone (channels that
+    attenuate alike: 31 m ± 43 m, nearly all of it the calibration's). Their mean was 15 m with the
+    first pixel's ± 0.47 m, 17σ from the truth. Checked against sampling: each pixel's error is
+    its own noise plus its light's common error (shared by the pixels ranged from the same light,
+    and here fully correlated between the two kinds, the case the mean's variance must cover)."""
+    from uwcam.ranging import smoothing
+
+    if not compiled:
+        monkeypatch.setattr(smoothing, "_smooth_mean", None)
+    elif smoothing._smooth_mean is None:
+        pytest.skip("numba is not installed: only the numpy path exists")
+    truth = 7.0
+    own = np.array([[0.05, 0.05, 0.05], [0.05, 0.05, 0.05], [3.0, 3.0, 3.0]])  # σ of each pixel's own noise, m
+    shared = np.array([[0.47, 0.47, 0.47], [0.47, 0.47, 0.47], [43.0, 43.0, 43.0]])  # σ of its common error, m
+    rng = np.random.default_rng(3)
+    trials = 4000
+    common_draw = rng.standard_normal(trials)
+    means = []
+    for t in range(trials):
+        r = truth + rng.standard_normal((3, 3)) * own + common_draw[t] * shared
+        means.append(np.mean(r))
+    sampled = np.var(means)
+    out = smooth_range_map(RangeResult(np.full((3, 3), truth, np.float32), (own**2 + shared**2).astype(np.float32),
+                                       np.zeros((3, 3), np.uint8), (shared**2).astype(np.float32)), "mean")
+    assert out.variance[1, 1] == pytest.approx(sampled, rel=0.1)
+    assert out.common_variance[1, 1] == pytest.approx(np.mean(shared) ** 2, rel=1e-5)
+    # The old share, the centre's own 0.47², was 2000 times too small.
+    assert out.variance[1, 1] > 100 * 0.47**2
 
 
 def test_median_matches_the_naive_reference_and_keeps_the_variance():

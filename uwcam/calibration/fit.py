@@ -345,6 +345,8 @@ def calibrate_with_details(frames: list[NDArray], distances_m: list[float], inpu
             patch_pixels=centres,
             levels={inputs.channel_names[k]: [float(max(v, 0.0)) for v in levels[:, k]] for k in range(n_ch)},
             noise_sigma={inputs.channel_names[k]: float(np.max(sigma[:, k])) for k in range(n_ch)},
+            level_std={inputs.channel_names[k]: [float(np.sqrt(max(g.backscatter.variance[k], 0.0))) for g in fitted]
+                       for k in range(n_ch)},
         )
     absolute: tuple[NDArray, NDArray] | None = None
     if inputs.lamp_radius_m is not None:

@@ -141,6 +141,9 @@ class BackscatterSamples(Strict):
     """Per channel, dark-corrected backscatter (DN) at the patch in each image."""
     noise_sigma: dict[str, DigitalNumber]
     """Per channel, pixel noise σ (DN) at the black patch: the floor once backscatter is subtracted is 3σ."""
+    level_std: dict[str, list[Bounded(0.0, 1e9)]] = {}
+    """Per channel, the standard deviation (DN) of each level from pixel noise; empty in profiles made
+    before it was recorded (the levels are then taken as exact where the model is checked against them)."""
     exposure_scale: list[Bounded(0.0, 1e6, low_open=True)] = []
     """Relative exposure of each image (levels are divided by it); 1 when exposure was fixed."""
 
@@ -244,6 +247,8 @@ class CalibrationProfile(Strict):
                 raise ValueError(f"backscatter levels and noise_sigma need one entry per channel {names}")
             if len(bs.patch_pixels) != n or any(len(v) != n for v in bs.levels.values()):
                 raise ValueError(f"backscatter needs {n} patch_pixels and {n} levels per channel, one per distance")
+            if bs.level_std and (set(bs.level_std) != set(names) or any(len(v) != n for v in bs.level_std.values())):
+                raise ValueError(f"backscatter level_std, where given, needs {n} values per channel {names}, one per distance")
         if self.covariance is not None:
             others = [n for n in names if n != self.reference_channel]
             want = [f"V:{n}" for n in others] + [f"b:{n}" for n in others]

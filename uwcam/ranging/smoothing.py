@@ -102,37 +102,43 @@ def smooth_frame(frame: NDArray, kind: str, saturation_level: float) -> tuple[ND
     return np.where(saturated, values, smoothed).astype(np.float32), np.ones(raw.shape, np.float32)
 
 
-def _smooth_mean_py(range_m, variance, calibration, with_calibration, out_range, out_variance):
+def _smooth_mean_py(range_m, variance, calibration, with_calibration, out_range, out_variance, out_common):
     """The 3×3 mean of :func:`smooth_range_map` in one pass over (H, W) float32 maps: each valid
     pixel's mean over the n valid pixels of its window (clipped at the border), variance
-    Σ(σ_k² − cal_k)/n² + cal (``calibration`` read only where ``with_calibration``); NaN where
-    the pixel itself has no range. Sums in float64, by columns of three rows first; without
+    Σ(σ_k² − cal_k)/n² + (Σ√cal_k / n)², the common parts (``calibration``, read only where
+    ``with_calibration``) taken as fully correlated, and that common part in ``out_common``; NaN
+    where the pixel itself has no range. Sums in float64, by columns of three rows first; without
     branches (a choice of value instead), which the compiler turns into vector instructions."""
     h, w = range_m.shape
     nan = np.float32(np.nan)
     count = np.zeros(w + 2)  # the column sums of rows i−1..i+1, one column of zeros either side
     total = np.zeros(w + 2)
     noise = np.zeros(w + 2)
+    shared = np.zeros(w + 2)
     for i in range(h):
         for x in range(w + 2):
             count[x] = 0.0
             total[x] = 0.0
             noise[x] = 0.0
+            shared[x] = 0.0
         for y in range(max(i - 1, 0), min(i + 2, h)):
             for x in range(w):
                 r = range_m[y, x]
                 ok = r - r == 0.0  # finite
+                common = np.float64(calibration[y, x]) if with_calibration else 0.0
                 count[x + 1] += 1.0 if ok else 0.0
                 total[x + 1] += r if ok else 0.0
-                own = variance[y, x] - calibration[y, x] if with_calibration else variance[y, x]
-                noise[x + 1] += own if ok else 0.0
+                noise[x + 1] += variance[y, x] - common if ok else 0.0
+                shared[x + 1] += np.sqrt(max(common, 0.0)) if ok else 0.0
         for j in range(w):
             r = range_m[i, j]
             ok = r - r == 0.0
             n = count[j] + count[j + 1] + count[j + 2]
-            common = calibration[i, j] if with_calibration else 0.0
+            common = (shared[j] + shared[j + 1] + shared[j + 2]) / max(n, 1.0)
+            common *= common
             out_range[i, j] = (total[j] + total[j + 1] + total[j + 2]) / n if ok else nan
             out_variance[i, j] = (noise[j] + noise[j + 1] + noise[j + 2]) / (n * n) + common if ok else nan
+            out_common[i, j] = common if ok else nan
 
 
 # Compiled: numpy's box filters and temporaries took 43 ms per 720p map on the 2-core test
@@ -147,8 +153,10 @@ def smooth_range_map(result: RangeResult, kind: str = "mean") -> RangeResult:
 
     kind "mean": average of the n valid pixels in each 3×3 window, with the variance of that
     average for independent neighbours, Σσ_k²/n² (σ²/n when all are equal), plus the
-    share neighbours have in common (``common_variance``: calibration, backscatter model); "median":
-    their median, variance kept.
+    share neighbours have in common (``common_variance``: calibration, backscatter model), which
+    averaging does not reduce: fully correlated, (Σσ_c,k/n)², so a neighbour whose range came from
+    other light (other channels, a larger doubt) brings its larger share into the mean; the
+    result's ``common_variance`` is that share. "median": their median, variance kept.
     Invalid pixels stay invalid with their reasons, and never leak into valid ones.
     """
     if kind not in ("mean", "median"):
@@ -162,9 +170,9 @@ def smooth_range_map(result: RangeResult, kind: str = "mean") -> RangeResult:
         maps = [kernel_array(a, shape, np.float32) for a in (r, result.variance)]
         with_calibration = result.common_variance is not None
         calibration = kernel_array(result.common_variance, shape, np.float32) if with_calibration else maps[1]
-        out_range, out_variance = np.empty(shape, np.float32), np.empty(shape, np.float32)
-        _smooth_mean(*maps, calibration, with_calibration, out_range, out_variance)
-        return RangeResult(out_range, out_variance, result.reasons.copy(), result.common_variance)
+        out_range, out_variance, out_common = (np.empty(shape, np.float32) for _ in range(3))
+        _smooth_mean(*maps, calibration, with_calibration, out_range, out_variance, out_common)
+        return RangeResult(out_range, out_variance, result.reasons.copy(), out_common if with_calibration else None)
     if kind == "mean":
         # Window sums as box filters (outside the image and at invalid pixels: 0, not counted),
         # in float32 like the maps themselves (sums of nine: within 3 units in the last place):
@@ -176,9 +184,13 @@ def smooth_range_map(result: RangeResult, kind: str = "mean") -> RangeResult:
         count = window_sum(valid.astype(np.float32))
         with np.errstate(invalid="ignore", divide="ignore"):
             smoothed = window_sum(np.where(valid, r, zero)) / count
-        # The noise of independent neighbours averages as Σσ_k²/n²; the common share does not.
+        # The noise of independent neighbours averages as Σσ_k²/n²; the common shares, fully
+        # correlated, as (Σσ_c,k / n)²: a neighbour ranged from other light (other channels, a
+        # model's doubt) brings its own common share into the mean.
         noise = np.where(valid, result.variance.astype(np.float32) - np.float32(cal), zero)
-        variance = window_sum(noise) / np.maximum(count, np.float32(1)) ** 2 + np.float32(cal)
+        n = np.maximum(count, np.float32(1))
+        common = (window_sum(np.where(valid, np.sqrt(np.maximum(np.float32(cal), zero)), zero)) / n) ** 2
+        variance = window_sum(noise) / n**2 + common
     else:
         padded = np.pad(np.where(valid, r.astype(np.float64), np.nan), 1, constant_values=np.nan)
         h, w = r.shape
@@ -191,5 +203,6 @@ def smooth_range_map(result: RangeResult, kind: str = "mean") -> RangeResult:
         np.where(valid, smoothed, np.nan).astype(np.float32),
         np.where(valid, variance, np.nan).astype(np.float32),
         result.reasons.copy(),
-        result.common_variance,
+        None if result.common_variance is None or kind == "median"
+        else np.where(valid, common, np.nan).astype(np.float32),
     )

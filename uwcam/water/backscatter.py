@@ -192,6 +192,49 @@ def _column_totals(rays: NDArray, lamp: NDArray, radius: float, attenuation: NDA
 _PATTERN_STEP = 8  # pixels between the rays the physical open-water pattern is evaluated on
 
 
+def patch_disagreement(model: "BackscatterModel", profile: CalibrationProfile) -> float:
+    """How far the black-patch measurements stray from ``model`` (one built from them alone, scaled
+    to the farthest): the largest |measured − modelled| / modelled, over channels and the other
+    plate distances, of what the measurements' own noise (3σ of both) leaves unexplained; 0 with
+    one distance or where the modelled level is within its noise of 0.
+
+    The model extrapolates the lamp's whole lit column from the patch; where the water's light at
+    the patch is not that (a range-gated camera sees the slab of water around the plate, and the
+    plate's own light blurred into the patch, both falling as the plate recedes, where the column's
+    rises), the nearer plate shows it: the model's error beyond the plate is then at least that large.
+    """
+    bs = profile.backscatter
+    if bs is None or len(bs.distances_m) < 2:
+        return 0.0
+    names = profile.channel_names
+    order = np.argsort(bs.distances_m)
+    depths = np.asarray(bs.distances_m, np.float64)[order]
+    pixels = np.asarray(bs.patch_pixels, np.float64)[order]
+    levels = np.array([bs.levels[k] for k in names], np.float64).T[order]  # (n, N)
+    stds = (np.array([bs.level_std[k] for k in names], np.float64).T[order] if bs.level_std
+            else np.zeros_like(levels))
+
+    def modelled(i: int) -> NDArray:
+        (x, y), p = pixels[i], model.pattern
+        f = model.fraction(np.array([[depths[i]]]), np.array([[y]]), np.array([[x]]))[0, 0]
+        row = int(round(min(max(y, 0), p.shape[0] - 1))) if p.shape[0] > 1 else 0
+        col = int(round(min(max(x, 0), p.shape[1] - 1))) if p.shape[1] > 1 else 0
+        return p[row, col] * f
+
+    anchor = modelled(len(depths) - 1)
+    worst = 0.0
+    for i in range(len(depths) - 1):
+        predicted = modelled(i)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            scale = np.where(anchor > 0, predicted / anchor, 0.0)
+        noise = 3.0 * np.sqrt(stds[i] ** 2 + (scale * stds[-1]) ** 2)
+        meaningful = predicted > noise
+        if meaningful.any():
+            excess = np.maximum(np.abs(levels[i] - predicted) - noise, 0.0)[meaningful] / predicted[meaningful]
+            worst = max(worst, float(excess.max()))
+    return worst
+
+
 @dataclass(frozen=True)
 class BackscatterModel:
     """bs_k(p, z) = pattern[p, k] · F_k(p, z); F tabulated over depths on a coarse grid.

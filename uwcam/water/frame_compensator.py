@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from uwcam.water.backscatter import BackscatterModel
+from uwcam.water.backscatter import BackscatterModel, patch_disagreement
 from uwcam.optics.geometry import pixel_rays
 from uwcam.optics.validity import Reason
 from uwcam.calibration.profile import CalibrationProfile
@@ -49,7 +49,14 @@ IB, lamp 0.3 m aside, seabed 1–7 m) its level is 8–26 % high (median per cha
 across the view. At 0.05 the ranges' z-scores had sd 1.6–5.5 with 4–15 % of pixels beyond 3σ
 from 3 to 7 m; at 0.10, sd 0.96 and 1.04 at 2 and 3 m, 0.4 at 5 m (where the judge and the
 unresolved test leave only pixels the model does not decide), never more than 0.1 % beyond 3σ.
-(A fitted bound, measured in the simulator, not a property of the model.)"""
+(A fitted bound, measured in the simulator, not a property of the model.) It is a floor: where
+the patch measurements themselves stray from the model further
+(:func:`uwcam.water.backscatter.patch_disagreement`), that disagreement is the uncertainty."""
+
+MAX_MODEL_UNCERTAINTY = 10.0
+"""The largest relative uncertainty the model is given (the estimator's bound): a model whose patch
+measurements stray from it further (:func:`uwcam.water.backscatter.patch_disagreement`: a range-gated
+camera in Jerlov 3C, eleven times) tells nothing of the water's light at any range either way."""
 
 OPEN_WATER_UNCERTAINTY = 0.05
 """Relative standard uncertainty of the backscatter modelled with an open-water frame, which
@@ -151,7 +158,11 @@ class BackscatterCompensator:
         sigma = profile.backscatter.noise_sigma if profile.backscatter else {}
         channels = [c.model_copy(update={"noise_floor": 3.0 * sigma.get(c.name, 0.0)}) for c in profile.channels]
         compensated = profile.model_copy(update={"channels": channels})
-        self.uncertainty = OPEN_WATER_UNCERTAINTY if self.open_water else MODEL_UNCERTAINTY
+        # Without an open-water frame the model extrapolates the patch measurements: where they
+        # disagree with it beyond their noise, its uncertainty is at least that disagreement.
+        self.patch_disagreement = 0.0 if self.open_water else patch_disagreement(self.model, profile)
+        self.uncertainty = (OPEN_WATER_UNCERTAINTY if self.open_water
+                            else min(max(MODEL_UNCERTAINTY, self.patch_disagreement), MAX_MODEL_UNCERTAINTY))
         options = {"background_uncertainty": self.uncertainty, **estimator_options}
         self.estimator = RangeEstimator(compensated, **options)
         # The intermediate iterations' estimator: frames reduced COARSE times (COARSE×COARSE means),
