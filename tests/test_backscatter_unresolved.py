@@ -87,12 +87,34 @@ def test_ranges_are_found_with_the_backscatter_of_their_own_depth(water_name, di
     assert np.all(result.reasons[~valid] != Reason.VALID)
     if water_name == "jerlov-IB":
         assert valid.mean() > 0.95
-    if water_name == "jerlov-II":  # two passes: 41.7 % of the whole image (60 % of its inner 80 %)
-        assert valid.mean() > 0.38
+    if water_name == "jerlov-II":  # 84 % of the whole image (94 % of its inner 80 %); 42 % at the model's former 5 % doubt
+        assert valid.mean() > 0.8
         assert abs(np.median((result.range[valid] - truth[valid]) / truth[valid])) < 0.03
 
 
-@pytest.mark.parametrize("frames, distance, lamp_x", [(1, 5.0, 0.3), (1, 3.0, 0.0), (16, 5.0, 0.3)])
+def test_a_seabed_at_7_m_in_jerlov_ii_keeps_its_ranges_when_frames_are_fused():
+    """The issue's cell: Jerlov II, lamp 0.3 m aside, calibrated at 1 and 2 m, 16 frames of a grey
+    seabed at 7 m fused, compensated with 16 open-water frames, 3×3 mean: at least 85 % of the
+    image's inner 80 % keeps a range (97 % here; 62 % at the open-water model's former 5 % doubt),
+    none beyond 3σ of the simulator's truth, rms within 5 % (3.6 %). Its median, +2.1 %, is the
+    calibration's (its green–blue attenuation difference, known to some 5 % from plates at 1–2 m,
+    carries to 7 m, where red is lost and green and blue range): not asserted."""
+    from uwcam.ranging.images import range_images
+
+    profile, frames, open_water, truth = murky_cell(distance=7.0, water_name="jerlov-II", frames=16)
+    result = range_images(profile, frames, smoothing="mean", compensate=True, iterations=2, open_water=open_water)
+    h, w = truth.shape
+    inner = np.zeros(truth.shape, bool)
+    inner[h // 10: h - h // 10, w // 10: w - w // 10] = True
+    valid = np.isfinite(result.range) & inner
+    assert valid.sum() >= 0.85 * inner.sum()
+    error = result.range[valid] / truth[valid] - 1
+    z = (result.range[valid] - truth[valid]) / np.sqrt(result.variance[valid])
+    assert np.mean(np.abs(z) > 3) <= 0.02
+    assert np.sqrt(np.mean(error**2)) <= 0.05
+
+
+@pytest.mark.parametrize("frames, distance, lamp_x", [(1, 5.0, 0.3), (1, 3.0, 0.0), (16, 5.0, 0.3), (16, 3.0, 0.0)])
 def test_a_depth_that_only_the_near_side_reaches_is_no_range(frames, distance, lamp_x):
     """Jerlov III, where the seabed's red light hardly clears the water's: passes that start from
     the near side (the water's light left in) can settle on a depth 40–60 % short whose own
@@ -102,7 +124,11 @@ def test_a_depth_that_only_the_near_side_reaches_is_no_range(frames, distance, l
     subtracted first) do not reach it: a block whose two starts settle apart has no range
     (reason 3). The truth is the simulator's; 3×3 means as the water study ranges. 16 frames fused
     at 5 m kept 9 pixels 62 % short that both starts reach, alone in blocks where nothing else had
-    a range: a block needs a tenth of its pixels ranged for any to keep a range (MIN_SUPPORT)."""
+    a range: a block needs a tenth of its pixels ranged for any to keep a range (MIN_SUPPORT). 16
+    frames at 3 m, lamp on the axis, with the open-water model's 2 % doubt: 44 pixels 25 % short, 6
+    beyond 3σ, that the far start reached too, through a pass that took a range from green and blue
+    alone (which attenuate alike here: anything) for a depth; a pass's ranges too uncertain for
+    their length are no depth now."""
     from uwcam.ranging.images import range_images
 
     profile, stack, open_water, truth = murky_cell(distance=distance, lamp_x=lamp_x, frames=frames)

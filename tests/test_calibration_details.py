@@ -166,3 +166,21 @@ def test_frames_without_channels_say_they_have_one():
 
     with pytest.raises(UserInputError, match=r"image 1 has 1 channel\(s\) but calibration expects 3"):
         calibrate([np.ones((4, 6)), np.ones((4, 6, 3))], [1.0, 2.0], inputs())
+
+
+def test_each_black_patch_levels_standard_deviation_matches_the_spread_of_repeated_calibrations():
+    """``backscatter.level_std`` says how far each patch level moves with the frames' noise: twelve
+    calibrations of the same simulated water with other noise spread their levels by that much
+    (within a factor of 1.6 either way, each channel and distance; twelve draws know a spread to ±20 %)."""
+    from uwcam.simulation import CameraModel, Lamp, water_preset
+    from uwcam.simulation.tank import calibrate_in_simulation
+
+    water = water_preset("jerlov-II", [675.0, 575.0, 475.0])
+    levels, stds = [], []
+    for seed in range(0, 120, 10):
+        p = calibrate_in_simulation(water, Lamp(position=(0.3, 0.0, 0.0)), (160, 120), CameraModel(),
+                                    frames_per_distance=2, seed_base=seed)
+        levels.append([p.backscatter.levels[k] for k in p.channel_names])
+        stds.append([p.backscatter.level_std[k] for k in p.channel_names])
+    ratio = np.mean(stds, axis=0) / np.std(levels, axis=0, ddof=1)
+    assert np.all((ratio > 1 / 1.6) & (ratio < 1.6)), ratio

@@ -328,3 +328,25 @@ def test_a_saturated_pixel_is_not_given_a_range_by_smoothing_before_the_transfor
     assert out.reasons[0, 0] == Reason.SATURATED and np.isnan(out.range[0, 0])
     # Its neighbours average only unclipped values: the same range as the untouched pixels.
     assert out.range[1, 1] == pytest.approx(out.range[4, 4], rel=1e-5)
+
+
+def test_the_median_keeps_each_pixels_variance_and_common_share():
+    """The median is one pixel's value: its variance, and the common share within it, stay the pixel's own."""
+    rng = np.random.default_rng(2)
+    r = rng.uniform(1.0, 4.0, (5, 6)).astype(np.float32)
+    common = rng.uniform(0.0, 1e-3, (5, 6)).astype(np.float32)
+    variance = (common + rng.uniform(1e-4, 1e-2, (5, 6))).astype(np.float32)
+    out = smooth_range_map(RangeResult(r, variance, np.zeros((5, 6), np.uint8), common), "median")
+    np.testing.assert_array_equal(out.variance, variance)
+    np.testing.assert_array_equal(out.common_variance, common)
+
+
+def test_a_common_share_rounded_below_zero_is_no_share(mean_path):
+    """A common share found as a difference of variances can come out a rounding below zero; the
+    mean takes it as 0 (its square root would be NaN and take the pixel's variance with it)."""
+    r = np.full((3, 4), 2.0, np.float32)
+    common = np.full((3, 4), -1e-9, np.float32)
+    variance = np.full((3, 4), 0.09, np.float32)
+    out = smooth_range_map(RangeResult(r, variance, np.zeros((3, 4), np.uint8), common), "mean")
+    assert np.all(np.isfinite(out.variance)) and np.all(out.common_variance == 0.0)
+    assert out.variance[1, 1] == pytest.approx(0.09 / 9, rel=1e-5)

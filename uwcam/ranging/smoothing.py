@@ -203,6 +203,6 @@ def smooth_range_map(result: RangeResult, kind: str = "mean") -> RangeResult:
         np.where(valid, smoothed, np.nan).astype(np.float32),
         np.where(valid, variance, np.nan).astype(np.float32),
         result.reasons.copy(),
-        None if result.common_variance is None or kind == "median"
+        result.common_variance if result.common_variance is None or kind == "median"
         else np.where(valid, common, np.nan).astype(np.float32),
     )
