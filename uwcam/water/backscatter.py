@@ -214,17 +214,10 @@ def patch_disagreement(model: "BackscatterModel", profile: CalibrationProfile) -
     stds = (np.array([bs.level_std[k] for k in names], np.float64).T[order] if bs.level_std
             else np.zeros_like(levels))
 
-    def modelled(i: int) -> NDArray:
-        (x, y), p = pixels[i], model.pattern
-        f = model.fraction(np.array([[depths[i]]]), np.array([[y]]), np.array([[x]]))[0, 0]
-        row = int(round(min(max(y, 0), p.shape[0] - 1))) if p.shape[0] > 1 else 0
-        col = int(round(min(max(x, 0), p.shape[1] - 1))) if p.shape[1] > 1 else 0
-        return p[row, col] * f
-
-    anchor = modelled(len(depths) - 1)
+    anchor = model.level_at_pixel(depths[-1], *pixels[-1])
     worst = 0.0
     for i in range(len(depths) - 1):
-        predicted = modelled(i)
+        predicted = model.level_at_pixel(depths[i], *pixels[i])
         with np.errstate(divide="ignore", invalid="ignore"):
             scale = np.where(anchor > 0, predicted / anchor, 0.0)
         noise = 3.0 * np.sqrt(stds[i] ** 2 + (scale * stds[-1]) ** 2)
@@ -324,7 +317,6 @@ class BackscatterModel:
             shares = np.stack([np.interp(depths, at, np.concatenate([[0.0], levels[:, k] / levels[-1, k]]))
                                if levels[-1, k] > 0 else np.zeros_like(depths) for k in range(n)], axis=-1)[None, None]
             step = 0
-        model = cls(depths, shares, np.ones((1, 1, n)), step)
         if pattern is not None:
             response = None
             if frames.shape[0] >= 2:
@@ -336,8 +328,6 @@ class BackscatterModel:
             return cls(depths, shares, pattern, step, response)
         # No open-water frame: scale F so the model meets the last patch measurement; uniform in
         # space, or, with the physics of the column, following the lamp's place across the view.
-        x, y = patches[-1]
-        at_patch = model.fraction(np.array([[measured_depths[-1]]]), np.array([[y]]), np.array([[x]]))[0, 0]
         shape_across = np.ones((1, 1, n))
         if physical:
             h, w = shape if shape is not None else (int(2 * intr.cy + 1), int(2 * intr.cx + 1))
@@ -348,7 +338,7 @@ class BackscatterModel:
             totals = _column_totals(rays, np.array(profile.lamp_position_m), profile.lamp_radius_m, c).reshape(gh, gw, n)
             totals = totals / totals.max(axis=(0, 1))
             shape_across = cv2.resize(totals.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR).reshape(h, w, n)
-            at_patch = at_patch * shape_across[int(round(min(max(y, 0), h - 1))), int(round(min(max(x, 0), w - 1)))]
+        at_patch = cls(depths, shares, shape_across, step).level_at_pixel(measured_depths[-1], *patches[-1])
         scale = np.where(at_patch > 0, levels[-1] / np.where(at_patch > 0, at_patch, 1.0), 0.0)
         return cls(depths, shares, (shape_across * scale).astype(np.float64), step)
 
@@ -397,6 +387,16 @@ class BackscatterModel:
         both = np.concatenate([rows_at, rows_at + 1])
         weight = np.concatenate([spatial * (1 - f), spatial * f])
         return np.einsum("q...,q...n->...n", weight, flat[both])
+
+    def level_at_pixel(self, depth: float, x: float, y: float) -> NDArray[np.float64]:
+        """(N,) backscatter (DN) at one pixel (x, y), full-resolution coordinates (the pattern's
+        nearest pixel, clamped to it), for a surface at ``depth`` metres: a patch measurement's twin."""
+        f = self.fraction(np.array([[depth]]), np.array([[y]]), np.array([[x]]))[0, 0]
+        p = self.pattern
+        row = int(round(min(max(y, 0), p.shape[0] - 1)))
+        col = int(round(min(max(x, 0), p.shape[1] - 1)))
+        level = p[row, col] * f
+        return level if self.response is None else level * self.response[row, col]
 
     def open_water_level(self, shape: tuple[int, int]) -> NDArray[np.float64]:
         """(H, W, N) backscatter (DN, dark-corrected) of open water, nothing in range, at every pixel of
