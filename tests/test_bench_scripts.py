@@ -56,6 +56,21 @@ def test_water_study_runs_and_judges_its_goals():
 
 
 @pytest.mark.slow
+def test_water_study_runs_the_goal_cell_on_other_sensors():
+    """Small frames, one water and offset: the goal cell again on every other sensor, each line
+    with its spread and how many sensors met the goal."""
+    out = subprocess.run([sys.executable, str(ROOT / "bench" / "water_study.py"), "--waters", "jerlov-II", "--offsets", "0.3",
+                          "--no-pairs", "--size", "80x60", "--frames", "2"],
+                         check=True, capture_output=True, text=True, timeout=600).stdout
+    lines = [line for line in out.splitlines() if "on 12 other sensors" in line]
+    assert [line.split(",")[2].strip() for line in lines] == ["compensated ×16", "compensated ×16", "compensated ×16"], out
+    assert all(" m) on 12 other sensors" in line and "sd " in line and " of 12" in line for line in lines), lines
+    assert "on 12 other sensors" not in subprocess.run(
+        [sys.executable, str(ROOT / "bench" / "water_study.py"), "--waters", "jerlov-II", "--offsets", "0.3", "--no-pairs",
+         "--no-sensors", "--size", "80x60", "--frames", "2"], check=True, capture_output=True, text=True, timeout=600).stdout
+
+
+@pytest.mark.slow
 def test_orientation_benchmark_runs():
     out = subprocess.run([sys.executable, str(ROOT / "bench" / "bench_orientation.py"), "--size", "320x240", "--repeat", "2",
                           "--blocks", "16"], check=True, capture_output=True, text=True, timeout=600).stdout

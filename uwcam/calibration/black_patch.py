@@ -15,6 +15,10 @@ from uwcam.calibration.noise_fit import mask_interior
 
 # Pixels kept clear of a region's edges (blur, partial pixels) when measuring noise or backscatter.
 EDGE = 2
+# The plate within this many patch widths of the black patch carries its light across the patch:
+# the sensor's fixed pattern averages over the ring (half a width left the attenuation differences
+# twice as scattered by sensor), and a wider one follows a steep lamp field less well.
+RING_REACH = 1
 
 
 def dilate_mask(mask: NDArray[np.bool_], radius: int) -> NDArray[np.bool_]:
@@ -99,8 +103,10 @@ def backscatter_at_black_patch(
     pixel, black = bs + ρ_black·X and the plate would read bs + ρ_plate·X, where X (lamp light ×
     geometry) is *that pixel's own*: the lamp lights patch and surrounding plate differently
     (spreading, beam pattern, incidence), so X is not the surround's mean. The plate's signal is
-    interpolated across the patch by a quadratic surface fitted to a ring of plate pixels around
-    it, then X = (plate − black)/(ρ_plate − ρ_black) and bs = black − ρ_black·X per pixel, averaged.
+    interpolated across the patch by a smooth surface (cubic; quadratic or a plane on few pixels)
+    fitted to the plate within RING_REACH patch widths of it, then X = (plate − black)/(ρ_plate −
+    ρ_black) and bs = black − ρ_black·X per pixel, averaged (docs/calibration.md, "Backscatter at
+    the black patch").
     Edge pixels of patch and plate are left out (blur, partial pixels). ``pixel_variance``
     (H, W, N): each pixel's noise variance, for the estimate's variance (0 without it).
     """
@@ -114,19 +120,18 @@ def backscatter_at_black_patch(
         patch, edge = black_mask, 0  # a patch a few pixels wide (small or far): keep every pixel of it
     ys, xs = np.nonzero(black_mask)
     size = max(int(min(np.ptp(ys), np.ptp(xs)) + 1), 4)
-    ring = dilate_mask(black_mask, max(size // 2, 4)) & ~dilate_mask(black_mask, edge) & mask_interior(plate_mask, edge)
+    ring = dilate_mask(black_mask, max(RING_REACH * size, 4)) & ~dilate_mask(black_mask, edge) & mask_interior(plate_mask, edge)
     ring &= ~black_mask
     if ring.sum() < 6:
         raise UserInputError("the black patch is not surrounded by enough plate pixels to interpolate the plate's light across it; "
                              "check the regions (the patch must lie inside the plate, away from its edges)")
     cy, cx, scale = ys.mean(), xs.mean(), float(size)
-    quadratic = ring.sum() >= 24  # a few ring pixels only support a plane
+    degree = 3 if ring.sum() >= 60 else 2 if ring.sum() >= 24 else 1  # a few ring pixels only support a plane
 
     def design(mask: NDArray[np.bool_]) -> NDArray:
         yy, xx = np.nonzero(mask)
         u, v = (xx - cx) / scale, (yy - cy) / scale
-        terms = [np.ones_like(u), u, v] + ([u * u, u * v, v * v] if quadratic else [])
-        return np.stack(terms, axis=1)
+        return np.stack([u ** (d - i) * v**i for d in range(degree + 1) for i in range(d + 1)], axis=1)
 
     a_ring, a_patch = design(ring), design(patch)
     plate_values = signal[ring]
