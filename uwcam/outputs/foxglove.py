@@ -84,6 +84,8 @@ class FoxgloveOutput(ThreadedOutput):
         try:
             self.gateway.start()
         except OSError as exc:
+            self.gateway.stop()
+            self.gateway = None
             self.server.stop()
             self.server = None
             raise UserInputError(f"cannot start the Foxglove server on {self.config.host}:{self.config.port} ({exc}); "

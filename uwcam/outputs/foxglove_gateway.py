@@ -108,8 +108,8 @@ class FoxgloveGateway:
             self.port = self._server.sockets[0].getsockname()[1]
         except BaseException as exc:  # reported to start()
             self._error = exc
+            loop.close()  # before start() hears of it: a stop() right after finds nothing left to stop
             self._started.set()
-            loop.close()
             return
         self._started.set()
         try:
@@ -124,9 +124,14 @@ class FoxgloveGateway:
             loop.close()
 
     def stop(self) -> None:
-        if self._loop is not None and self._thread is not None and self._thread.is_alive():
-            self._loop.call_soon_threadsafe(self._loop.stop)
-            self._thread.join(timeout=10.0)
+        loop, thread = self._loop, self._thread
+        if loop is not None and thread is not None and thread.is_alive() and not loop.is_closed():
+            try:
+                loop.call_soon_threadsafe(loop.stop)
+            except RuntimeError:  # closed since: it never served (a failed bind), nothing to stop
+                pass
+        if thread is not None:
+            thread.join(timeout=10.0)
         self._thread = None
 
     async def _handle(self, client_reader: asyncio.StreamReader, client_writer: asyncio.StreamWriter) -> None:
