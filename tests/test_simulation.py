@@ -75,6 +75,19 @@ def test_no_backscatter_without_beta_and_gating_removes_most():
     assert gated.sum() < 0.05 * full.sum()
 
 
+def test_the_surface_alone_is_the_frame_of_the_same_world_without_the_waters_light():
+    """noise_free_frame(backscatter=False) in scattering water is the frame that water gives with β = 0
+    (same exposure, per channel too): the surface's direct and forward light, the dark level, the
+    sensor's gain map; and less than the whole frame by the backscatter."""
+    murky = world(water=water(g=(0.4, 0.08, 0.04), b=0.01, beta=0.002))
+    murky.set_exposure_scale((1.0, 0.5, 2.0))
+    clear = world(water=water(g=(0.4, 0.08, 0.04), b=0.01, beta=0.0), fixed_exposure=murky.exposure)
+    clear.set_exposure_scale((1.0, 0.5, 2.0))
+    surface = murky.noise_free_frame(backscatter=False)
+    np.testing.assert_allclose(surface, clear.noise_free_frame(), rtol=1e-5)
+    assert np.all(surface < murky.noise_free_frame())
+
+
 def brute_force_backscatter(w, i, j, beta):
     """∫ β · lamp irradiance · exp(−c (d_s + t)) dt along pixel (i, j)'s ray, fine steps, in numpy."""
     u = w.rays[i, j]

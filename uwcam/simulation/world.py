@@ -116,15 +116,23 @@ class SimulatedWorld:
     def expected(self, lamp_on: bool = True) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
         """Per-pixel mean and standard deviation in DN (H, W, N)."""
         if lamp_on not in self._expected:
-            exposure = self.exposure if self.exposure_scale is None else self.exposure * np.asarray(self.exposure_scale)
-            self._expected[lamp_on] = self.camera.expected(self.components(lamp_on).total, exposure)
+            self._expected[lamp_on] = self.camera.expected(self.components(lamp_on).total, self._channel_exposures())
         return self._expected[lamp_on]
+
+    def _channel_exposures(self) -> float | NDArray[np.float64]:
+        """Electrons per unit radiance now, one for all channels or (N,) per channel."""
+        return self.exposure if self.exposure_scale is None else self.exposure * np.asarray(self.exposure_scale)
 
     def frame(self, index: int = 0, lamp_on: bool = True, out: NDArray | None = None) -> NDArray:
         """Frame number ``index`` (H, W, N) as the sensor's integer type; reproducible per seed."""
         mean, std = self.expected(lamp_on)
         return self.camera.digitise(mean, std, self.seed * 2 + int(lamp_on), index, out)
 
-    def noise_free_frame(self, lamp_on: bool = True) -> NDArray[np.float32]:
-        """Expected value in DN (H, W, N), without noise, quantisation or clipping."""
-        return self.expected(lamp_on)[0]
+    def noise_free_frame(self, lamp_on: bool = True, backscatter: bool = True) -> NDArray[np.float32]:
+        """Expected value in DN (H, W, N), without noise, quantisation or clipping. backscatter=False:
+        without the water's own light too, what the surface alone gives the sensor (the truth a
+        backscatter compensation aims at)."""
+        if backscatter:
+            return self.expected(lamp_on)[0]
+        parts = self.components(lamp_on)
+        return self.camera.expected(parts.total - parts.backscatter, self._channel_exposures())[0]
