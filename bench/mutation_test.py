@@ -106,7 +106,7 @@ CALIBRATION_TESTS = ("tests/test_noise_beside_the_plate.py tests/test_calibratio
 TARGETS: dict[str, Target] = {
     "optics.noise": Target("uwcam/optics/noise.py", "tests/test_independent_noise.py tests/test_noise_model_terms.py"),
     "optics.transform": Target("uwcam/optics/transform.py", "tests/test_independent_estimator.py"),
-    "optics.fusion": Target("uwcam/optics/fusion.py", "tests/test_independent_estimator.py"),
+    "optics.fusion": Target("uwcam/optics/fusion.py", "tests/test_independent_estimator.py tests/test_attenuation_significance.py"),
     "optics.reflectance": Target("uwcam/optics/reflectance.py", "tests/test_optics_contracts.py tests/test_independent_estimator.py"),
     "optics.geometry": Target("uwcam/optics/geometry.py", "tests/test_optics_contracts.py tests/test_independent_geometry.py"),
     "optics.validity": Target("uwcam/optics/validity.py", "tests/test_independent_validity.py tests/test_validity.py tests/test_reason_codes.py"),
@@ -146,11 +146,13 @@ TARGETS: dict[str, Target] = {
     "optics.kernels": Target("uwcam/optics/kernels.py", "tests/test_numpy_path.py tests/test_optics_contracts.py "
                                                         "tests/test_ranging_contracts.py tests/test_independent_estimator.py "
                                                         "tests/test_independent_geometry.py tests/test_independent_validity.py "
-                                                        "tests/test_kernel_edges.py -W ignore::RuntimeWarning",
+                                                        "tests/test_kernel_edges.py tests/test_attenuation_significance.py "
+                                                        "-W ignore::RuntimeWarning",
                              env={"NUMBA_DISABLE_JIT": "1"}),
     "optics.kernels_numba": Target("uwcam/optics/kernels_numba.py", "tests/test_independent_estimator.py tests/test_independent_geometry.py "
                                                                     "tests/test_independent_validity.py tests/test_backscatter_terms.py "
-                                                                    "tests/test_kernel_edges.py tests/test_background_kernel_edges.py tests/test_kernel_log.py -W ignore::RuntimeWarning",
+                                                                    "tests/test_kernel_edges.py tests/test_background_kernel_edges.py tests/test_kernel_log.py "
+                                                                    "tests/test_attenuation_significance.py -W ignore::RuntimeWarning",
                                    env={"NUMBA_DISABLE_JIT": "1"}),
 }
 

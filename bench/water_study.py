@@ -347,9 +347,9 @@ def main() -> None:
                          + "; ".join(f"{w} {o:g} m {dd:g} m {k}: {pct(st['median'])} %, {100 * st['valid']:.0f} % valid"
                                      for w, o, dd, k, st in far_off)
                          + ". Each pixel within its σ (up to twice the range, the most a compensated range may have): "
-                           "ranges from little light, which their σ marks as no measurement to steer by. In the gated "
-                           "Jerlov III cells they are pixels whose red is lost in the noise, ranged from green and blue "
-                           "alone, which attenuate alike there.")
+                           "ranges from little light, which their σ marks as no measurement to steer by. (Where red is "
+                           "lost and green and blue attenuate alike, as in Jerlov III, a pixel has no range: their "
+                           "calibrated difference is not 3σ of its uncertainty (reason 4).)")
         raw_worst = max(c["raw"]["inner"]["beyond"] for cells in results.values() for c in cells.values())
         lines.append(f"- Raw (the water's light left in, as with a profile that cannot tell it): up to {100 * raw_worst:.0f} % "
                      "of the valid pixels of a cell lie beyond 3σ: why uwcam subtracts the water's light wherever it is known.")

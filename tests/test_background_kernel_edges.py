@@ -67,7 +67,7 @@ def test_the_compiled_background_kernel_equals_the_numpy_terms_at_the_edges(case
     pairs = kernels.pack_pairs(y, weight, states, ChannelState.SATURATED, ChannelState.BACKSCATTER_ONLY)
     h, w = raw.shape[:2]
     ref = [np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w), np.uint8)]
-    kernels.fuse_arrays_numpy(pairs, est._c, (0.0,) * 3, est._geo, est.bounds, *ref)
+    kernels.fuse_arrays_numpy(pairs, est._c, (0.0,) * 3, est._cv, est._geo, est.bounds, *ref)
     np.testing.assert_array_equal(got.reasons, ref[2])
     np.testing.assert_allclose(got.range, ref[0], rtol=2e-6, equal_nan=True)
     np.testing.assert_allclose(got.variance, ref[1], rtol=2e-5, equal_nan=True)
@@ -90,7 +90,7 @@ def test_the_compiled_background_kernel_takes_the_noise_of_means_as_the_numpy_te
     got = est(raw, background=bg, samples=samples)
     pairs = kernels.pack_pairs(y, weight, states, ChannelState.SATURATED, ChannelState.BACKSCATTER_ONLY)
     ref = [np.empty(v.shape[:2], np.float32), np.empty(v.shape[:2], np.float32), np.empty(v.shape[:2], np.uint8)]
-    kernels.fuse_arrays_numpy(pairs, est._c, (0.0,) * 3, est._geo, est.bounds, *ref)
+    kernels.fuse_arrays_numpy(pairs, est._c, (0.0,) * 3, est._cv, est._geo, est.bounds, *ref)
     assert (ref[2] == Reason.VALID).all()
     np.testing.assert_allclose(got.range, ref[0], rtol=2e-6)
     np.testing.assert_allclose(got.variance, ref[1], rtol=2e-5)

@@ -87,7 +87,7 @@ def test_compiled_background_kernel_equals_the_numpy_terms_with_every_state():
         pairs = kernels.pack_pairs(y, weight, state, 2, 3)
         h, w = raw.shape[:2]
         ref = [np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w), np.uint8)]
-        kernels.fuse_arrays(pairs, est._c, (0.0,) * 3, est._geo, est.bounds, *ref)
+        kernels.fuse_arrays(pairs, est._c, (0.0,) * 3, est._cv, est._geo, est.bounds, *ref)
         np.testing.assert_array_equal(got.reasons, ref[2])
         # The kernel's terms are float32 (numpy's float64): ln E's rounding, ~1e-6, over attenuation
         # differences of ~0.1–0.5 1/m is ~1e-5 m of range.

@@ -48,7 +48,7 @@ def fuse(fuser, y, w, states, c, geo=NO_LAMP, bounds=(0.5, 40.0)):
     h, wd = pairs.shape[:2]
     out = (np.full((h, wd), -1.0, np.float32), np.full((h, wd), -1.0, np.float32), np.full((h, wd), 99, np.uint8))
     n = pairs.shape[-1]
-    fuser(np.ascontiguousarray(pairs), tuple(float(v) for v in c), (0.0,) * n, np.asarray(geo, np.float64),
+    fuser(np.ascontiguousarray(pairs), tuple(float(v) for v in c), (0.0,) * n, (0.0,) * (n * n), np.asarray(geo, np.float64),
           np.asarray(bounds, np.float64), *out)
     return out
 
@@ -264,7 +264,7 @@ def test_the_compiled_row_function_counts_255_channels_exactly():
     w = len(kinds)
     out = (np.full(w, -1.0, np.float32), np.full(w, -1.0, np.float32), np.full(w, 99, np.uint8))
     with np.errstate(divide="ignore", invalid="ignore"):  # as Python, 1/0 warns; compiled, it is silent (inf)
-        _python(kernels_numba._fuse_row)(row, np.zeros(w, np.float32), c, (0.0,) * n, 0.5, 40.0, 0.0, *out)
+        _python(kernels_numba._fuse_row)(row, np.zeros(w, np.float32), c, (0.0,) * n, (0.0,) * (n * n), 0.5, 40.0, 0.0, *out)
     assert list(out[2]) == [Reason.VALID, Reason.BACKSCATTER_ONLY, Reason.SATURATED, Reason.BELOW_NOISE_FLOOR,
                             Reason.BACKSCATTER_ONLY, Reason.SATURATED]
     assert out[0][0] == pytest.approx(d / 2, rel=1e-4)

@@ -57,11 +57,11 @@ def test_numpy_path_equals_compiled_kernels(dtype, geometry):
     if background is None:
         table, offset = est._lookup_tables(frame.dtype)
         b = tuple(float(v) for v in est.log_constant - offset)
-        kernels.fuse_lookup_numpy(frame, table, est._c, b, est._geo, est.bounds, *out)
+        kernels.fuse_lookup_numpy(frame, table, est._c, b, est._cv, est._geo, est.bounds, *out)
     else:
         y, weight, state = est.channel_terms(frame, background)
         pairs = kernels.pack_pairs(y, weight, state, 2, 3)
-        kernels.fuse_arrays_numpy(pairs, est._c, (0.0,) * 4, est._geo, est.bounds, *out)
+        kernels.fuse_arrays_numpy(pairs, est._c, (0.0,) * 4, est._cv, est._geo, est.bounds, *out)
     np.testing.assert_array_equal(out[2], compiled.reasons)
     if background is None:
         # Same float32 operations in the same order; only the compiler's choices may differ by an ulp.

@@ -246,7 +246,7 @@ def test_fused_frames_range_the_same_with_a_background_by_the_compiled_kernel_an
     y, weight, state = est.channel_terms(data, background, samples)
     pairs = kernels.pack_pairs(y, weight, state, 2, 3)
     want = est(data.astype(np.float64), background=None, samples=None)  # shape of the outputs
-    kernels.fuse_arrays(pairs, est._c, (0.0,) * 3, est._geo, est.bounds, want.range, want.variance, want.reasons)
+    kernels.fuse_arrays(pairs, est._c, (0.0,) * 3, est._cv, est._geo, est.bounds, want.range, want.variance, want.reasons)
     np.testing.assert_array_equal(got.reasons, want.reasons)
     np.testing.assert_allclose(got.range, want.range, rtol=2e-5, equal_nan=True)
     np.testing.assert_allclose(got.variance, want.variance, rtol=2e-4, equal_nan=True)

@@ -5,6 +5,10 @@ With weights w_k = E_k²/σ_k² the estimate and its variance are
 
     d_T = −Σ w_k (c_k − c̄)(y_k − ȳ) / Σ w_k (c_k − c̄)²,   Var(d_T) = 1 / Σ w_k (c_k − c̄)².
 
+The calibration knows each c_k only to its uncertainty: where the usable channels' spread of
+attenuation, Σ_{k<l} w_k w_l (c_k − c_l)², is not above 3² times what that uncertainty alone gives
+it, Σ_{k<l} w_k w_l Var(c_k − c_l), the pixel has no range (for two channels: |c_k − c_l| ≤ 3σ).
+
 This module is the readable float64 reference; ``uwcam.optics.kernels`` computes the
 same thing in one compiled pass for the frame loop.
 """
@@ -20,6 +24,8 @@ def fused_path_length(
     log_constant: ArrayLike,
     variance: ArrayLike,
     usable: ArrayLike | None = None,
+    attenuation_covariance: ArrayLike | None = None,
+    significance: float = 3.0,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Fused path length d_T (m) and its variance (m²) from N ≥ 2 channels.
 
@@ -28,6 +34,8 @@ def fused_path_length(
     log_constant: (N,) b_k = ln(K_k ρ_k), likewise only differences matter.
     variance: (..., N) or (N,) σ_k² of E_k in the same units squared.
     usable: optional (..., N) bool; False channels get weight 0 (below floor, saturated).
+    attenuation_covariance: optional (N, N) covariance of the c_k, (1/m)²: the usable channels'
+    attenuations must differ by more than ``significance`` of its standard deviations.
 
     Returns (path_length, path_variance), each of shape (...). Pixels without two
     usable channels of different attenuation get NaN in both.
@@ -62,6 +70,14 @@ def fused_path_length(
         # A range needs two usable channels of different attenuation, tested exactly.
         distinct = np.where(ok, c, -np.inf).max(axis=-1) > np.where(ok, c, np.inf).min(axis=-1)
         bad = ~distinct | ~(spread > 0)
+        if attenuation_covariance is not None:
+            cvv = np.asarray(attenuation_covariance, dtype=np.float64)
+            if cvv.shape != (n, n):
+                raise ValueError(f"attenuation_covariance must have shape ({n}, {n}), got {cvv.shape}")
+            pairs = [(k, m) for k in range(n) for m in range(k + 1, n)]
+            between = sum(w[..., k] * w[..., m] * (c[k] - c[m]) ** 2 for k, m in pairs)
+            by_chance = sum(w[..., k] * w[..., m] * (cvv[k, k] + cvv[m, m] - 2 * cvv[k, m]) for k, m in pairs)
+            bad |= ~(between > significance**2 * by_chance)
         path = np.where(bad, np.nan, -cov / spread)
         var = np.where(bad, np.nan, 1.0 / spread)
     return path, var

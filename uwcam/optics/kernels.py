@@ -14,7 +14,9 @@ Every term of D is ≥ 0 and, for a pixel that fits the model, every term of M h
 −d_T (y_k − y_l ≈ −(c_k − c_l)·d_T), so neither sum cancels digits: unlike the moment form Σw·Σwc² − (Σwc)², float32 is accurate to
 a few 1e-7 relative here, which lets the arithmetic run 16 pixels per AVX-512 instruction. D is
 exactly 0 when no two usable channels differ in attenuation (a product with c_k − c_l = 0 is
-exactly 0), so that test needs no bookkeeping of its own.
+exactly 0), so that test needs no bookkeeping of its own. Beside D the kernels sum what the
+calibration's uncertainty alone would give it, Σ_{k<l} w_k w_l Var(c_k − c_l); a range needs D
+above :data:`ATTENUATION_SIGMAS`² times that (zero for a calibration without uncertainties).
 
 How a frame flows:
 * Integer frames: everything that depends on one channel's code alone (ln E − offset, the
@@ -60,6 +62,22 @@ MAX_CHANNELS = 255
 # deviations of the total light's noise above zero carries no usable surface signal.
 BACKGROUND_SIGMAS = 3.0
 
+ATTENUATION_SIGMAS = 3.0
+"""A pixel's usable channels must differ in attenuation by more than this many of the
+calibration's standard uncertainties of those differences, weighted as the fit weighs them:
+D > ATTENUATION_SIGMAS² · Σ_{k<l} w_k w_l Var(c_k − c_l) (for two channels, |c_k − c_l| > 3σ).
+Otherwise the difference the range divides by may be the calibration's error, the range anything
+(e.g. green and blue where they attenuate alike): reason 4, too few channels of different
+attenuation. A calibration without uncertainties tests D > 0 as before."""
+
+
+def pair_noise(covariance: NDArray, sigmas: float = ATTENUATION_SIGMAS) -> tuple[float, ...]:
+    """The kernels' significance constants: sigmas² · Var(c_k − c_l) for every k, l, flat (N·N,),
+    row-major, from the (N, N) covariance of the attenuation differences (1/m)²."""
+    cvv = np.asarray(covariance, dtype=np.float64)
+    var = np.diag(cvv)[:, None] + np.diag(cvv)[None, :] - cvv - cvv.T
+    return tuple(float(x) for x in (sigmas * sigmas * np.maximum(var, 0.0)).ravel())
+
 # Rows per block in the numpy path: bounds its temporaries (~20 float32 rows of the block).
 _NUMPY_BLOCK_ROWS = 32
 
@@ -92,7 +110,7 @@ def lamp_geometry(geo: NDArray) -> tuple[float, float, float, float, float, floa
 # --------------------------------------------------------------------------------------------
 # numpy path: the same float32 operations in the same order as kernels_numba._fuse_row.
 
-def _fuse_block(y: NDArray, w: NDArray, c: tuple, b: tuple, p: NDArray, bounds: NDArray, s_norm: float,
+def _fuse_block(y: NDArray, w: NDArray, c: tuple, b: tuple, cv: tuple, p: NDArray, bounds: NDArray, s_norm: float,
                 out_range: NDArray, out_var: NDArray, out_reason: NDArray) -> None:
     """Fuse a block: y, w (N, R, W) float32 pairs; p (R, W) float32 S·u; outputs (R, W)."""
     f32 = np.float32
@@ -100,6 +118,7 @@ def _fuse_block(y: NDArray, w: NDArray, c: tuple, b: tuple, p: NDArray, bounds: 
     sw = np.zeros(p.shape, f32)
     flags = np.zeros(p.shape, f32)
     det = np.zeros(p.shape, f32)
+    noise = np.zeros(p.shape, f32)
     num = np.zeros(p.shape, f32)
     for k in range(n):
         sw += w[k]
@@ -108,6 +127,7 @@ def _fuse_block(y: NDArray, w: NDArray, c: tuple, b: tuple, p: NDArray, bounds: 
             dc = f32(c[k] - c[m])
             ww = w[k] * w[m]
             det += ww * (dc * dc)
+            noise += ww * f32(cv[k * n + m])
             num += (ww * dc) * (y[k] - y[m] - f32(b[k] - b[m]))
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         inv = f32(1.0) / det
@@ -117,7 +137,8 @@ def _fuse_block(y: NDArray, w: NDArray, c: tuple, b: tuple, p: NDArray, bounds: 
         rng = f32(0.5) * (d * d - s2) * den
         deriv = f32(0.5) * (d * d - f32(2.0) * d * p + s2) * den * den
         var = deriv * deriv * sw * inv
-        ok = (det > 0) & (d >= f32(bounds[0])) & (d <= f32(bounds[1])) & (d > f32(s_norm))
+        distinct = det > noise
+        ok = distinct & (d >= f32(bounds[0])) & (d <= f32(bounds[1])) & (d > f32(s_norm))
     counts = flags.astype(np.int32)
     n_usable, n_back, n_sat = counts & 255, (counts >> 8) & 255, counts >> 16
     reason = np.full(p.shape, _R_BELOW, np.uint8)
@@ -125,7 +146,7 @@ def _fuse_block(y: NDArray, w: NDArray, c: tuple, b: tuple, p: NDArray, bounds: 
     reason[n_usable + n_back >= 2] = _R_BACKSCATTER
     reason[n_sat > 0] = _R_SATURATED
     reason[n_usable >= 2] = _R_TOO_FEW
-    reason[det > 0] = _R_BOUNDS
+    reason[distinct] = _R_BOUNDS
     reason[ok] = _VALID
     out_range[...] = np.where(ok, rng, np.nan)
     out_var[...] = np.where(ok, var, np.nan)
@@ -144,33 +165,35 @@ def _lamp_dot_block(geo: NDArray, rows: slice, width: int) -> NDArray[np.float32
     return ((sx * ux + a) / np.sqrt(ux * ux + q)).astype(np.float32)
 
 
-def _fuse_numpy(fetch, n: int, c: tuple, b: tuple, geo: NDArray, bounds: NDArray,
+def _fuse_numpy(fetch, n: int, c: tuple, b: tuple, cv: tuple, geo: NDArray, bounds: NDArray,
                 out_range: NDArray, out_var: NDArray, out_reason: NDArray) -> None:
     h, w = out_range.shape
     for start in range(0, h, _NUMPY_BLOCK_ROWS):
         rows = slice(start, min(start + _NUMPY_BLOCK_ROWS, h))
         pairs = np.stack([fetch(rows, k) for k in range(n)]).view(np.float32)  # (N, R, 2W)
-        _fuse_block(pairs[..., 0::2], pairs[..., 1::2], c, b, _lamp_dot_block(geo, rows, w), bounds, float(geo[4]),
+        _fuse_block(pairs[..., 0::2], pairs[..., 1::2], c, b, cv, _lamp_dot_block(geo, rows, w), bounds, float(geo[4]),
                     out_range[rows], out_var[rows], out_reason[rows])
 
 
-def fuse_lookup_numpy(raw: NDArray, table: NDArray[np.uint64], c: tuple, b: tuple, geo: NDArray, bounds: NDArray,
+def fuse_lookup_numpy(raw: NDArray, table: NDArray[np.uint64], c: tuple, b: tuple, cv: tuple, geo: NDArray,
+                      bounds: NDArray,
                       out_range: NDArray, out_var: NDArray, out_reason: NDArray) -> None:
     """Range, variance and reason of every pixel of an integer frame (numpy path).
 
     raw: (H, W, N) uint8/uint16 codes; table: (N, L) pairs (see :func:`pack_pairs`) per code,
     y = ln E − offset; c: N centred attenuations (1/m); b: N log constants minus the table's
-    offset; geo: [mode, Sx, Sy, Sz, |S|, 1/fx, 1/fy, cx, cy]; bounds: [min, max] path length (m).
+    offset; cv: N·N significance constants (:func:`pair_noise`; zeros: any difference counts);
+    geo: [mode, Sx, Sy, Sz, |S|, 1/fx, 1/fy, cx, cy]; bounds: [min, max] path length (m).
     Outputs (H, W) float32 range (m), float32 variance (m²), uint8 reason, written in place.
     """
-    _fuse_numpy(lambda rows, k: np.take(table[k], raw[rows, :, k]), len(c), c, b, geo, bounds,
+    _fuse_numpy(lambda rows, k: np.take(table[k], raw[rows, :, k]), len(c), c, b, cv, geo, bounds,
                 out_range, out_var, out_reason)
 
 
-def fuse_arrays_numpy(pairs: NDArray[np.uint64], c: tuple, b: tuple, geo: NDArray, bounds: NDArray,
+def fuse_arrays_numpy(pairs: NDArray[np.uint64], c: tuple, b: tuple, cv: tuple, geo: NDArray, bounds: NDArray,
                       out_range: NDArray, out_var: NDArray, out_reason: NDArray) -> None:
     """As :func:`fuse_lookup_numpy` with the pairs given per pixel and channel, (H, W, N): for float frames."""
-    _fuse_numpy(lambda rows, k: np.ascontiguousarray(pairs[rows, :, k]), len(c), c, b, geo, bounds,
+    _fuse_numpy(lambda rows, k: np.ascontiguousarray(pairs[rows, :, k]), len(c), c, b, cv, geo, bounds,
                 out_range, out_var, out_reason)
 
 

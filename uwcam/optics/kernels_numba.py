@@ -60,14 +60,15 @@ def _lamp_dot_row(i, geo, p_row):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _fuse_row(pair, p_row, c, b, lo, hi, s_norm, out_range, out_var, out_reason):
-    """Fuse one row: pair (N, 2W) float32 [y, w] per channel and pixel; p_row (W,) S·u; outputs (W,)."""
+def _fuse_row(pair, p_row, c, b, cv, lo, hi, s_norm, out_range, out_var, out_reason):
+    """Fuse one row: pair (N, 2W) float32 [y, w] per channel and pixel; p_row (W,) S·u; cv (N·N,)
+    the significance constants of :func:`uwcam.optics.kernels.pair_noise`; outputs (W,)."""
     n = len(c)
     half, two, zero = np.float32(0.5), np.float32(2.0), np.float32(0.0)
     s2 = np.float32(s_norm * s_norm)
     s_norm32, lo32, hi32 = np.float32(s_norm), np.float32(lo), np.float32(hi)
     for j in range(out_range.shape[0]):
-        sw = det = num = flags = zero
+        sw = det = noise = num = flags = zero
         for k in range(n):
             yk = pair[k, 2 * j]
             wk = pair[k, 2 * j + 1]
@@ -77,6 +78,7 @@ def _fuse_row(pair, p_row, c, b, lo, hi, s_norm, out_range, out_var, out_reason)
                 dc = np.float32(c[k] - c[m])
                 ww = wk * pair[m, 2 * j + 1]
                 det += ww * (dc * dc)
+                noise += ww * np.float32(cv[k * n + m])
                 num += (ww * dc) * (yk - pair[m, 2 * j] - np.float32(b[k] - b[m]))
         p = p_row[j]
         inv = np.float32(1.0) / det
@@ -85,7 +87,8 @@ def _fuse_row(pair, p_row, c, b, lo, hi, s_norm, out_range, out_var, out_reason)
         rng = half * (d * d - s2) * den
         deriv = half * (d * d - two * d * p + s2) * den * den
         var = deriv * deriv * sw * inv
-        ok = (det > zero) & (d >= lo32) & (d <= hi32) & (d > s_norm32)
+        distinct = det > noise
+        ok = distinct & (d >= lo32) & (d <= hi32) & (d > s_norm32)
         counts = np.int32(flags)
         n_usable = counts & 255
         n_back = (counts >> 8) & 255
@@ -96,7 +99,7 @@ def _fuse_row(pair, p_row, c, b, lo, hi, s_norm, out_range, out_var, out_reason)
         reason = _R_BACKSCATTER if n_usable + n_back >= 2 else reason
         reason = _R_SATURATED if n_sat > 0 else reason
         reason = _R_TOO_FEW if n_usable >= 2 else reason
-        reason = _R_BOUNDS if det > zero else reason
+        reason = _R_BOUNDS if distinct else reason
         reason = _VALID if ok else reason
         out_range[j] = rng if ok else np.nan
         out_var[j] = var if ok else np.nan
@@ -104,11 +107,11 @@ def _fuse_row(pair, p_row, c, b, lo, hi, s_norm, out_range, out_var, out_reason)
 
 
 @njit(inline="always", cache=True, nogil=True, error_model="numpy")
-def _fuse_filled_row(i, buf, geo, c, b, bounds, out_range, out_var, out_reason):
+def _fuse_filled_row(i, buf, geo, c, b, cv, bounds, out_range, out_var, out_reason):
     """Row ``i`` of the outputs from its (N, W) buffer of packed (log signal, variance) pairs."""
     p_row = np.empty(buf.shape[1], np.float32)
     _lamp_dot_row(i, geo, p_row)
-    _fuse_row(buf.view(np.float32), p_row, c, b, bounds[0], bounds[1], geo[4], out_range[i], out_var[i], out_reason[i])
+    _fuse_row(buf.view(np.float32), p_row, c, b, cv, bounds[0], bounds[1], geo[4], out_range[i], out_var[i], out_reason[i])
 
 
 @njit(inline="always", cache=True, nogil=True, error_model="numpy")
@@ -137,19 +140,19 @@ def _given_row(i, pairs, c):
 
 @parallel
 @njit(parallel=True, cache=True, nogil=True, error_model="numpy")
-def fuse_lookup(raw, table, c, b, geo, bounds, out_range, out_var, out_reason):
+def fuse_lookup(raw, table, c, b, cv, geo, bounds, out_range, out_var, out_reason):
     """Range, variance and reason of every pixel of an integer frame; arguments as
     :func:`uwcam.optics.kernels.fuse_lookup_numpy`."""
     for i in prange(out_range.shape[0]):
-        _fuse_filled_row(i, _looked_up_row(i, raw, table, c), geo, c, b, bounds, out_range, out_var, out_reason)
+        _fuse_filled_row(i, _looked_up_row(i, raw, table, c), geo, c, b, cv, bounds, out_range, out_var, out_reason)
 
 
 @parallel
 @njit(parallel=True, cache=True, nogil=True, error_model="numpy")
-def fuse_arrays(pairs, c, b, geo, bounds, out_range, out_var, out_reason):
+def fuse_arrays(pairs, c, b, cv, geo, bounds, out_range, out_var, out_reason):
     """As :func:`fuse_lookup` with pairs (H, W, N) given per pixel and channel: for float frames."""
     for i in prange(out_range.shape[0]):
-        _fuse_filled_row(i, _given_row(i, pairs, c), geo, c, b, bounds, out_range, out_var, out_reason)
+        _fuse_filled_row(i, _given_row(i, pairs, c), geo, c, b, cv, bounds, out_range, out_var, out_reason)
 
 
 LN2 = np.float32(0.6931471805599453)
@@ -230,7 +233,7 @@ def _background_terms(raw, bg, n_rows, t, level, sat, e, var, ln, bits, y_out, w
 
 @parallel
 @njit(parallel=True, cache=True, nogil=True, error_model="numpy")
-def fuse_background(frame, background, samples, noise, levels, sat, c, geo, bounds, out_range, out_var, out_reason):
+def fuse_background(frame, background, samples, noise, levels, sat, c, cv, geo, bounds, out_range, out_var, out_reason):
     """As :func:`fuse_arrays` for a C-contiguous frame (H, W, N) of any pixel type with a
     C-contiguous background (H, W, N) float32 subtracted: the per-channel terms are computed here,
     row by row (:func:`_background_terms`), instead of in numpy. samples: C-contiguous (H, W, N)
@@ -267,4 +270,4 @@ def fuse_background(frame, background, samples, noise, levels, sat, c, geo, boun
                 buf[k, 2 * j + 1] = wt[j * n + k]
         p_row = np.empty(w, np.float32)
         _lamp_dot_row(i, geo, p_row)
-        _fuse_row(buf, p_row, c, zeros, bounds[0], bounds[1], geo[4], out_range[i], out_var[i], out_reason[i])
+        _fuse_row(buf, p_row, c, zeros, cv, bounds[0], bounds[1], geo[4], out_range[i], out_var[i], out_reason[i])

@@ -78,6 +78,8 @@ class RangeEstimator:
         self.response = profile.response_curve()
         """A gamma camera's response curve: integer frames are codes, linearised before anything else."""
         self.covariance = profile.covariance_blocks()
+        self._cv = kernels.pair_noise(self.covariance[0])
+        """The kernels' significance test of a pixel's attenuation spread (kernels.ATTENUATION_SIGMAS)."""
         self.with_calibration_variance = bool(calibration_variance) and any(np.any(m != 0) for m in self.covariance)
         self._low_res_rays: dict[tuple[int, int, int, int], NDArray | None] = {}
         self.backscatter = None if backscatter_level is None else np.asarray(backscatter_level, dtype=np.float64)
@@ -299,7 +301,7 @@ class RangeEstimator:
         h, w = frame.shape[:2]
         if out is None:
             out = RangeResult(np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w), np.uint8))
-        common = (self._geo, self.bounds, out.range, out.variance, out.reasons)
+        common = (self._cv, self._geo, self.bounds, out.range, out.variance, out.reasons)
         if self.response is not None and np.issubdtype(frame.dtype, np.integer) and (
                 background is not None or samples is not None):
             frame = self.response.linearise(frame)  # codes → linear DN; the tables path does it per code
