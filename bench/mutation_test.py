@@ -97,7 +97,7 @@ RANGING_TESTS = ("tests/test_independent_estimator.py tests/test_independent_geo
                                           "tests/test_exposure.py::test_the_variance_is_that_of_the_raw_counts "
                                           "tests/test_exposure.py::test_gain_scales_the_signal_and_the_noise_in_counts "
                                           "tests/test_exposure.py::test_bad_exposures_are_refused tests/test_exposure_edges.py "
-                                          "tests/test_ranging_gaps.py")
+                                          "tests/test_ranging_gaps.py tests/test_attenuation_significance.py")
 CALIBRATION_TESTS = ("tests/test_noise_beside_the_plate.py tests/test_calibration_helpers.py tests/test_independent_calibration.py tests/test_calibration_details.py "
                                                   "tests/test_calibration_closed_forms.py "
                                                   "tests/test_calibration.py tests/test_calibration_statistics.py "

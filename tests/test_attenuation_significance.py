@@ -102,3 +102,82 @@ def test_pair_noise_is_the_variance_of_each_difference_times_nine():
     got = np.array(kernels.pair_noise(cvv)).reshape(3, 3)
     want = 9.0 * np.array([[0.0, 4e-4, 9e-4], [4e-4, 0.0, 4e-4 + 9e-4 - 2e-4], [9e-4, 11e-4, 0.0]])
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-18)
+
+
+def test_a_pair_the_calibration_cannot_tell_apart_is_refused_in_one_line():
+    """--pair G,B where G − B (0.03 1/m) is within 3σ of the calibration's doubt: every pixel would
+    be reason 4, so the estimator refuses the pair and says why, with the figures."""
+    from uwcam.fileio import UserInputError
+
+    with pytest.raises(UserInputError, match=r"differ in attenuation by \+0\.0300 ± 0\.0105 1/m.*3σ.*leave out --pair"):
+        RangeEstimator(profile_with(0.0074, 0.0), pair=("G", "B"))
+    out = RangeEstimator(profile_with(0.0068, 0.0), pair=("G", "B"))(frame(red=True))  # 3.1σ: taken
+    assert (out.reasons == Reason.VALID).all()
+    assert (RangeEstimator(profile_with(0.0074, 0.0), pair=("R", "G"))(frame(red=True)).reasons == Reason.VALID).all()
+
+
+def two_channel_profile(sigma_b: float):
+    """G (reference) and B with c_G − c_B = 0.75 1/m and σ(V_B) = sigma_b: binary fractions, so
+    that 3σ can equal the difference exactly."""
+    base = make_profile([0.75, 0.0], np.log([40000.0, 35000.0]), names=["G", "B"], **NOISE)
+    return base.model_copy(update={"covariance": CalibrationCovariance(
+        parameters=["V:B", "b:B"], matrix=[[sigma_b**2, 0.0], [0.0, 0.0]])})
+
+
+@pytest.mark.parametrize("path", ["lookup", "background", "pairs", "numpy"])
+def test_a_difference_of_exactly_three_sigma_is_not_clearly_above_it(path, monkeypatch):
+    e = np.exp(np.log([40000.0, 35000.0]) - np.array([0.75, 0.0]) * 2.0)[None, None, :].repeat(3, axis=1)
+    at = by_path(RangeEstimator(two_channel_profile(0.25)), e, path, monkeypatch)  # 0.75 = 3 × 0.25 exactly
+    assert (at.reasons == Reason.TOO_FEW_CHANNELS).all()
+    within = by_path(RangeEstimator(two_channel_profile(0.2499)), e, path, monkeypatch)
+    assert (within.reasons == Reason.VALID).all()
+    np.testing.assert_allclose(within.range, 1.0, rtol=1e-3)
+    cvv = lambda s: [[0.0, 0.0], [0.0, s * s]]  # noqa: E731
+    ref_at, _ = fused_path_length(e, [0.75, 0.0], np.log([40000.0, 35000.0]), 1.0, attenuation_covariance=cvv(0.25))
+    ref_within, _ = fused_path_length(e, [0.75, 0.0], np.log([40000.0, 35000.0]), 1.0, attenuation_covariance=cvv(0.2499))
+    assert np.isnan(ref_at).all() and np.isfinite(ref_within).all()
+
+
+def test_four_channels_follow_the_pair_sums_written_out():
+    """Four channels (two sharing an attenuation), random weights and a random covariance: a pixel
+    keeps its range exactly where Σ_{k<l} w_k w_l (c_k − c_l)² > 9 Σ_{k<l} w_k w_l Var(c_k − c_l),
+    each pair counted once, in the float64 reference and in the estimator's kernels."""
+    import itertools
+
+    rng = np.random.default_rng(5)
+    c = np.array([0.40, 0.09, 0.06, 0.09])
+    a = rng.normal(size=(3, 3)) * 0.004
+    cov3 = a @ a.T
+    cvv = np.zeros((4, 4))
+    cvv[1:, 1:] = cov3  # channel 0 the reference
+    e = rng.uniform(50.0, 3000.0, size=(40, 50, 4))
+    e[..., 0] *= rng.uniform(0, 1, size=(40, 50)) < 0.3  # red mostly lost
+    e[..., 3] *= rng.uniform(0, 1, size=(40, 50)) < 0.5
+    var = 4.0 + 0.5 * e
+    w = np.where(e > 20.0, e * e / var, 0.0)  # the estimator's floor (NOISE) and weights
+    between = sum(w[..., k] * w[..., m] * (c[k] - c[m]) ** 2 for k, m in itertools.combinations(range(4), 2))
+    chance = sum(w[..., k] * w[..., m] * (cvv[k, k] + cvv[m, m] - 2 * cvv[k, m])
+                 for k, m in itertools.combinations(range(4), 2))
+    ratio = between / np.where(chance > 0, 9 * chance, np.nan)
+    clear = np.abs(ratio - 1) > 1e-3  # float32 kernels may round a pixel at the threshold either way
+    assert 0.2 < np.mean(ratio[clear] > 1) < 0.8  # the premise: both sides are well populated
+    ref, _ = fused_path_length(e, c, np.zeros(4), var, usable=e > 20.0, attenuation_covariance=cvv)
+    np.testing.assert_array_equal(np.isfinite(ref)[clear], (ratio > 1)[clear])
+    base = make_profile(c, np.zeros(4), names=["R", "G", "B", "N"], **NOISE)
+    names = [f"V:{n}" for n in "GBN"] + [f"b:{n}" for n in "GBN"]
+    matrix = np.zeros((6, 6))
+    matrix[:3, :3] = cov3
+    profile = base.model_copy(update={"covariance": CalibrationCovariance(parameters=names, matrix=matrix.tolist())})
+    est = RangeEstimator(profile, calibration_variance=False)
+    out = est(e, background=np.zeros(e.shape, np.float32)) if kernels.fuse_background is not None else est(e)
+    kept = out.reasons != Reason.TOO_FEW_CHANNELS
+    np.testing.assert_array_equal(kept[clear], (ratio > 1)[clear])
+
+
+def test_pair_noise_is_never_negative_for_a_covariance_the_profile_accepts():
+    """The profile accepts eigenvalues down to −1e-9 of the largest variance (rounding in a saved
+    file): two channels almost perfectly correlated may then give Var(c_k − c_l) a hair below 0,
+    which would make channels of one attenuation (D = 0) look distinct."""
+    cvv = np.array([[0.0, 0.0, 0.0], [0.0, 1e-6, 1.0000005e-6], [0.0, 1.0000005e-6, 1e-6]])
+    assert cvv[1, 1] + cvv[2, 2] - 2 * cvv[1, 2] < 0  # the premise
+    assert min(kernels.pair_noise(cvv)) == 0.0

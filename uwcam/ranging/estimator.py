@@ -8,6 +8,8 @@ is installed, see :mod:`uwcam.optics.kernels`).
 
 from __future__ import annotations
 
+import math
+
 from collections.abc import Callable, Sequence
 
 import cv2
@@ -107,6 +109,14 @@ class RangeEstimator:
             self.active[[names.index(p) for p in pair]] = True
             if v[self.active][0] == v[self.active][1]:
                 raise UserInputError(f"channels {pair[0]} and {pair[1]} have equal attenuation, so the pair carries no range")
+            i, j = (names.index(p) for p in pair)
+            doubt = self._cv[i * n + j]  # (3σ)² of the pair's difference (kernels.ATTENUATION_SIGMAS)
+            if (v[i] - v[j]) ** 2 <= doubt:
+                raise UserInputError(
+                    f"channels {pair[0]} and {pair[1]} differ in attenuation by {v[i] - v[j]:+.4f} ± "
+                    f"{math.sqrt(doubt) / kernels.ATTENUATION_SIGMAS:.4f} 1/m in this calibration, not clearly "
+                    f"({kernels.ATTENUATION_SIGMAS:g}σ): every pixel would have no range (reason 4); choose a pair "
+                    "that attenuates more differently, or leave out --pair to fuse all channels")
         if n > kernels.MAX_CHANNELS:
             raise UserInputError(f"the profile has {n} channels; at most {kernels.MAX_CHANNELS} are supported")
         self.bounds = np.array(path_length_bounds, dtype=np.float64)
