@@ -55,19 +55,18 @@ def fuse(fuser, y, w, states, c, geo=NO_LAMP, bounds=(0.5, 40.0)):
 
 def reference_reason(states, c, d, bounds):
     """The documented rule for one pixel, written out: two usable channels of distinct attenuation
-    give a range (VALID or PATH_OUT_OF_BOUNDS); two usable ones of one attenuation are too few;
-    with fewer, SATURATED, then BACKSCATTER_ONLY (usable + backscatter-only ≥ 2), then
-    TOO_FEW_CHANNELS (one usable), then BELOW_NOISE_FLOOR."""
+    give a range (VALID or PATH_OUT_OF_BOUNDS). Otherwise (fewer, or usable ones of one
+    attenuation) SATURATED if any channel is, then BACKSCATTER_ONLY (a backscatter-only channel,
+    and usable + backscatter-only ≥ 2), then TOO_FEW_CHANNELS (a usable one), then BELOW_NOISE_FLOOR."""
     usable = [k for k, s in enumerate(states) if s == USABLE]
-    if len(usable) >= 2:
-        if len({c[k] for k in usable}) < 2:
-            return Reason.TOO_FEW_CHANNELS
+    if len({c[k] for k in usable}) >= 2:
         return Reason.VALID if bounds[0] <= d <= bounds[1] else Reason.PATH_OUT_OF_BOUNDS
     if any(s == SATURATED for s in states):
         return Reason.SATURATED
-    if len(usable) + sum(s == BACKSCATTER for s in states) >= 2:
+    backscatter = sum(s == BACKSCATTER for s in states)
+    if backscatter > 0 and len(usable) + backscatter >= 2:
         return Reason.BACKSCATTER_ONLY
-    return Reason.TOO_FEW_CHANNELS if len(usable) == 1 else Reason.BELOW_NOISE_FLOOR
+    return Reason.TOO_FEW_CHANNELS if usable else Reason.BELOW_NOISE_FLOOR
 
 
 @pytest.mark.parametrize("fuser", FUSERS)

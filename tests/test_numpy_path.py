@@ -41,7 +41,9 @@ def estimator_and_frame(dtype, geometry, seed=11, shape=(45, 70)):
         quantisation_step=0.0 if np.issubdtype(dtype, np.floating) else 1.0,
     )
     est = RangeEstimator(profile, backscatter_level=floor * 1.5, path_length_bounds=(0.5, 40.0))
-    return est, random_frame(rng, shape, 4, dtype, sat), profile
+    frame = random_frame(rng, shape, 4, dtype, sat)
+    frame[:3, :, [0, 2]] = 0  # R and B dark: G and N, of one attenuation, are all there is (too few)
+    return est, frame, profile
 
 
 @needs_numba

@@ -142,10 +142,9 @@ def _fuse_block(y: NDArray, w: NDArray, c: tuple, b: tuple, cv: tuple, p: NDArra
     counts = flags.astype(np.int32)
     n_usable, n_back, n_sat = counts & 255, (counts >> 8) & 255, counts >> 16
     reason = np.full(p.shape, _R_BELOW, np.uint8)
-    reason[n_usable == 1] = _R_TOO_FEW
-    reason[n_usable + n_back >= 2] = _R_BACKSCATTER
+    reason[n_usable >= 1] = _R_TOO_FEW
+    reason[(n_usable + n_back >= 2) & (n_back > 0)] = _R_BACKSCATTER
     reason[n_sat > 0] = _R_SATURATED
-    reason[n_usable >= 2] = _R_TOO_FEW
     reason[distinct] = _R_BOUNDS
     reason[ok] = _VALID
     out_range[...] = np.where(ok, rng, np.nan)

@@ -93,12 +93,12 @@ def _fuse_row(pair, p_row, c, b, cv, lo, hi, s_norm, out_range, out_var, out_rea
         n_usable = counts & 255
         n_back = (counts >> 8) & 255
         n_sat = counts >> 16
-        # The most telling reason wins (as in validity.pixel_reasons), chosen without branches.
+        # The most telling reason wins (as in validity.pixel_reasons), chosen without branches: a
+        # pixel short of channels that differ says why the others are missing, if it can.
         reason = _R_BELOW
-        reason = _R_TOO_FEW if n_usable == 1 else reason
-        reason = _R_BACKSCATTER if n_usable + n_back >= 2 else reason
+        reason = _R_TOO_FEW if n_usable >= 1 else reason
+        reason = _R_BACKSCATTER if (n_usable + n_back >= 2) & (n_back > 0) else reason
         reason = _R_SATURATED if n_sat > 0 else reason
-        reason = _R_TOO_FEW if n_usable >= 2 else reason
         reason = _R_BOUNDS if distinct else reason
         reason = _VALID if ok else reason
         out_range[j] = rng if ok else np.nan

@@ -68,12 +68,12 @@ def pixel_reasons(
 ) -> NDArray[np.uint8]:
     """Reason per pixel from channel states (..., N) and the computed path length (...).
 
-    A pixel with two or more usable channels is VALID unless its path length is NaN
-    (the usable channels share one attenuation: TOO_FEW_CHANNELS) or lies outside
-    [min_path_length, max_path_length] (PATH_OUT_OF_BOUNDS). With fewer than two usable channels the most
-    telling cause wins: SATURATED, then BACKSCATTER_ONLY (enough channels above the
-    floor but not above the water's own light), then TOO_FEW_CHANNELS (one usable),
-    then BELOW_NOISE_FLOOR.
+    A pixel with two or more usable channels and a path length is VALID, or PATH_OUT_OF_BOUNDS
+    outside [min_path_length, max_path_length]. Without a path length (fewer than two usable
+    channels, or usable channels that do not clearly differ in attenuation: NaN) the most telling
+    cause wins: SATURATED (a channel clipped), then BACKSCATTER_ONLY (a channel above the floor but
+    not above the water's own light, with enough such and usable channels to have ranged), then
+    TOO_FEW_CHANNELS (a usable channel), then BELOW_NOISE_FLOOR.
     """
     s = np.asarray(states)
     d = np.asarray(path_length, dtype=np.float64)
@@ -81,14 +81,13 @@ def pixel_reasons(
     n_saturated = (s == ChannelState.SATURATED).sum(axis=-1)
     n_backscatter = (s == ChannelState.BACKSCATTER_ONLY).sum(axis=-1)
     reasons = np.full(d.shape, Reason.VALID, dtype=np.uint8)
-    enough = n_usable >= 2
+    ranged = (n_usable >= 2) & ~np.isnan(d)
     with np.errstate(invalid="ignore"):
         in_bounds = (d >= min_path_length) & (d <= max_path_length)
-    reasons[enough & np.isnan(d)] = Reason.TOO_FEW_CHANNELS
-    reasons[enough & ~np.isnan(d) & ~in_bounds] = Reason.PATH_OUT_OF_BOUNDS
-    few = ~enough
-    reasons[few] = Reason.BELOW_NOISE_FLOOR
-    reasons[few & (n_usable == 1)] = Reason.TOO_FEW_CHANNELS
-    reasons[few & (n_usable + n_backscatter >= 2)] = Reason.BACKSCATTER_ONLY
-    reasons[few & (n_saturated > 0)] = Reason.SATURATED
+    reasons[ranged & ~in_bounds] = Reason.PATH_OUT_OF_BOUNDS
+    none = ~ranged
+    reasons[none] = Reason.BELOW_NOISE_FLOOR
+    reasons[none & (n_usable >= 1)] = Reason.TOO_FEW_CHANNELS
+    reasons[none & (n_usable + n_backscatter >= 2) & (n_backscatter > 0)] = Reason.BACKSCATTER_ONLY
+    reasons[none & (n_saturated > 0)] = Reason.SATURATED
     return reasons
