@@ -181,3 +181,18 @@ def test_pair_noise_is_never_negative_for_a_covariance_the_profile_accepts():
     cvv = np.array([[0.0, 0.0, 0.0], [0.0, 1e-6, 1.0000005e-6], [0.0, 1.0000005e-6, 1e-6]])
     assert cvv[1, 1] + cvv[2, 2] - 2 * cvv[1, 2] < 0  # the premise
     assert min(kernels.pair_noise(cvv)) == 0.0
+
+
+@pytest.mark.parametrize("path", ["lookup", "background", "pairs", "numpy"])
+def test_without_a_clear_difference_the_reason_names_the_missing_channel(path, monkeypatch):
+    """Green and blue within 3σ of each other (2.9σ), red clipped: reason 2 (saturated), what the
+    pilot can change, rather than 4; red dark: reason 4."""
+    est = RangeEstimator(profile_with(0.0074, 0.0))
+    e = frame(red=True)
+    e[..., 0] = 70000.0  # above the profile's saturation level (65535)
+    if path == "lookup":
+        e[..., 0] = 65535.0
+    clipped = by_path(est, e, path, monkeypatch)
+    assert (clipped.reasons == Reason.SATURATED).all()
+    dark = by_path(est, frame(red=False), path, monkeypatch)
+    assert (dark.reasons == Reason.TOO_FEW_CHANNELS).all()
