@@ -109,7 +109,7 @@ def test_a_pair_the_calibration_cannot_tell_apart_is_refused_in_one_line():
     be reason 4, so the estimator refuses the pair and says why, with the figures."""
     from uwcam.fileio import UserInputError
 
-    with pytest.raises(UserInputError, match=r"differ in attenuation by \+0\.0300 ± 0\.0105 1/m.*3σ.*leave out --pair"):
+    with pytest.raises(UserInputError, match=r"^channels G and B differ in attenuation by \+0\.0300 ± 0\.0105 1/m.*3σ.*leave out --pair"):
         RangeEstimator(profile_with(0.0074, 0.0), pair=("G", "B"))
     out = RangeEstimator(profile_with(0.0068, 0.0), pair=("G", "B"))(frame(red=True))  # 3.1σ: taken
     assert (out.reasons == Reason.VALID).all()
@@ -196,3 +196,11 @@ def test_without_a_clear_difference_the_reason_names_the_missing_channel(path, m
     assert (clipped.reasons == Reason.SATURATED).all()
     dark = by_path(est, frame(red=False), path, monkeypatch)
     assert (dark.reasons == Reason.TOO_FEW_CHANNELS).all()
+
+
+def test_a_pair_exactly_three_sigma_apart_is_refused_and_one_just_inside_taken():
+    from uwcam.fileio import UserInputError
+
+    with pytest.raises(UserInputError, match=r"^channels B and G differ in attenuation by -0\.7500 ± 0\.2500 1/m"):
+        RangeEstimator(two_channel_profile(0.25), pair=("B", "G"))  # 0.75 = 3 × 0.25 exactly
+    RangeEstimator(two_channel_profile(0.2499), pair=("B", "G"))
