@@ -48,7 +48,7 @@ def fuse(fuser, y, w, states, c, geo=NO_LAMP, bounds=(0.5, 40.0)):
     h, wd = pairs.shape[:2]
     out = (np.full((h, wd), -1.0, np.float32), np.full((h, wd), -1.0, np.float32), np.full((h, wd), 99, np.uint8))
     n = pairs.shape[-1]
-    fuser(np.ascontiguousarray(pairs), tuple(float(v) for v in c), (0.0,) * n, (0.0,) * (n * n), np.asarray(geo, np.float64),
+    fuser(np.ascontiguousarray(pairs), tuple(float(v) for v in c), (0.0,) * n, np.zeros((n, n)), np.asarray(geo, np.float64),
           np.asarray(bounds, np.float64), *out)
     return out
 
@@ -263,7 +263,7 @@ def test_the_compiled_row_function_counts_255_channels_exactly():
     w = len(kinds)
     out = (np.full(w, -1.0, np.float32), np.full(w, -1.0, np.float32), np.full(w, 99, np.uint8))
     with np.errstate(divide="ignore", invalid="ignore"):  # as Python, 1/0 warns; compiled, it is silent (inf)
-        _python(kernels_numba._fuse_row)(row, np.zeros(w, np.float32), c, (0.0,) * n, (0.0,) * (n * n), 0.5, 40.0, 0.0, *out)
+        _python(kernels_numba._fuse_row)(row, np.zeros(w, np.float32), c, (0.0,) * n, np.zeros((n, n)), 0.5, 40.0, 0.0, *out)
     assert list(out[2]) == [Reason.VALID, Reason.BACKSCATTER_ONLY, Reason.SATURATED, Reason.BELOW_NOISE_FLOOR,
                             Reason.BACKSCATTER_ONLY, Reason.SATURATED]
     assert out[0][0] == pytest.approx(d / 2, rel=1e-4)
@@ -284,3 +284,17 @@ def test_the_compiled_logarithm_is_within_float32s_rounding():
     kernels_numba._ln_row(x.copy(), out, np.empty(x.shape, np.int32))
     exact = np.log(x.astype(np.float64))
     assert np.all(np.abs(out - exact) <= 4 * 2.0**-23 * np.maximum(1.0, np.abs(exact)))
+
+
+@pytest.mark.parametrize("fuser", FUSERS)
+def test_255_usable_channels_of_one_attenuation_are_too_few_not_backscatter(fuser):
+    """The usable count fills its 8 bits exactly (255): a count that spilled into the
+    backscatter-only field would turn 'too few' into 'backscatter only' (at 128 usable channels and
+    more, if a usable channel counted 2). Every channel shares one attenuation: no range, reason 4."""
+    n = 255
+    c = (0.25,) * n
+    states = np.full((1, 1, n), USABLE, np.uint8)
+    y = np.full(states.shape, -1.5)
+    w = np.ones(states.shape)
+    reason = fuse(_python(fuser) if fuser is not kernels.fuse_arrays_numpy else fuser, y, w, states, c)[2]
+    assert reason[0, 0] == Reason.TOO_FEW_CHANNELS

@@ -51,3 +51,18 @@ def test_pixel_reasons_bounds_and_equal_attenuation():
     path = np.array([[1.0, 50.0, np.nan]])
     assert list(pixel_reasons(states, path, 0.0, 30.0)[0]) == [Reason.VALID, Reason.PATH_OUT_OF_BOUNDS, Reason.TOO_FEW_CHANNELS]
     assert Reason.describe()[5] == "path out of bounds"
+
+
+def test_one_usable_channel_is_no_range_whatever_path_length_it_is_handed():
+    """A range needs two usable channels: a single one with a finite path length beside it (a
+    caller's mistake) is still too few, and two with NaN (no clear difference) say what is missing."""
+    from uwcam.optics.validity import ChannelState as S, Reason, pixel_reasons
+
+    states = [[S.USABLE, S.BELOW_NOISE_FLOOR, S.BELOW_NOISE_FLOOR],
+              [S.USABLE, S.USABLE, S.BACKSCATTER_ONLY],
+              [S.USABLE, S.USABLE, S.SATURATED],
+              [S.USABLE, S.USABLE, S.BELOW_NOISE_FLOOR],
+              [S.USABLE, S.USABLE, S.BELOW_NOISE_FLOOR]]
+    got = pixel_reasons(states, [2.0, float("nan"), float("nan"), float("nan"), 2.0])
+    assert list(got) == [Reason.TOO_FEW_CHANNELS, Reason.BACKSCATTER_ONLY, Reason.SATURATED,
+                         Reason.TOO_FEW_CHANNELS, Reason.VALID]

@@ -71,12 +71,13 @@ Otherwise the difference the range divides by may be the calibration's error, th
 attenuation. A calibration without uncertainties tests D > 0 as before."""
 
 
-def pair_noise(covariance: NDArray, sigmas: float = ATTENUATION_SIGMAS) -> tuple[float, ...]:
-    """The kernels' significance constants: sigmas² · Var(c_k − c_l) for every k, l, flat (N·N,),
-    row-major, from the (N, N) covariance of the attenuation differences (1/m)²."""
+def pair_noise(covariance: NDArray, sigmas: float = ATTENUATION_SIGMAS) -> NDArray[np.float64]:
+    """The kernels' significance constants: (N, N) sigmas² · Var(c_k − c_l), C-contiguous float64,
+    from the (N, N) covariance of the attenuation differences (1/m)². An array, not a tuple as the
+    attenuations are: numba refuses tuples of 1000 values and more, i.e. 32 channels and more."""
     cvv = np.asarray(covariance, dtype=np.float64)
     var = np.diag(cvv)[:, None] + np.diag(cvv)[None, :] - cvv - cvv.T
-    return tuple(float(x) for x in (sigmas * sigmas * np.maximum(var, 0.0)).ravel())
+    return np.ascontiguousarray(sigmas * sigmas * np.maximum(var, 0.0))
 
 # Rows per block in the numpy path: bounds its temporaries (~20 float32 rows of the block).
 _NUMPY_BLOCK_ROWS = 32
@@ -110,7 +111,7 @@ def lamp_geometry(geo: NDArray) -> tuple[float, float, float, float, float, floa
 # --------------------------------------------------------------------------------------------
 # numpy path: the same float32 operations in the same order as kernels_numba._fuse_row.
 
-def _fuse_block(y: NDArray, w: NDArray, c: tuple, b: tuple, cv: tuple, p: NDArray, bounds: NDArray, s_norm: float,
+def _fuse_block(y: NDArray, w: NDArray, c: tuple, b: tuple, cv: NDArray, p: NDArray, bounds: NDArray, s_norm: float,
                 out_range: NDArray, out_var: NDArray, out_reason: NDArray) -> None:
     """Fuse a block: y, w (N, R, W) float32 pairs; p (R, W) float32 S·u; outputs (R, W)."""
     f32 = np.float32
@@ -127,7 +128,7 @@ def _fuse_block(y: NDArray, w: NDArray, c: tuple, b: tuple, cv: tuple, p: NDArra
             dc = f32(c[k] - c[m])
             ww = w[k] * w[m]
             det += ww * (dc * dc)
-            noise += ww * f32(cv[k * n + m])
+            noise += ww * f32(cv[k, m])
             num += (ww * dc) * (y[k] - y[m] - f32(b[k] - b[m]))
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         inv = f32(1.0) / det
@@ -164,7 +165,7 @@ def _lamp_dot_block(geo: NDArray, rows: slice, width: int) -> NDArray[np.float32
     return ((sx * ux + a) / np.sqrt(ux * ux + q)).astype(np.float32)
 
 
-def _fuse_numpy(fetch, n: int, c: tuple, b: tuple, cv: tuple, geo: NDArray, bounds: NDArray,
+def _fuse_numpy(fetch, n: int, c: tuple, b: tuple, cv: NDArray, geo: NDArray, bounds: NDArray,
                 out_range: NDArray, out_var: NDArray, out_reason: NDArray) -> None:
     h, w = out_range.shape
     for start in range(0, h, _NUMPY_BLOCK_ROWS):
@@ -174,14 +175,14 @@ def _fuse_numpy(fetch, n: int, c: tuple, b: tuple, cv: tuple, geo: NDArray, boun
                     out_range[rows], out_var[rows], out_reason[rows])
 
 
-def fuse_lookup_numpy(raw: NDArray, table: NDArray[np.uint64], c: tuple, b: tuple, cv: tuple, geo: NDArray,
+def fuse_lookup_numpy(raw: NDArray, table: NDArray[np.uint64], c: tuple, b: tuple, cv: NDArray, geo: NDArray,
                       bounds: NDArray,
                       out_range: NDArray, out_var: NDArray, out_reason: NDArray) -> None:
     """Range, variance and reason of every pixel of an integer frame (numpy path).
 
     raw: (H, W, N) uint8/uint16 codes; table: (N, L) pairs (see :func:`pack_pairs`) per code,
     y = ln E − offset; c: N centred attenuations (1/m); b: N log constants minus the table's
-    offset; cv: N·N significance constants (:func:`pair_noise`; zeros: any difference counts);
+    offset; cv: (N, N) significance constants (:func:`pair_noise`; zeros: any difference counts);
     geo: [mode, Sx, Sy, Sz, |S|, 1/fx, 1/fy, cx, cy]; bounds: [min, max] path length (m).
     Outputs (H, W) float32 range (m), float32 variance (m²), uint8 reason, written in place.
     """
@@ -189,7 +190,7 @@ def fuse_lookup_numpy(raw: NDArray, table: NDArray[np.uint64], c: tuple, b: tupl
                 out_range, out_var, out_reason)
 
 
-def fuse_arrays_numpy(pairs: NDArray[np.uint64], c: tuple, b: tuple, cv: tuple, geo: NDArray, bounds: NDArray,
+def fuse_arrays_numpy(pairs: NDArray[np.uint64], c: tuple, b: tuple, cv: NDArray, geo: NDArray, bounds: NDArray,
                       out_range: NDArray, out_var: NDArray, out_reason: NDArray) -> None:
     """As :func:`fuse_lookup_numpy` with the pairs given per pixel and channel, (H, W, N): for float frames."""
     _fuse_numpy(lambda rows, k: np.ascontiguousarray(pairs[rows, :, k]), len(c), c, b, cv, geo, bounds,

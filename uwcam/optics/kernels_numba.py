@@ -61,7 +61,7 @@ def _lamp_dot_row(i, geo, p_row):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _fuse_row(pair, p_row, c, b, cv, lo, hi, s_norm, out_range, out_var, out_reason):
-    """Fuse one row: pair (N, 2W) float32 [y, w] per channel and pixel; p_row (W,) S·u; cv (N·N,)
+    """Fuse one row: pair (N, 2W) float32 [y, w] per channel and pixel; p_row (W,) S·u; cv (N, N)
     the significance constants of :func:`uwcam.optics.kernels.pair_noise`; outputs (W,)."""
     n = len(c)
     half, two, zero = np.float32(0.5), np.float32(2.0), np.float32(0.0)
@@ -78,7 +78,7 @@ def _fuse_row(pair, p_row, c, b, cv, lo, hi, s_norm, out_range, out_var, out_rea
                 dc = np.float32(c[k] - c[m])
                 ww = wk * pair[m, 2 * j + 1]
                 det += ww * (dc * dc)
-                noise += ww * np.float32(cv[k * n + m])
+                noise += ww * np.float32(cv[k, m])
                 num += (ww * dc) * (yk - pair[m, 2 * j] - np.float32(b[k] - b[m]))
         p = p_row[j]
         inv = np.float32(1.0) / det

@@ -110,7 +110,7 @@ class RangeEstimator:
             if v[self.active][0] == v[self.active][1]:
                 raise UserInputError(f"channels {pair[0]} and {pair[1]} have equal attenuation, so the pair carries no range")
             i, j = (names.index(p) for p in pair)
-            doubt = self._cv[i * n + j]  # (3σ)² of the pair's difference (kernels.ATTENUATION_SIGMAS)
+            doubt = float(self._cv[i, j])  # (3σ)² of the pair's difference (kernels.ATTENUATION_SIGMAS)
             if (v[i] - v[j]) ** 2 <= doubt:
                 raise UserInputError(
                     f"channels {pair[0]} and {pair[1]} differ in attenuation by {v[i] - v[j]:+.4f} ± "
