@@ -67,8 +67,9 @@ ATTENUATION_SIGMAS = 3.0
 calibration's standard uncertainties of those differences, weighted as the fit weighs them:
 D > ATTENUATION_SIGMAS² · Σ_{k<l} w_k w_l Var(c_k − c_l) (for two channels, |c_k − c_l| > 3σ).
 Otherwise the difference the range divides by may be the calibration's error, the range anything
-(e.g. green and blue where they attenuate alike): reason 4, too few channels of different
-attenuation. A calibration without uncertainties tests D > 0 as before."""
+(e.g. green and blue where they attenuate alike): no range, and the reason names the missing
+channel as for too few usable ones (2 clipped, 3 lost in the water's light, else 4). A calibration
+without uncertainties tests D > 0 as before."""
 
 
 def pair_noise(covariance: NDArray, sigmas: float = ATTENUATION_SIGMAS) -> NDArray[np.float64]:
