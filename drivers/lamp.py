@@ -132,7 +132,7 @@ class SerialLamp:
                 if error:
                     raise DriverError(f"lamp refused '{command}': {error.groupdict().get('reason', text)}")
                 reason = f"unexpected reply to '{command}': {text!r}"
-        self.link.fail(reason)
+            self.link.fail(reason)  # still holding the lock: never close under another caller's transaction
         raise DeviceLost(reason)
 
     def on(self) -> None:

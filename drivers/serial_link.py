@@ -91,9 +91,15 @@ class SerialLink:
         self._serial = None
 
     def fail(self, reason: str) -> None:
-        """Close after an I/O failure; the next use reopens."""
-        self.health.set(HealthState.RECOVERING, reason)
-        self._close_port()
+        """Close after an I/O failure; the next use reopens.
+
+        Takes the transaction lock: a failure seen in one thread must not close the port under
+        another thread's transaction (pyserial clears the descriptor before it clears ``is_open``,
+        so a call in flight would see an open port without a descriptor).
+        """
+        with self.lock:
+            self.health.set(HealthState.RECOVERING, reason)
+            self._close_port()
 
     def _io(self, what: str, call):
         """Run ``call(port)``; a port error closes the port and becomes DeviceLost naming ``what``."""
@@ -104,10 +110,11 @@ class SerialLink:
             self.fail(f"{what} {self.port} failed: {exc}")
             raise DeviceLost(f"{what} {self.port} failed: {exc}") from None
         except (TypeError, AttributeError) as exc:
-            if port.is_open:
+            if port.is_open and getattr(port, "fd", 0) is not None:
                 raise  # a mistake in the call itself, not the port
             # Closed under the call (a disconnect handled in another thread): pyserial checks
-            # is_open first, then uses the descriptor it no longer has (TypeError from tcflush).
+            # is_open first, then uses the descriptor it no longer has (TypeError from tcflush);
+            # its close() clears the descriptor before is_open, so either may be seen first.
             self.fail(f"{what} {self.port} failed: the port was closed")
             raise DeviceLost(f"{what} {self.port} failed: the port was closed during the call ({exc})") from None
 

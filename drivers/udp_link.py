@@ -71,9 +71,11 @@ class UdpLink:
         return sock
 
     def fail(self, reason: str) -> None:
-        """Close after a failure; the next use reopens."""
-        self.health.set(HealthState.RECOVERING, reason)
-        self._close_socket()
+        """Close after a failure; the next use reopens (under the transaction lock, so never
+        under another thread's transaction)."""
+        with self.lock:
+            self.health.set(HealthState.RECOVERING, reason)
+            self._close_socket()
 
     def _close_socket(self) -> None:
         if self._sock is not None:
