@@ -115,7 +115,8 @@ class RangeEstimator:
                 raise UserInputError(
                     f"channels {pair[0]} and {pair[1]} differ in attenuation by {v[i] - v[j]:+.4f} ± "
                     f"{math.sqrt(doubt) / kernels.ATTENUATION_SIGMAS:.4f} 1/m in this calibration, not clearly "
-                    f"({kernels.ATTENUATION_SIGMAS:g}σ): every pixel would have no range (reason 4); choose a pair "
+                    f"({kernels.ATTENUATION_SIGMAS:g}σ): every pixel would have no range (reason 4; 2 or 3 where "
+                    "one of them is clipped or lost in the water's light, docs/physics.md §5); choose a pair "
                     "that attenuates more differently, or leave out --pair to fuse all channels")
         if n > kernels.MAX_CHANNELS:
             raise UserInputError(f"the profile has {n} channels; at most {kernels.MAX_CHANNELS} are supported")
