@@ -68,7 +68,7 @@ def test_compensation_in_the_loop_with_an_open_water_frame_taken_through_the_api
         fresh(s)
         taken = s.http.post("/api/v1/backscatter/open-water", json={"frames": 3}, headers=auth)
         assert taken.status_code == 202 and taken.json()["capture"] == "capturing", taken.text
-        assert wait_for(lambda: s.http.get("/api/v1/backscatter").json()["capture"] == "done", 20.0)
+        assert wait_for(lambda: s.http.get("/api/v1/backscatter").json()["capture"] == "done", 90.0)
         ow = s.http.get("/api/v1/backscatter").json()["open_water"]
         assert ow["source"] == "taken on request" and ow["frames"] == 3
         s.daemon.rig.show("seabed")
@@ -130,7 +130,7 @@ def test_switching_compensation_on_builds_it_in_the_requests_thread_not_the_loop
         fresh(s)
         taken = s.http.post("/api/v1/backscatter/open-water", json={"frames": 2}, headers=auth)
         assert taken.status_code == 202, taken.text
-        assert wait_for(lambda: s.http.get("/api/v1/backscatter").json()["capture"] == "done", 20.0)
+        assert wait_for(lambda: s.http.get("/api/v1/backscatter").json()["capture"] == "done", 90.0)
         assert s.http.get("/api/v1/backscatter").json()["model"].startswith("open-water frame")
         assert s.http.delete("/api/v1/backscatter/open-water", headers=auth).status_code == 200
         s.daemon.rig.show("seabed")
