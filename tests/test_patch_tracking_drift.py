@@ -120,3 +120,10 @@ def test_tracked_values_reach_the_estimator_on_their_frame_and_its_record(drifti
     print(f"median |range error| at the drift's peak: {100 * with_tracking:.2f} % tracked, {100 * without:.2f} % not")
     assert abs(error(tracked[0]) - error(still[0])) < 0.01  # undrifted water: the same either way
     assert without > 4.0 * with_tracking, (with_tracking, without)
+
+    # σ stays honest on the tracked values (the estimator's doubt is still the profile's): the
+    # z-scores against the simulator's truth at every drift, the peak included.
+    for t, p in zip(times, tracked):
+        ok = np.isfinite(p.result.range) & (p.result.variance > 0)
+        z = (p.result.range[ok] - truth[ok]) / np.sqrt(p.result.variance[ok])
+        assert ok.mean() > 0.95 and abs(z.mean()) < 0.4 and 0.8 < z.std() < 1.5, (t, ok.mean(), z.mean(), z.std())
