@@ -73,6 +73,11 @@ class Daemon:
         self.profiles: dict[str, CalibrationProfile] = {}
         self.warm_up_in_background = False
         """Start :class:`uwcam.runtime.background_warm_up.BackgroundWarmUp` (``uwcam run`` does)."""
+        # The open-water frame's file: each capture and each removal is a new generation, and a
+        # write lands only if no later capture or removal came meanwhile (a slow write finishing
+        # after DELETE must not bring the frame back at the next start).
+        self._open_water_file_lock = threading.Lock()
+        self._open_water_generation = 0
         self.background_warm_up = BackgroundWarmUp()
         """Calibration profiles known to the daemon by name; the active one is ``profile_name``."""
         self._profiles_lock = threading.RLock()  # one profile change at a time, validated then applied
@@ -257,24 +262,34 @@ class Daemon:
             return
         path = os.path.join(self.state_dir, self.OPEN_WATER_FILE)
         kept = {k: v for k, v in info.items() if k != "monotonic"}
+        with self._open_water_file_lock:
+            self._open_water_generation += 1
+            generation = self._open_water_generation
 
         def write() -> None:
-            try:
-                with atomic_write(path) as f:
-                    np.savez(f, frame=frame, info=np.array(json.dumps(kept)))
-            except OSError as exc:
-                log.error("could not keep the open-water frame in %s: %s", path, exc)
+            # Held through the write: a removal waits for it, then removes what it wrote.
+            with self._open_water_file_lock:
+                if generation != self._open_water_generation:
+                    return  # a later capture or a removal came first: this frame is no longer the one in use
+                try:
+                    with atomic_write(path) as f:
+                        np.savez(f, frame=frame, info=np.array(json.dumps(kept)))
+                except OSError as exc:
+                    log.error("could not keep the open-water frame in %s: %s", path, exc)
 
         threading.Thread(target=write, name="open-water-writer", daemon=True).start()
 
     def forget_open_water(self) -> None:
-        """Stop using the open-water frame and remove its file."""
+        """Stop using the open-water frame and remove its file (after a write in progress, so it
+        cannot come back at the next start). Blocks for that write: call it off the event loop."""
         self.pipeline.set_open_water(None)
         if self.state_dir is not None:
-            try:
-                os.unlink(os.path.join(self.state_dir, self.OPEN_WATER_FILE))
-            except FileNotFoundError:
-                pass
+            with self._open_water_file_lock:
+                self._open_water_generation += 1
+                try:
+                    os.unlink(os.path.join(self.state_dir, self.OPEN_WATER_FILE))
+                except FileNotFoundError:
+                    pass
 
     def save_state(self) -> None:
         """Persist live settings, the active profile and the lamp's intensity (if there is a state
