@@ -126,3 +126,29 @@ def test_a_configured_profile_is_read_once_and_the_child_warms_up_the_one_the_da
         assert len(children) == 1 and children[0] is daemon.profiles[daemon.profile_name]
     finally:
         daemon.stop()
+
+
+def test_a_stop_before_the_watcher_first_runs_is_harmless(profile, no_marker, monkeypatch):
+    """The daemon stops it when its own start fails, possibly before the watcher thread has run at
+    all: the watcher still waits on the child it was started for (it read self._process, which
+    stop() clears: an AttributeError in a thread, a traceback in the log)."""
+    held = []
+
+    class HeldThread:  # the watcher thread, started only once stop() has returned
+        def __init__(self, target, args=(), **kwargs):
+            self.run = lambda: target(*args)
+            held.append(self)
+
+        def start(self):
+            pass
+
+        def join(self, timeout=None):
+            pass
+
+    monkeypatch.setattr(bw.threading, "Thread", HeldThread)
+    warm = BackgroundWarmUp()
+    warm.start(profile)
+    warm.stop()
+    assert len(held) == 1
+    held[0].run()  # the watcher's first step, after the stop
+    assert warm.state == "stopped"

@@ -115,11 +115,12 @@ class BackgroundWarmUp:
         self.state = "running"
         log.info("compiling the kernels of every setting in the background (process %d, lowest priority; "
                  "once per install, about two minutes on 2 cores)", self._process.pid)
-        self._watcher = threading.Thread(target=self._watch, name="background-warm-up", daemon=True)
+        # The process is handed over: stop() may clear self._process before the watcher first runs.
+        self._watcher = threading.Thread(target=self._watch, args=(self._process,), name="background-warm-up", daemon=True)
         self._watcher.start()
 
-    def _watch(self) -> None:
-        code = self._process.wait()
+    def _watch(self, process: subprocess.Popen) -> None:
+        code = process.wait()
         if self.state == "stopped":
             return
         if code == 0:
