@@ -62,6 +62,7 @@ class SupervisedCamera:
         lost_after_s: float = 10.0,
         backoff_s: tuple[float, float] = (0.1, 5.0),
         on_frame: Callable[[Frame], None] | None = None,
+        stop_wait_s: float = 10.0,
     ) -> None:
         if queue_size < 1:
             raise ConfigurationError("queue_size must be at least 1")
@@ -72,6 +73,8 @@ class SupervisedCamera:
         self.lost_after_s = lost_after_s
         self.backoff_s = backoff_s
         self.on_frame = on_frame
+        self.stop_wait_s = stop_wait_s
+        """How long stop() waits for the acquisition thread to end before leaving it to close the device itself."""
         self.stats = CameraStats()
         self.device: DeviceInfo | None = None
         self.report: ConfigureReport | None = None
@@ -144,8 +147,15 @@ class SupervisedCamera:
         self._worker.start()
 
     def stop(self) -> None:
-        self._worker.stop()
-        self._disconnect()
+        # The acquisition thread closes the device itself when it ends: a driver call that outlasts
+        # the wait (a stream's read or a GenTL open may block for tens of seconds) must not have
+        # the device released under it from here (native use after free in OpenCV or an SDK).
+        if self._worker.stop(self.stop_wait_s):
+            if self._connected:  # opened by start(), the thread never ran
+                self._disconnect()
+        else:
+            log.warning("camera %s: still in a driver call after the wait; it is closed when that call returns",
+                        self.driver.serial_number)
         self._health.set(HealthState.STOPPED, "stopped")
 
     def __enter__(self) -> "SupervisedCamera":
@@ -189,11 +199,23 @@ class SupervisedCamera:
         if self.on_frame is not None:
             self.on_frame(frame)
 
+    def _report(self, state: HealthState, reason: str) -> None:
+        """Health from the acquisition thread; once stopping, stop() has said the last word."""
+        if not self._worker.stopping.is_set():
+            self._health.set(state, reason)
+
     def _run(self) -> None:
+        try:
+            self._acquire()
+        finally:
+            if self._connected and self._worker.stopping.is_set():
+                self._disconnect()
+
+    def _acquire(self) -> None:
         last_frame = time.monotonic()
         lost_since: float | None = None
         delay = self.backoff_s[0]
-        self._health.set(HealthState.RECOVERING, "started, waiting for the first frame")
+        self._report(HealthState.RECOVERING, "started, waiting for the first frame")
         while not self._worker.stopping.is_set():
             if not self._connected:
                 try:
@@ -204,7 +226,7 @@ class SupervisedCamera:
                 except Exception as exc:  # absent device, SDK error: retry later
                     gone = time.monotonic() - (lost_since or time.monotonic())
                     state = HealthState.LOST if gone >= self.lost_after_s else HealthState.RECOVERING
-                    self._health.set(state, f"reconnecting to {self.driver.serial_number or 'the camera'}: {exc}")
+                    self._report(state, f"reconnecting to {self.driver.serial_number or 'the camera'}: {exc}")
                     self._disconnect()
                     self._worker.stopping.wait(delay)
                     delay = min(delay * 2, self.backoff_s[1])
@@ -232,11 +254,11 @@ class SupervisedCamera:
                 self.stats.captured += 1
                 last_frame = time.monotonic()
                 lost_since = None
-                self._health.set(HealthState.OK, "streaming")
+                self._report(HealthState.OK, "streaming")
                 self._push(frame)
                 continue
             # The device is gone or silent: close it and rebuild.
             lost_since = lost_since or time.monotonic()
-            self._health.set(HealthState.RECOVERING, reason)
+            self._report(HealthState.RECOVERING, reason)
             log.warning("camera %s: %s; reconnecting", self.driver.serial_number, reason)
             self._disconnect()

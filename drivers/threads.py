@@ -29,15 +29,20 @@ class StoppableThread:
         self._thread = threading.Thread(target=self._target, name=self._name, daemon=True)
         self._thread.start()
 
-    def stop(self, timeout_s: float = 10.0) -> None:
-        """Set :attr:`stopping`, wake the thread and wait up to ``timeout_s`` for it to end."""
+    def stop(self, timeout_s: float = 10.0) -> bool:
+        """Set :attr:`stopping`, wake the thread and wait up to ``timeout_s`` for it to end.
+        True when it has ended (or never started); False while it is still in a call that does
+        not return at once (a driver's blocking read or open): what it uses is still in use."""
         self.stopping.set()
         if self._wake is not None:
             with self._wake:
                 self._wake.notify_all()
         if self._thread is not None:
             self._thread.join(timeout=timeout_s)
+            if self._thread.is_alive():
+                return False
             self._thread = None
+        return True
 
 
 class SelectThread:
