@@ -25,28 +25,30 @@ class LampCommand(BaseModel):
 @router.get("")
 def get_lamp(d: Daemon = Depends(get_daemon)) -> dict:
     """The lamp: on or off, intensity (percent), temperature and faults where it reports them, health."""
-    if d.lamp is None:
+    lamp = d.lamp  # read once: the daemon's stop clears it
+    if lamp is None:
         raise HTTPException(status_code=404, detail="no lamp configured")
     try:
-        s = d.lamp.status()
+        s = lamp.status()
     except DriverError as exc:  # silent, unplugged or refusing: say so; /api/v1/status has its health
         raise HTTPException(status_code=503, detail=f"the lamp does not answer: {exc}") from None
     return {"on": s.on, "intensity": s.percent, "temperature_c": s.temperature_c, "fault": s.fault,
-            "health": d.lamp.health.as_dict()}
+            "health": lamp.health.as_dict()}
 
 
 @router.put("")
 def put_lamp(command: LampCommand, d: Daemon = Depends(get_daemon)) -> dict:
     """Switch the lamp on or off and set its intensity (`{"on": true, "intensity": 80}`, percent)."""
-    if d.lamp is None:
+    lamp = d.lamp  # read once: the daemon's stop clears it
+    if lamp is None:
         raise HTTPException(status_code=404, detail="no lamp configured")
     try:
         if command.intensity is not None:
-            d.lamp.set_intensity(command.intensity)
+            lamp.set_intensity(command.intensity)
         if command.on is True:
-            d.lamp.on()
+            lamp.on()
         elif command.on is False:
-            d.lamp.off()
+            lamp.off()
     except Exception as exc:
         raise HTTPException(status_code=502, detail=f"lamp did not accept the command: {exc}") from None
     d.save_state()

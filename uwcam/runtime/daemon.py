@@ -425,19 +425,21 @@ class Daemon:
 
     def status(self) -> dict:
         camera = self.camera.status() if self.camera else None
+        # Each device read once: stop() clears them while outputs may still ask for status.
+        rangefinder, lamp_driver = self.rangefinder, self.lamp
         rf = None
-        if self.rangefinder is not None:
-            reading = self.rangefinder.latest()
-            rf = {"health": self.rangefinder.health.as_dict(),
+        if rangefinder is not None:
+            reading = rangefinder.latest()
+            rf = {"health": rangefinder.health.as_dict(),
                   "range_m": None if reading is None else reading.range_m,
                   "confidence": None if reading is None else reading.confidence,
                   "age_s": None if reading is None else round(reading.age_s, 3)}
         lamp = None
         stats = self.pipeline.stats() if self.pipeline else {}
         stats_lamp = stats.get("lamp_commands")
-        if self.lamp is not None:
-            last = self.lamp.last_status
-            lamp = {"health": self.lamp.health.as_dict(), "on": None if last is None else last.on,
+        if lamp_driver is not None:
+            last = lamp_driver.last_status
+            lamp = {"health": lamp_driver.health.as_dict(), "on": None if last is None else last.on,
                     "percent": None if last is None else last.percent, "commands": stats_lamp}
         cam_stats = camera["stats"] if camera else {}
         return {
