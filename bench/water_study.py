@@ -365,7 +365,10 @@ def main() -> None:
                 if abs(c["median"]) > 0.02:
                     why.append(f"biased: the calibration's, mostly (the noise-free scene with its exact backscatter "
                                f"taken out reads {pct(cell['calibration median'])} %: attenuation differences "
-                               "measured at 1 and 2 m, carried to 7 m), which no frame count averages away")
+                               f"measured at 1 and 2 m, carried to {d:g} m), which no frame count averages away: the "
+                               "plate's forward-scattered light in its black patch leaves G − B about 3 % low, and "
+                               "beyond 5 m green and blue carry the range (bench/black_patch_spill.py; a larger "
+                               "patch leaves less: −1.8 % with 20 cm, docs/calibration.md)")
                 if c["rms"] > 0.05:
                     why.append("rms: the shot noise of the backscatter under the seabed's light (it averages down with frames)")
                 if c["valid"] < 0.85:
