@@ -9,7 +9,7 @@ import numpy as np
 
 from uwcam.calibration.fit import CalibrationInputs, calibrate, project_plate_box
 from uwcam.calibration.profile import CalibrationProfile
-from uwcam.calibration.rig import builtin_rig_path, load_rig
+from uwcam.calibration.rig import Rig, builtin_rig_path, load_rig
 from uwcam.simulation.camera import CameraModel
 from uwcam.simulation.render import Lamp
 from uwcam.simulation.water import Water
@@ -31,6 +31,7 @@ def calibrate_in_simulation(
     frames_per_distance: int = 1,
     record_exposure: bool = False,
     linearise: bool = True,
+    rig: Rig | None = None,
 ) -> CalibrationProfile:
     """A calibration profile from the grey plate at ``distances`` (m) in ``water``.
 
@@ -41,6 +42,7 @@ def calibrate_in_simulation(
     taken at each distance (averaged by the calibration, their differences give the temporal noise).
     linearise: for a camera with a tone curve, calibrate on frames linearised through it and keep
     the curve in the profile (False: take its codes as linear, the mistake the curve corrects).
+    rig: the plate imaged (its size and black patch); None: the built-in grey plate.
     record_exposure: record the held exposure in the profile as each channel's ``exposure_us``,
     in the simulator's unit (electrons per unit radiance, the unit of :attr:`SimulatedWorld.exposure`):
     frames of worlds exposed differently are then ranged with their exposure in the same unit.
@@ -51,11 +53,12 @@ def calibrate_in_simulation(
     camera = camera or CameraModel()
     if camera.peak_code is None:
         camera = replace(camera, peak_code=0.7 * 2**camera.bits)
-    plate = load_rig(builtin_rig_path("grey-plate"))
+    plate = rig or load_rig(builtin_rig_path("grey-plate"))
     frames, exposure, at = [], None, []
     for d in distances:
         world = SimulatedWorld(scene="plate", distance=d, size=tuple(size), channels=channels, water=water, lamp=lamp,
-                               camera=camera, gate_width=gate_width, fixed_exposure=exposure, seed=seed_base + int(d))
+                               camera=camera, gate_width=gate_width, fixed_exposure=exposure, seed=seed_base + int(d),
+                               rig=plate)
         exposure = world.exposure
         for k in range(1 if noise_free else frames_per_distance):
             frames.append(world.noise_free_frame() if noise_free else world.frame(k))
