@@ -71,16 +71,16 @@ class Daemon:
         self.mavlink: MavlinkOutput | None = None
         self.profile_name = ""
         self.profiles: dict[str, CalibrationProfile] = {}
+        """Calibration profiles known to the daemon by name; the active one is ``profile_name``."""
         self.warm_up_in_background = False
         """Start :class:`uwcam.runtime.background_warm_up.BackgroundWarmUp` (``uwcam run`` does)."""
+        self.background_warm_up = BackgroundWarmUp()
+        self._profiles_lock = threading.RLock()  # one profile change at a time, validated then applied
         # The open-water frame's file: each capture and each removal is a new generation, and a
         # write lands only if no later capture or removal came meanwhile (a slow write finishing
         # after DELETE must not bring the frame back at the next start).
         self._open_water_file_lock = threading.Lock()
         self._open_water_generation = 0
-        self.background_warm_up = BackgroundWarmUp()
-        """Calibration profiles known to the daemon by name; the active one is ``profile_name``."""
-        self._profiles_lock = threading.RLock()  # one profile change at a time, validated then applied
         self._state_lock = threading.Lock()  # one state file write at a time
 
     @property
