@@ -57,14 +57,19 @@ def test_water_study_runs_and_judges_its_goals():
 
 @pytest.mark.slow
 def test_water_study_runs_the_goal_cell_on_other_sensors():
-    """Small frames, one water and offset: the goal cell again on every other sensor, each line
-    with its spread and how many sensors met the goal."""
+    """Small frames, one water and offset: the goal cell again on every other sensor, calibrated
+    with each rig (the study's large black patch, and the grey plate's 10 cm one), each line with
+    its spread and how many sensors met the goal; and the goal cell itself with the grey plate."""
     out = subprocess.run([sys.executable, str(ROOT / "bench" / "water_study.py"), "--waters", "jerlov-II", "--offsets", "0.3",
                           "--no-pairs", "--size", "80x60", "--frames", "2"],
                          check=True, capture_output=True, text=True, timeout=600).stdout
     lines = [line for line in out.splitlines() if "on 12 other sensors" in line]
-    assert [line.split(",")[2].strip() for line in lines] == ["compensated ×16", "compensated ×16", "compensated ×16"], out
-    assert all(" m) on 12 other sensors" in line and "sd " in line and " of 12" in line for line in lines), lines
+    assert [line.split(",")[2].strip() for line in lines] == ["compensated ×16"] * 6, out
+    assert [line.split(",")[4].split(")")[0].strip() for line in lines] == (
+        ["calibrated with the grey-plate-large-patch rig"] * 3 + ["calibrated with the grey-plate rig"] * 3), lines
+    assert all("rig) on 12 other sensors" in line and "sd " in line and " of 12" in line for line in lines), lines
+    small = [line for line in out.splitlines() if "calibrated with the grey-plate rig instead" in line]
+    assert len(small) == 1 and all(f"{d} m: median" in small[0] for d in (3, 5, 7)), small
     assert "on 12 other sensors" not in subprocess.run(
         [sys.executable, str(ROOT / "bench" / "water_study.py"), "--waters", "jerlov-II", "--offsets", "0.3", "--no-pairs",
          "--no-sensors", "--size", "80x60", "--frames", "2"], check=True, capture_output=True, text=True, timeout=600).stdout

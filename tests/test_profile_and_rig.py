@@ -90,7 +90,7 @@ def test_builtin_rigs_load():
     colour = load_rig(builtin_rig_path("colour-plate"))
     rho = resolve_reflectance(colour.plate.reflectance, ["R", "G", "B"], [675.0, 575.0, 475.0], "plate")
     np.testing.assert_allclose(rho, [0.345, 0.265, 0.17])
-    with pytest.raises(UserInputError, match="known rigs: charuco-plate, colour-plate, grey-plate"):
+    with pytest.raises(UserInputError, match="known rigs: charuco-plate, colour-plate, grey-plate, grey-plate-large-patch"):
         builtin_rig_path("tank")
 
 

@@ -27,9 +27,14 @@ log = logging.getLogger(__name__)
 SHIPPED_CALIBRATIONS = "calibrations"
 """Folder of :mod:`uwcam.simulation` holding the simulated calibrations that ship with uwcam
 (the embedded default rig's), named by :func:`simulated_calibration_conditions`."""
+CALIBRATION_RIG = "grey-plate-large-patch"
+"""The built-in rig the simulated tank calibration images (see :func:`calibrate_simulated_water`)."""
 CALIBRATION_WIDTH = 640
 """Simulated tank calibration renders the plate at most this wide (same field of view): the
 physics does not depend on the pixel count, and start-up stays short."""
+CALIBRATION_MIN_WIDTH = 160
+"""...and at least this wide: the plate of :data:`CALIBRATION_RIG` at 2 m needs 80 pixels or more
+across the view to leave plate pixels around its black patch (a camera of 64×48 has too few)."""
 SIMULATED_CALIBRATIONS_KEPT = 8
 """Simulated calibrations kept in the cache folder (other rigs, other versions), newest first."""
 PATCH_SCENES = ("seabed-patch", "survey")
@@ -46,12 +51,12 @@ def cache_dir() -> str:
 
 def simulated_calibration_conditions(rig: SimulatedRig) -> str:
     """What a simulated calibration's physics depends on: the rig's water, lamp, image size and
-    bit depth, and the calibration's own image width (a short hash)."""
+    bit depth, and the calibration's own plate and image width (a short hash)."""
     import hashlib
 
     return hashlib.sha256(json.dumps({"water": rig.water, "lamp": [float(v) for v in rig.lamp_offset],
                                       "size": [int(v) for v in rig.size], "bits": int(rig.bits),
-                                      "width": CALIBRATION_WIDTH}).encode()).hexdigest()[:16]
+                                      "width": list(calibration_size(rig)), "plate": CALIBRATION_RIG}).encode()).hexdigest()[:16]
 
 
 def simulated_calibration_key(rig: SimulatedRig) -> str:
@@ -81,22 +86,52 @@ def shipped_calibration_path(rig: SimulatedRig) -> str:
 
 
 def calibrate_simulated_water(rig: SimulatedRig) -> CalibrationProfile:
-    """Calibrate in the rig's simulated water: grey plate with black patch at 1 m and 2 m, with
-    the rig's lamp, four frames at each distance as a crew would take (their differences give the
-    temporal noise, so the reported σ is honest). Deterministic: the same rig and code give the
-    same profile."""
+    """Calibrate in the rig's simulated water: the grey plate with a 20 cm black patch at its centre
+    (the built-in rig :data:`CALIBRATION_RIG`) at 1 m and 2 m, with the rig's lamp, four frames at
+    each distance as a crew would take (their differences give the temporal noise, so the reported σ
+    is honest). Deterministic: the same rig and code give the same profile.
+
+    The large patch is the plate docs/calibration.md gives for scattering water: a 10 cm patch
+    collects enough of the plate's forward-scattered light to leave the green-blue attenuation
+    difference about 3 % low in Jerlov II, and a seabed at 7 m ranged about 3 % long."""
+    from uwcam.calibration.rig import builtin_rig_path, load_rig
     from uwcam.simulation import Lamp, water_preset
     from uwcam.simulation.camera import CameraModel
     from uwcam.simulation.tank import calibrate_in_simulation
 
     water = water_preset(rig.water, [675.0, 575.0, 475.0])
-    w, h = rig.size
-    factor = max(1, -(-w // CALIBRATION_WIDTH))
     # The plate's exposure is recorded (in the simulator's unit: electrons per unit radiance) so that
     # :func:`simulated_calibration` can say it in the rig camera's µs: the water's light the
     # calibration measured is then scaled to each frame's exposure, as for a real camera.
-    return calibrate_in_simulation(water, Lamp(position=tuple(rig.lamp_offset)), (max(w // factor, 2), max(h // factor, 2)),
-                                   CameraModel(bits=rig.bits), seed_base=11, frames_per_distance=4, record_exposure=True)
+    return calibrate_in_simulation(water, Lamp(position=tuple(rig.lamp_offset)), calibration_size(rig),
+                                   CameraModel(bits=rig.bits), seed_base=11, frames_per_distance=4, record_exposure=True,
+                                   rig=load_rig(builtin_rig_path(CALIBRATION_RIG)))
+
+
+def calibration_size(rig: SimulatedRig) -> tuple[int, int]:
+    """(width, height) pixels of the simulated calibration's frames for ``rig``: the rig camera's
+    field of view, from :data:`CALIBRATION_MIN_WIDTH` to :data:`CALIBRATION_WIDTH` wide (the
+    camera's own size where it lies between: a larger one reduced by a whole factor)."""
+    w, h = (int(v) for v in rig.size)
+    if w < CALIBRATION_MIN_WIDTH:
+        factor = CALIBRATION_MIN_WIDTH / w
+        return CALIBRATION_MIN_WIDTH, max(int(round(h * factor)), 2)
+    factor = max(1, -(-w // CALIBRATION_WIDTH))
+    return max(w // factor, 2), max(h // factor, 2)
+
+
+def in_rig_pixels(profile: CalibrationProfile, rig: SimulatedRig) -> CalibrationProfile:
+    """``profile`` (calibrated at :func:`calibration_size`) with its black-patch pixels and
+    intrinsics in the rig camera's pixels: the same field of view, sampled by another count of
+    pixels (a pixel's centre x maps to (x + ½)·s − ½, s the ratio of the widths)."""
+    intr = rig.world.intrinsics
+    updates: dict = {"intrinsics": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy}}
+    if profile.backscatter is not None:
+        (cw, ch), (w, h) = calibration_size(rig), (int(v) for v in rig.size)
+        sx, sy = w / cw, h / ch
+        pixels = [((x + 0.5) * sx - 0.5, (y + 0.5) * sy - 0.5) for x, y in profile.backscatter.patch_pixels]
+        updates["backscatter"] = profile.backscatter.model_copy(update={"patch_pixels": pixels})
+    return profile.model_copy(update=updates)
 
 
 def ship_simulated_calibration(config: DaemonConfig) -> str:
@@ -139,10 +174,8 @@ def simulated_calibration(rig: SimulatedRig) -> CalibrationProfile:
                     os.remove(old)
             except OSError as exc:  # a read-only home: calibrate at every start, as before
                 log.info("cannot keep the simulated calibration in %s (%s)", path, exc.strerror)
-    world = rig.world
-    intr = world.intrinsics
-    return profile.model_copy(update={"intrinsics": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy},
-                                      "channels": rig_exposures(profile, world.exposure)})
+    profile = in_rig_pixels(profile, rig)
+    return profile.model_copy(update={"channels": rig_exposures(profile, rig.world.exposure)})
 
 
 def rig_exposures(profile: CalibrationProfile, world_exposure: float) -> list:
