@@ -14,7 +14,7 @@ import pytest
 from uwcam.fileio import UserInputError
 from uwcam.optics.validity import Reason
 from uwcam.ranging.result import RangeResult
-from uwcam.ranging.smoothing import smooth_range_map
+from uwcam.ranging.smoothing import smooth_frame, smooth_range_map
 
 
 def naive(range_map: np.ndarray, variance: np.ndarray, kind: str) -> tuple[np.ndarray, np.ndarray]:
@@ -350,3 +350,28 @@ def test_a_common_share_rounded_below_zero_is_no_share(mean_path):
     out = smooth_range_map(RangeResult(r, variance, np.zeros((3, 4), np.uint8), common), "mean")
     assert np.all(np.isfinite(out.variance)) and np.all(out.common_variance == 0.0)
     assert out.variance[1, 1] == pytest.approx(0.09 / 9, rel=1e-5)
+
+
+
+def test_medians_over_windows_without_values_neither_warn_nor_touch_the_warning_filters(monkeypatch):
+    """The frame loop smooths beside the API's threads: swapping the process's warning filters
+    (warnings.catch_warnings, to silence nanmedian's all-NaN warning) is not thread-safe and let the
+    warning through another thread's restore. Both medians (of the range map, and of the frame
+    before the transform around saturated values) must neither warn (the suite's filter makes a
+    warning an error) nor touch the filters."""
+    import warnings
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("warning filters swapped in the frame loop")
+
+    r = np.full((6, 7), np.nan, np.float32)
+    r[2, 3] = 2.0
+    result = RangeResult(r, np.where(np.isfinite(r), 0.01, np.nan).astype(np.float32),
+                         np.where(np.isfinite(r), 0, 1).astype(np.uint8))
+    raw = np.full((6, 7, 3), 100.0, np.float32)
+    raw[0:3, 0:3] = 4000.0  # saturated: their windows are taken again, the corner's with no usable value
+    monkeypatch.setattr(warnings, "catch_warnings", refuse)
+    smoothed = smooth_range_map(result, "median")
+    frame, _ = smooth_frame(raw, "median", 4000.0)
+    assert smoothed.range[2, 3] == 2.0 and np.isnan(smoothed.range[0, 0])
+    assert np.all(frame[0:3, 0:3] == 4000.0) and frame[5, 6, 0] == 100.0

@@ -3,7 +3,6 @@ divided by the window's count), and the range map smoothed after it, weighted by
 
 from __future__ import annotations
 
-import warnings
 
 import cv2
 import numpy as np
@@ -64,6 +63,21 @@ def window_light(frame: NDArray[np.float32], usable: NDArray[np.float32], sample
     return mean, counts, light
 
 
+def nanmedian_of_windows(windows: NDArray) -> NDArray[np.float64]:
+    """The median over axis 0 of the values that are not NaN, NaN where a window has none.
+
+    np.nanmedian warns on an all-NaN window, and silencing it with ``warnings.catch_warnings``
+    swaps the process's warning filters, which is not thread-safe: the frame loop did it beside
+    the API's threads, and a filter restored under another thread let an "All-NaN slice" warning
+    through, an error in the restore of the settings under a strict filter."""
+    empty = np.isnan(windows).all(axis=0)
+    if empty.any():
+        windows = np.where(empty, 0.0, windows)
+    out = np.asarray(np.nanmedian(windows, axis=0), dtype=np.float64)
+    out[empty] = np.nan
+    return out
+
+
 def smooth_frame(frame: NDArray, kind: str, saturation_level: float) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """3×3 smoothing of a raw frame (H, W, N) before the transform (docs/physics.md §7).
 
@@ -94,9 +108,7 @@ def smooth_frame(frame: NDArray, kind: str, saturation_level: float) -> tuple[ND
         padded = np.pad(np.where(saturated, np.nan, values), ((1, 1), (1, 1), (0, 0)), constant_values=np.nan)
         ii, jj, kk = np.nonzero(redo)
         windows = np.stack([padded[ii + di, jj + dj, kk] for di in range(3) for dj in range(3)])
-        with np.errstate(all="ignore"), warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows: kept below
-            smoothed[ii, jj, kk] = np.nanmedian(windows, axis=0)
+        smoothed[ii, jj, kk] = nanmedian_of_windows(windows)  # all-NaN windows: kept below
     # A saturated value stays as it was (the estimator then marks that channel saturated); the
     # median's variance is left at a single pixel's.
     return np.where(saturated, values, smoothed).astype(np.float32), np.ones(raw.shape, np.float32)
@@ -195,9 +207,7 @@ def smooth_range_map(result: RangeResult, kind: str = "mean") -> RangeResult:
         padded = np.pad(np.where(valid, r.astype(np.float64), np.nan), 1, constant_values=np.nan)
         h, w = r.shape
         windows = np.stack([padded[dy : dy + h, dx : dx + w] for dy in range(3) for dx in range(3)])
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows
-            smoothed = np.nanmedian(windows, axis=0)
+        smoothed = nanmedian_of_windows(windows)
         variance = result.variance
     return RangeResult(
         np.where(valid, smoothed, np.nan).astype(np.float32),
