@@ -30,18 +30,24 @@ def seabed():
     return profile, scene.frame(0), np.stack([view.frame(i) for i in range(8)]), scene.camera_range
 
 
-def ranged(profile, frame, open_water, monkeypatch, uncertainty=None):
+def ranged(profile, frame, open_water, monkeypatch, uncertainty=None, tail=None):
     if uncertainty is not None:
         monkeypatch.setattr(frame_compensator, "OPEN_WATER_UNCERTAINTY", uncertainty)
+    if tail is not None:
+        monkeypatch.setattr(frame_compensator, "OPEN_WATER_TAIL_UNCERTAINTY", tail)
     comp = BackscatterCompensator(profile, frame.shape[:2], 2, open_water, path_length_bounds=(0.0, 100.0))
     est = comp.estimator
     return comp.range(frame, est.attenuation, est.log_constant)
 
 
 def test_the_models_share_is_common_and_a_mean_keeps_it(seabed, monkeypatch):
+    """With a model doubted enough to matter (2 % of its level, as uwcam took until it counted
+    the open water's own level and the share beyond the surface apart), the share found on the
+    reduced frame is the one found pixel by pixel; both the relative doubt and the share beyond the
+    surface's (a variance per pixel) are in it."""
     profile, frame, open_water, truth = seabed
-    doubted = ranged(profile, frame, open_water, monkeypatch)
-    exact = ranged(profile, frame, open_water, monkeypatch, uncertainty=0.0)
+    doubted = ranged(profile, frame, open_water, monkeypatch, uncertainty=0.02)
+    exact = ranged(profile, frame, open_water, monkeypatch, uncertainty=0.0, tail=0.0)
     both = np.isfinite(doubted.range) & np.isfinite(exact.range)
     assert both.mean() > 0.5
     model = (doubted.variance - exact.variance)[both]

@@ -75,15 +75,19 @@ def test_compiled_background_kernel_equals_the_numpy_terms_with_every_state():
         pytest.skip("numba is not installed: ranging with a background runs the numpy terms themselves")
     rng = np.random.default_rng(9)
     intr = Intrinsics(150.0, 118.0, 71.3, 66.8)
-    for pair, levels, u in ((None, None, 0.0), (("R", "B"), None, 0.0), (None, [30.0, 80.0, 60.0], 0.0), (None, None, 0.05)):
+    cases = ((None, None, 0.0, None, False), (("R", "B"), None, 0.0, None, False), (None, [30.0, 80.0, 60.0], 0.0, None, False),
+             (None, None, 0.05, None, False), (None, None, 0.003, [0.002, 0.004, 0.0], True))
+    for pair, levels, u, residual, doubted in cases:
         profile = make_profile(RGB_ATTENUATION, B, read_noise=READ, shot_gain=GAIN, dark_level=DARK, noise_floor=FLOOR,
                                saturation_level=SAT, quantisation_step=Q, lamp=(0.3, -0.2, 0.0), intrinsics=intr)
         profile = profile.model_copy(update={"channels": [c.model_copy(update={"fixed_pattern": 0.01}) for c in profile.channels]})
-        est = RangeEstimator(profile, pair=pair, backscatter_level=levels, calibration_variance=False, background_uncertainty=u)
+        est = RangeEstimator(profile, pair=pair, backscatter_level=levels, calibration_variance=False, background_uncertainty=u,
+                             background_fixed_pattern=residual)
         raw = rng.uniform(40, 4100, (40, 56, 3)).round().astype(np.uint16)
         background = rng.uniform(0, 400, raw.shape).astype(np.float32)
-        got = est(raw, background=background)
-        y, weight, state = est.channel_terms(raw, background)
+        doubt = rng.uniform(0, 900, raw.shape).astype(np.float32) if doubted else None
+        got = est(raw, background=background, background_variance=doubt)
+        y, weight, state = est.channel_terms(raw, background, background_variance=doubt)
         pairs = kernels.pack_pairs(y, weight, state, 2, 3)
         h, w = raw.shape[:2]
         ref = [np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w), np.uint8)]
@@ -94,6 +98,33 @@ def test_compiled_background_kernel_equals_the_numpy_terms_with_every_state():
         np.testing.assert_allclose(got.range, ref[0], rtol=2e-6, atol=3e-5, equal_nan=True)
         np.testing.assert_allclose(got.variance, ref[1], rtol=2e-5, equal_nan=True)
         assert len(set(np.unique(ref[2]))) >= 3  # several reasons exercised
+
+
+def test_a_background_that_knows_each_pixels_response_leaves_only_its_residual_fixed_pattern():
+    """With the fixed pattern f of the profile and r of the background (the part of each pixel's
+    response the background's model did not take out), a value's fixed-pattern variance is
+    r²·(E + B)² + (f² − r²)·E² (E the surface's light, B the background), and a per-value
+    background variance adds as it is: written out here by hand."""
+    f, r = np.array([0.01, 0.01, 0.02]), np.array([0.002, 0.01, 0.0])
+    profile = make_profile(RGB_ATTENUATION, B, read_noise=READ, shot_gain=GAIN, dark_level=DARK, noise_floor=FLOOR,
+                           saturation_level=65535.0, quantisation_step=Q)
+    profile = profile.model_copy(update={"channels": [c.model_copy(update={"fixed_pattern": float(v)})
+                                                      for c, v in zip(profile.channels, f)]})
+    est = RangeEstimator(profile, calibration_variance=False, background_fixed_pattern=r, background_uncertainty=0.003)
+    background = np.array([[[20000.0, 30000.0, 10000.0]]])
+    e = np.array([3000.0, 6000.0, 4000.0])
+    doubt = np.array([[[400.0, 0.0, 2500.0]]])
+    raw = DARK + e + background
+    _, weight, state = est.channel_terms(raw, background, background_variance=doubt)
+    total = e + background[0, 0]
+    var = (READ**2 + GAIN * total + Q**2 / 12 + (r * total) ** 2 + (f**2 - r**2) * e**2
+           + (0.003 * background[0, 0]) ** 2 + doubt[0, 0])
+    assert np.all(state[0, 0] == 0)
+    np.testing.assert_allclose(weight[0, 0], e**2 / var, rtol=1e-12)
+    with pytest.raises(ValueError, match="background_fixed_pattern"):
+        RangeEstimator(profile, background_fixed_pattern=[0.01, float("nan"), 0.0])
+    with pytest.raises(ValueError, match="pass the background too"):
+        est(raw.astype(np.float32), background_variance=doubt.astype(np.float32))
 
 
 def test_an_uncertain_background_adds_its_share_to_the_noise():

@@ -52,14 +52,17 @@ def test_ranges_twice_as_uncertain_as_they_are_long_are_dropped(path, monkeypatc
 
 def murky_cell(size=(320, 240), distance=5.0, water_name="jerlov-III", lamp_x=0.3, frames=1):
     """A grey seabed at ``distance`` in murky water, the lamp ``lamp_x`` m aside, calibrated at 1 and 2 m
-    in the simulator, with 16 open-water frames: (profile, ``frames`` frames of the static seabed,
-    open water, true camera range)."""
+    in the simulator with the plate for scattering water (grey-plate-large-patch, docs/calibration.md),
+    with 16 open-water frames: (profile, ``frames`` frames of the static seabed, open water, true
+    camera range)."""
+    from uwcam.calibration.rig import builtin_rig_path, load_rig
     from uwcam.simulation import CameraModel, Lamp, SimulatedWorld, water_preset
     from uwcam.simulation.tank import calibrate_in_simulation
 
     water = water_preset(water_name, [675.0, 575.0, 475.0])
     lamp, camera = Lamp(position=(lamp_x, 0.0, 0.0)), CameraModel()
-    profile = calibrate_in_simulation(water, lamp, size, camera, frames_per_distance=4)
+    profile = calibrate_in_simulation(water, lamp, size, camera, frames_per_distance=4,
+                                      rig=load_rig(builtin_rig_path("grey-plate-large-patch")))
     scene = SimulatedWorld(scene="seabed", distance=distance, size=size, water=water, lamp=lamp, camera=camera,
                            material="grey", seed=5)
     view = SimulatedWorld(scene="open-water", distance=distance, size=size, water=water, lamp=lamp, camera=camera,
@@ -128,14 +131,23 @@ def test_a_depth_that_only_the_near_side_reaches_is_no_range(frames, distance, l
     frames at 3 m, lamp on the axis, with the open-water model's 2 % doubt: 44 pixels 25 % short, 6
     beyond 3σ, that the far start reached too, through a pass that took a range from green and blue
     alone (which attenuate alike here: anything) for a depth; a pass's ranges too uncertain for
-    their length are no depth now."""
+    their length are no depth now.
+
+    None of those pixels was left beyond 3σ while the open-water model was doubted by 2 % of its
+    level, but the cell at 3 m with the lamp on the axis then kept 3 % of its pixels. With the
+    model's doubt as measured (0.4 % of the level, and 40 % of the share beyond the surface) it
+    keeps 62 %, their z-scores' sd 0.8; what the threshold lets through of red light barely 3σ
+    above the water's (half of a percent of those pixels here, 15–35 % short) is held to the
+    issue's bound: at most 2 % of the valid pixels beyond 3σ, with the 3×3 mean the study ranges with."""
     from uwcam.ranging.images import range_images
 
     profile, stack, open_water, truth = murky_cell(distance=distance, lamp_x=lamp_x, frames=frames)
     result = range_images(profile, stack, smoothing="mean", compensate=True, iterations=2, open_water=open_water)
     valid = np.isfinite(result.range)
     z = (result.range[valid] - truth[valid]) / np.sqrt(result.variance[valid])
-    assert int(np.sum(np.abs(z) > 3.0)) == 0, (valid.sum(), result.range[valid][:10], truth[valid][:10])
+    if z.size:  # at 5 m no pixel keeps a range
+        assert np.mean(np.abs(z) > 3.0) <= 0.02, (valid.mean(), np.mean(np.abs(z) > 3.0))
+        assert np.std(z) < 1.3, np.std(z)
     assert np.all(result.reasons[~valid] != Reason.VALID)
 
 

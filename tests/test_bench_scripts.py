@@ -85,6 +85,15 @@ def test_orientation_benchmark_runs():
 
 
 @pytest.mark.slow
+def test_compensation_benchmark_runs():
+    out = subprocess.run([sys.executable, str(ROOT / "bench" / "bench_compensation.py"), "--size", "320x180", "--frames", "3",
+                          "--distances", "3"], check=True, capture_output=True, text=True, timeout=600).stdout
+    row = [line.split() for line in out.splitlines() if line.strip().startswith("3m")]
+    assert "compensated ms" in out and len(row) == 1 and len(row[0]) == 5, out
+    assert float(row[0][2]) > float(row[0][1]) > 0  # compensation costs more than plain ranging
+
+
+@pytest.mark.slow
 def test_temporal_benchmark_runs():
     out = subprocess.run([sys.executable, str(ROOT / "bench" / "bench_temporal.py"), "--size", "160x120", "--distance", "3",
                           "--water", "jerlov-IA", "--seconds", "1.5", "--frames", "3", "--max-frames", "8"],

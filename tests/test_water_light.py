@@ -109,6 +109,26 @@ def test_compensated_ranges_in_murky_water_are_never_confidently_wrong(murky, di
     assert np.mean(np.abs(z) > 3.0) <= 0.02, (valid.mean(), np.std(z))
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("distance", [5.0, 7.0])
+def test_compensated_ranges_in_murky_water_have_an_honest_sigma(murky, distance):
+    """The same seabed with sixteen open-water frames (which tell each pixel's response): the
+    z-scores against the simulator's true range have a standard deviation near 1, not only few
+    beyond 3. Where the water's light is twenty times the seabed's, σ used to be four to ten times
+    the ranges' spread (sd 0.1–0.3): every pixel's fixed pattern counted on the backscatter the
+    open-water frames had taken it out of, and a 2 % doubt of the whole model where it measured all
+    but the light beyond the seabed."""
+    seabed = world("seabed", distance, material="grey", seed=5)
+    water = world("open-water", distance, fixed_exposure=seabed.exposure, seed=6)
+    open_water = np.stack([water.frame(k) for k in range(16)])
+    result = range_images(murky, [seabed.frame(0)], compensate=True, open_water=open_water)
+    valid = np.isfinite(result.range)
+    z = (result.range[valid] - seabed.camera_range[valid]) / np.sqrt(result.variance[valid])
+    assert valid.mean() > 0.85
+    assert 0.65 < np.std(z) < 1.3, np.std(z)
+    assert np.mean(np.abs(z) > 3.0) <= 0.02, np.mean(np.abs(z) > 3.0)
+
+
 def test_a_point_lamp_gives_a_finite_backscatter_model():
     """Radius 0 (a point source, as `--lamp-radius 0` documents): the share of the lit column closer
     than z along the optical axis, ∫₀ᶻ exp(−c(d_s + t))/d_s² dt over ∫₀^∞, by the trapezoid rule on a fine grid of its own."""

@@ -186,13 +186,16 @@ def _ln_row(x, out, bits):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _background_terms(raw, bg, n_rows, t, level, sat, e, var, ln, bits, y_out, w_out):
+def _background_terms(raw, bg, doubt_rows, n_rows, t, level, sat, e, var, ln, bits, y_out, w_out):
     """[y, w] of every value of one row, channels interleaved as in the frame ((W·N,) each): the
     arithmetic of RangeEstimator.channel_terms with a background ``bg`` (DN) known not to come from
     the surface, in float32 (a 16-bit code and the noise terms need no more: the values differ
     from float64's by float32 rounding, ~1e-7 relative, the precision they are stored in anyway).
-    t: (9, W·N) float32, each channel's constants repeated along the row (dark, read², shot gain,
-    fixed pattern, q²/12, floor, b, active, relative background uncertainty u, adding (u·bg)²);
+    t: (10, W·N) float32, each channel's constants repeated along the row (dark, read², shot gain,
+    fixed pattern f, q²/12, floor, b, active, relative background uncertainty u, adding (u·bg)², and
+    the fixed pattern r the background leaves: r²·total² + (f² − r²)·e² instead of f²·total²);
+    doubt_rows: (W·N,) float32, the background's own variance (DN²) added to each value's, or an
+    empty row: none;
     level: (W·N,) float32, the open-water level (−inf: none); sat: float32; e, var, ln: float32
     rows and bits an int32 row, for scratch. n_rows: (W·N,) float32, how many single-pixel noises
     each value's noise is (frames fused over time; the variance is divided by it, at least 1), or
@@ -206,12 +209,15 @@ def _background_terms(raw, bg, n_rows, t, level, sat, e, var, ln, bits, y_out, w
         b = bg[x]
         v = np.float32(raw[x]) - t[0, x] - b
         total = max(v + b, zero)
-        s2 = t[1, x] + t[2, x] * total + t[4, x] + (t[3, x] * total) * (t[3, x] * total)
+        surface = max(v, zero)
+        s2 = (t[1, x] + t[2, x] * total + t[4, x] + (t[9, x] * total) * (t[9, x] * total)
+              + (t[3, x] * t[3, x] - t[9, x] * t[9, x]) * (surface * surface))
         s2 = s2 if s2 > zero else one
         if n_rows.shape[0] > 0:
             s2 = s2 / max(n_rows[x], one)
         u = t[8, x]
-        var[x] = s2 + (u * b) * (u * b) if u > zero else s2
+        s2 = s2 + (u * b) * (u * b) if u > zero else s2
+        var[x] = s2 + doubt_rows[x] if doubt_rows.shape[0] > 0 else s2
         e[x] = v
         ln[x] = max(v, np.float32(1e-30))  # a valid argument everywhere; only usable values (e > 3σ > 0) are kept
     _ln_row(ln, ln, bits)
@@ -233,12 +239,15 @@ def _background_terms(raw, bg, n_rows, t, level, sat, e, var, ln, bits, y_out, w
 
 @parallel
 @njit(parallel=True, cache=True, nogil=True, error_model="numpy")
-def fuse_background(frame, background, samples, noise, levels, sat, c, cv, geo, bounds, out_range, out_var, out_reason):
+def fuse_background(frame, background, doubt, samples, noise, levels, sat, c, cv, geo, bounds, out_range, out_var,
+                    out_reason):
     """As :func:`fuse_arrays` for a C-contiguous frame (H, W, N) of any pixel type with a
     C-contiguous background (H, W, N) float32 subtracted: the per-channel terms are computed here,
-    row by row (:func:`_background_terms`), instead of in numpy. samples: C-contiguous (H, W, N)
-    float32, how many single-pixel noises each value's noise is (see RangeEstimator.channel_terms),
-    or an empty (0, 0, 0) array: one."""
+    row by row (:func:`_background_terms`), instead of in numpy. doubt: C-contiguous (H, W, N)
+    float32, the background's own variance (DN²), or an empty (0, 0, 0) array: none. samples:
+    C-contiguous (H, W, N) float32, how many single-pixel noises each value's noise is (see
+    RangeEstimator.channel_terms), or an empty (0, 0, 0) array: one. noise: (N, 10) per channel
+    (RangeEstimator._noise_terms)."""
     h, w = out_range.shape
     n = len(c)
     m = w * n
@@ -246,11 +255,13 @@ def fuse_background(frame, background, samples, noise, levels, sat, c, cv, geo, 
     bg_rows = background.reshape(h, m)
     counted = samples.size > 0
     n_rows = samples.reshape(h, m) if counted else np.empty((h, 0), np.float32)
-    t = np.empty((9, m), np.float32)
+    doubted = doubt.size > 0
+    doubt_rows = doubt.reshape(h, m) if doubted else np.empty((h, 0), np.float32)
+    t = np.empty((10, m), np.float32)
     level = np.empty(m, np.float32)
     for j in range(w):
         for k in range(n):
-            for q in range(9):
+            for q in range(10):
                 t[q, j * n + k] = noise[k, q]
             level[j * n + k] = levels[k]
     sat32 = np.float32(sat)
@@ -262,7 +273,7 @@ def fuse_background(frame, background, samples, noise, levels, sat, c, cv, geo, 
         bits = np.empty(m, np.int32)
         y = np.empty(m, np.float32)
         wt = np.empty(m, np.float32)
-        _background_terms(raw_rows[i], bg_rows[i], n_rows[i], t, level, sat32, e, var, ln, bits, y, wt)
+        _background_terms(raw_rows[i], bg_rows[i], doubt_rows[i], n_rows[i], t, level, sat32, e, var, ln, bits, y, wt)
         buf = np.empty((n, 2 * w), np.float32)
         for j in range(w):
             for k in range(n):

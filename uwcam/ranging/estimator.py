@@ -55,6 +55,7 @@ class RangeEstimator:
         path_length_bounds: tuple[float, float] = (0.0, np.inf),
         calibration_variance: bool = True,
         background_uncertainty: float = 0.0,
+        background_fixed_pattern: NDArray | list[float] | None = None,
     ) -> None:
         """pair: two channel names for single-pair ranging (default: fuse all channels).
         surface_reflectance: (N,) reflectance of the imaged surface, when it differs in hue
@@ -67,7 +68,13 @@ class RangeEstimator:
         :meth:`__call__` (a modelled backscatter is known to a few per cent; a measured lamp-off
         frame's noise is already in the shot noise: 0); it adds (u·B)² to each value's variance,
         so that where the surface's light is small next to the background the pixel has no range
-        (reason 3) rather than a wrong one."""
+        (reason 3) rather than a wrong one.
+        background_fixed_pattern: (N,) relative rms of the sensor's fixed pattern that a background
+        passed to :meth:`__call__` still carries (a model that knows each pixel's response takes
+        most of it out: :meth:`uwcam.water.backscatter.ResponseEstimate.residual_fixed_pattern`);
+        None: all of it (the profile's ``fixed_pattern``), the background being smooth. With r
+        this and f the profile's, a value's variance counts r²·(E + B)² + (f² − r²)·E² of fixed
+        pattern instead of f²·(E + B)² (E the surface's light, B the background)."""
         self.profile = profile
         names = profile.channel_names
         n = len(names)
@@ -88,6 +95,13 @@ class RangeEstimator:
         if not (np.isfinite(background_uncertainty) and 0.0 <= background_uncertainty <= 10.0):
             raise ValueError(f"background_uncertainty must be a relative uncertainty from 0 to 10, got {background_uncertainty}")
         self.background_uncertainty = float(background_uncertainty)
+        if background_fixed_pattern is None:
+            self.background_fixed_pattern = self.fixed_pattern
+        else:
+            r = np.asarray(background_fixed_pattern, dtype=np.float64)
+            if r.shape != (n,) or not np.all(np.isfinite(r)) or np.any(r < 0) or np.any(r > 1):
+                raise ValueError(f"background_fixed_pattern needs {n} relative rms values from 0 to 1, got {r}")
+            self.background_fixed_pattern = r
         v = profile.array("attenuation_difference")
         b = profile.array("log_constant")
         if surface_reflectance is not None:
@@ -199,7 +213,8 @@ class RangeEstimator:
             self._tables = {}
 
     def channel_terms(self, raw: NDArray, background: NDArray | None = None,
-                      samples: NDArray | None = None) -> tuple[NDArray, NDArray, NDArray]:
+                      samples: NDArray | None = None,
+                      background_variance: NDArray | None = None) -> tuple[NDArray, NDArray, NDArray]:
         """y = ln E − b, weight E²/σ² and ChannelState for raw values (any shape (..., N)).
 
         background: light (DN, dark-corrected, same shape) known not to come from the surface,
@@ -207,6 +222,9 @@ class RangeEstimator:
         noise, and a channel whose remaining signal is not 3σ above it is not usable.
         samples: when ``raw`` is the mean of this many pixels (same shape), each with the noise
         of the noise model, independent: its variance is σ²/samples.
+        background_variance: (same shape) DN², the background's own uncertainty beyond the
+        relative ``background_uncertainty`` (a model's doubt that varies across the view), added
+        to each value's variance; only with ``background``.
         """
         e = np.asarray(raw, dtype=np.float64) - self.dark
         if background is not None:
@@ -214,7 +232,11 @@ class RangeEstimator:
         state = channel_states(raw, e, self.floor, self.profile.saturation_level, self.backscatter)
         with np.errstate(divide="ignore", invalid="ignore"):
             total = e if background is None else e + background
-            var = signal_variance(total, self.read_noise, self.shot_gain, self.profile.quantisation_step, self.fixed_pattern)
+            if background is None:
+                var = signal_variance(total, self.read_noise, self.shot_gain, self.profile.quantisation_step,
+                                      self.fixed_pattern)
+            else:
+                var = self.background_signal_variance(total, e)
             if self.response is not None:
                 # A linearised code is known only to its width in linear DN (width²/12): the least
                 # variance it can have, whatever the noise model measured (see uwcam.imaging.response).
@@ -225,6 +247,8 @@ class RangeEstimator:
                 var = var / np.maximum(samples, 1)
             if background is not None and self.background_uncertainty > 0:
                 var = var + (self.background_uncertainty * background) ** 2
+            if background is not None and background_variance is not None:
+                var = var + background_variance
             if background is not None:
                 state[(state == ChannelState.USABLE) & (e <= BACKGROUND_SIGMAS * np.sqrt(var))] = ChannelState.BACKSCATTER_ONLY
         state[..., ~self.active] = _IGNORED
@@ -234,15 +258,26 @@ class RangeEstimator:
             y = np.where(ok, np.log(np.where(ok, e, 1.0)) - self.effective_log_constant, 0.0)
         return y, weight, state.astype(np.uint8)
 
+    def background_signal_variance(self, total: NDArray, surface: NDArray) -> NDArray[np.float64]:
+        """σ² (DN²) of the surface's light ``surface`` = E left once a background B is subtracted
+        from ``total`` = E + B (dark-corrected DN, (..., N)): the noise model's of the total light,
+        with the fixed pattern counted as the background leaves it (``background_fixed_pattern``
+        r, f the profile's): r²·(E + B)² + (f² − r²)·E², E clipped at 0."""
+        r = self.background_fixed_pattern
+        var = signal_variance(total, self.read_noise, self.shot_gain, self.profile.quantisation_step, r)
+        if np.array_equal(r, self.fixed_pattern):
+            return var
+        return var + (self.fixed_pattern**2 - r**2) * np.maximum(surface, 0.0) ** 2
+
     def _noise_terms(self) -> NDArray[np.float64]:
-        """(N, 9) per channel: dark, read², shot gain, fixed pattern, q²/12, floor, b, active, relative
-        background uncertainty, for
-        the compiled background kernel (b follows :meth:`set_log_constants`)."""
+        """(N, 10) per channel: dark, read², shot gain, fixed pattern, q²/12, floor, b, active, relative
+        background uncertainty, the fixed pattern a background leaves (``background_fixed_pattern``),
+        for the compiled background kernel (b follows :meth:`set_log_constants`)."""
         q = float(np.asarray(self.profile.quantisation_step, dtype=np.float64))
         return np.stack([self.dark, self.read_noise**2, self.shot_gain, self.fixed_pattern,
                          np.full(self.n_channels, q**2 / 12.0), self.floor, self.effective_log_constant,
-                         self.active.astype(np.float64), np.full(self.n_channels, self.background_uncertainty)],
-                        axis=1).astype(np.float64)
+                         self.active.astype(np.float64), np.full(self.n_channels, self.background_uncertainty),
+                         self.background_fixed_pattern], axis=1).astype(np.float64)
 
     @property
     def _open_water_levels(self) -> NDArray[np.float64]:
@@ -296,13 +331,16 @@ class RangeEstimator:
             self(zeros, background=zeros)
 
     def __call__(self, frame: NDArray, out: RangeResult | None = None, background: NDArray | None = None,
-                 samples: NDArray | None = None) -> RangeResult:
+                 samples: NDArray | None = None, background_variance: NDArray | None = None) -> RangeResult:
         """Range, variance and reasons for one frame (H, W, N); ``out`` reuses output arrays.
 
         background: (H, W, N) light in DN not from the surface (see :meth:`channel_terms`).
         samples: (H, W, N) how many pixels each value of ``frame`` is the mean of (see
         :func:`smooth_frame`); None: one.
+        background_variance: (H, W, N) DN², the background's own uncertainty (see :meth:`channel_terms`).
         """
+        if background_variance is not None and background is None:
+            raise ValueError("background_variance is the uncertainty of a background: pass the background too")
         if frame.ndim != 3 or frame.shape[-1] != self.n_channels:
             got = frame.shape[-1] if frame.ndim == 3 else 1
             raise UserInputError(
@@ -329,10 +367,12 @@ class RangeEstimator:
             # reordered, is copied once here).
             # Values that are means (frames fused over time) have their noise divided in the kernel.
             counts = _NO_SAMPLES if samples is None else kernel_array(samples, frame.shape, np.float32)
-            kernels.fuse_background(np.ascontiguousarray(frame), bg, counts, self._noise_terms(), self._open_water_levels,
-                                    float(self.profile.saturation_level), self._c, *common)
+            doubt = _NO_SAMPLES if background_variance is None else kernel_array(background_variance, frame.shape,
+                                                                                    np.float32)
+            kernels.fuse_background(np.ascontiguousarray(frame), bg, doubt, counts, self._noise_terms(),
+                                    self._open_water_levels, float(self.profile.saturation_level), self._c, *common)
         elif np.issubdtype(frame.dtype, np.integer) or np.issubdtype(frame.dtype, np.floating):
-            y, weight, state = self.channel_terms(frame, background, samples)  # y already has b subtracted
+            y, weight, state = self.channel_terms(frame, background, samples, background_variance)  # b subtracted
             pairs = kernels.pack_pairs(y, weight, state, ChannelState.SATURATED, ChannelState.BACKSCATTER_ONLY)
             kernels.fuse_arrays(pairs, self._c, (0.0,) * self.n_channels, *common)
         else:
@@ -372,9 +412,12 @@ class RangeEstimator:
         q = self.profile.quantisation_step
         total = e if bg is None else e + np.moveaxis(bg, -1, 0)
         weight, y = [], []
+        r, f = self.background_fixed_pattern, self.fixed_pattern
         for k in range(n):
             ek = e[k]
-            var = signal_variance(total[k], self.read_noise[k], self.shot_gain[k], q, self.fixed_pattern[k])
+            var = signal_variance(total[k], self.read_noise[k], self.shot_gain[k], q, f[k] if bg is None else r[k])
+            if bg is not None and r[k] != f[k]:  # as background_signal_variance
+                var = var + (f[k] ** 2 - r[k] ** 2) * np.maximum(ek, 0.0) ** 2
             usable = (ek > max(self.floor[k], 0.0)) & (raw[k] < self.profile.saturation_level) & bool(self.active[k])
             with np.errstate(divide="ignore", invalid="ignore"):
                 weight.append(np.where(usable, ek * ek / np.where(var > 0, var, 1.0), 0.0))

@@ -74,8 +74,41 @@ def pixel_response(frames: NDArray, smooth: NDArray) -> NDArray[np.float64]:
     their mean); the estimate is the shrunk q · σ_g²/(σ_g² + σ_n²/K) (the Wiener weight, with
     σ_g² = var q − σ_n²/K, 0 when negative). Returns (H, W, N) g ≥ 0, 1 on average.
     """
+    return pixel_response_estimate(frames, smooth).response
+
+
+@dataclass(frozen=True)
+class ResponseEstimate:
+    """Each pixel's response estimated from open water (:func:`pixel_response`), and how well."""
+
+    response: NDArray[np.float64]
+    """(H, W, N) ĝ = 1 + w·q, ≥ 0."""
+    weight: NDArray[np.float64]
+    """(N,) w, the Wiener weight each channel's relative residual q was shrunk by (0–1)."""
+    noise: NDArray[np.float64]
+    """(N,) σ_n²/K, the relative variance of q's noise (the mean of the frames' noise over the view)."""
+
+    def residual_fixed_pattern(self, fixed_pattern: NDArray) -> NDArray[np.float64]:
+        """(N,) relative rms of the fixed pattern a background multiplied by ``response`` still
+        carries, for a sensor whose fixed pattern has rms ``fixed_pattern`` (N,) (the noise model's).
+
+        With g − 1 of variance f² and ĝ − 1 = w·(g − 1 + noise), what a pixel's background b keeps
+        of it is g − ĝ, of variance R = f²(1 − w)² + w²σ_n²/K, and its covariance with the pixel's
+        own g − 1 (which multiplies the surface's light v too) is C = f²(1 − w). The variance of
+        the surface's light left after subtracting ĝ·b is then f²v² + R·b² + 2C·v·b, which
+        (f² − r²)·v² + r²·(v + b)² with r² = max(R, C) covers (exactly where the weight is the
+        optimal one, R = C). No response estimated (w = 0): r = f, the pattern counted whole."""
+        f2 = np.asarray(fixed_pattern, np.float64) ** 2
+        w = self.weight
+        covariance = f2 * (1.0 - w)
+        residual = f2 * (1.0 - w) ** 2 + w**2 * self.noise
+        return np.sqrt(np.maximum(residual, covariance))
+
+
+def pixel_response_estimate(frames: NDArray, smooth: NDArray) -> ResponseEstimate:
+    """:func:`pixel_response` with its weights and noise (:class:`ResponseEstimate`)."""
     k = frames.shape[0]
-    return response_of_mean(frames.mean(axis=0), smooth, frames.var(axis=0, ddof=1) / k)
+    return response_of_mean_estimate(frames.mean(axis=0), smooth, frames.var(axis=0, ddof=1) / k)
 
 
 MAX_FRAMES_AVERAGED = 100_000
@@ -94,6 +127,11 @@ def response_of_mean(mean: NDArray, smooth: NDArray, noise: NDArray) -> NDArray[
     """:func:`pixel_response` from the mean of the frames alone: mean (H, W, N) dark-corrected DN,
     smooth (H, W, N) its smoothed level, noise (H, W, N) the variance (DN²) of the mean's noise
     (the frames' spread over K, or the camera's noise model over K where only the mean was kept)."""
+    return response_of_mean_estimate(mean, smooth, noise).response
+
+
+def response_of_mean_estimate(mean: NDArray, smooth: NDArray, noise: NDArray) -> ResponseEstimate:
+    """:func:`response_of_mean` with its weights and noise (:class:`ResponseEstimate`)."""
     safe = np.where(smooth > 0, smooth, 1.0)
     q = np.where(smooth > 0, mean / safe - 1.0, 0.0)
     relative = np.where(smooth > 0, noise / safe**2, 0.0)  # (H, W, N) variance of q's noise
@@ -101,7 +139,7 @@ def response_of_mean(mean: NDArray, smooth: NDArray, noise: NDArray) -> NDArray[
     total_var = (q**2).reshape(-1, q.shape[-1]).mean(axis=0)
     response_var = np.maximum(total_var - noise_var, 0.0)
     weight = np.where(total_var > 0, response_var / np.where(total_var > 0, total_var, 1.0), 0.0)
-    return np.maximum(1.0 + q * weight, 0.0)
+    return ResponseEstimate(np.maximum(1.0 + q * weight, 0.0), weight, noise_var)
 
 
 # The column's attenuation and the lamp's beam, fitted to an open-water frame: the grids searched.
@@ -239,6 +277,7 @@ class BackscatterModel:
         grid_step: pixels between the grid points of ``shares``; 0 when uniform over the image.
         response: (H, W, N) each pixel's response relative to the smoothed pattern (from several
             open-water frames), or None (1 everywhere).
+        response_estimate: how ``response`` was estimated (its weights and noise), or None.
     """
 
     depths: NDArray[np.float64]
@@ -246,6 +285,7 @@ class BackscatterModel:
     pattern: NDArray[np.float64]
     grid_step: int
     response: NDArray[np.float64] | None = None
+    response_estimate: ResponseEstimate | None = None
 
     @classmethod
     def from_profile(cls, profile: CalibrationProfile, open_water: NDArray | None = None,
@@ -318,14 +358,14 @@ class BackscatterModel:
                                if levels[-1, k] > 0 else np.zeros_like(depths) for k in range(n)], axis=-1)[None, None]
             step = 0
         if pattern is not None:
-            response = None
+            estimate = None
             if frames.shape[0] >= 2:
-                response = pixel_response(frames, pattern)
+                estimate = pixel_response_estimate(frames, pattern)
             elif frames_averaged >= 2:
                 q = profile.quantisation_step
                 noise = signal_variance(water, profile.array("read_noise"), profile.array("shot_gain"), q) / frames_averaged
-                response = response_of_mean(water, pattern, noise)
-            return cls(depths, shares, pattern, step, response)
+                estimate = response_of_mean_estimate(water, pattern, noise)
+            return cls(depths, shares, pattern, step, None if estimate is None else estimate.response, estimate)
         # No open-water frame: scale F so the model meets the last patch measurement; uniform in
         # space, or, with the physics of the column, following the lamp's place across the view.
         shape_across = np.ones((1, 1, n))

@@ -58,17 +58,31 @@ MAX_MODEL_UNCERTAINTY = 10.0
 measurements stray from it further (:func:`uwcam.water.backscatter.patch_disagreement`: a range-gated
 camera in Jerlov 3C, eleven times) tells nothing of the water's light at any range either way."""
 
-OPEN_WATER_UNCERTAINTY = 0.02
-"""Relative standard uncertainty of the backscatter modelled with an open-water frame, which
-measures the water's light per pixel: at the surface's true depth its level is within −0.7 to
-+0.7 % of the simulator's own backscatter (10th–90th percentile per channel, 16 frames, Jerlov II
-and III, lamp on the axis and 0.3 m aside, 2–7 m; ±1.4 % with 8 frames in Jerlov IB). Each pixel's
-own response (its fixed pattern) is in the noise model's variance already, not in this. At 0.05
-(until this version) a seabed at 7 m in Jerlov II (lamp 0.3 m aside), whose surface light is a few
-per cent of the water's in green and blue, lost 40 % of its pixels to that doubt alone; at 0.02 the
-water study keeps 95–97 % of them with none beyond 3σ. What made 0.02 unsafe before was not the
-level but passes led to a wrong depth by a range from channels that attenuate alike (see
-:meth:`BackscatterCompensator._resolved_depth`)."""
+OPEN_WATER_UNCERTAINTY = 0.004
+"""Relative standard uncertainty of the backscatter modelled with an open-water frame where the
+frame measured all of it: the open water's own level, smoothed (:data:`uwcam.water.backscatter.OPEN_WATER_SMOOTHING`).
+The model takes from the frame the light of the whole lit column and from the physics only the
+share of it beyond the surface (:data:`OPEN_WATER_TAIL_UNCERTAINTY`). Against the simulator's own
+backscatter (16 open-water frames, 320×240, Jerlov II, III and 3C, the lamp on the axis and 0.3
+and 0.6 m aside, a seabed at 1–7 m), the smooth part of the level's error (15-pixel means) lies
+within −0.5 to +0.35 % (5th–95th percentile per channel) wherever that share is under 1 %, the
+lamp on the axis reading it low by 0.2–0.5 % in every channel. At 0.3 % the red light of a seabed
+at 3 m in Jerlov III (the lamp on the axis: the water's red light 20–30 times the seabed's) read
+short enough for 1.3 % of its pixels to fall beyond 3σ; at 0.4 %, 0.6 %.
+
+Until this version one doubt of 2 % stood for the whole model, and each pixel's fixed pattern
+was counted on the whole light, backscatter included, though the open-water frames take most of
+it out (:meth:`uwcam.water.backscatter.ResponseEstimate.residual_fixed_pattern`). In the water study's Jerlov II at
+7 m (lamp 0.3 m aside, 16 frames) σ came out 32 % of the range where the ranges' rms error was
+3.5 % (z-scores' sd 0.08): a pilot was told ±2 m of what was known to ±0.25 m."""
+
+OPEN_WATER_TAIL_UNCERTAINTY = 0.4
+"""Relative standard uncertainty of the modelled share of the open water's light that lies beyond
+the surface (what the open-water frame saw and the scene's water column does not hold): the
+physics of the column with the attenuation and beam fitted to the frame. Near the camera in murky
+water that share is large and the model least sure: Jerlov 3C at 1 m with the lamp 0.6 m aside,
+the share is 11–19 % of the open water's light per channel and the level 2–6 % high (0.2–0.35 of
+the share); Jerlov II and III at 1 m, 0.03–0.13 of it."""
 
 
 DEFAULT_ITERATIONS = 2
@@ -172,6 +186,14 @@ class BackscatterCompensator:
         self.uncertainty = (OPEN_WATER_UNCERTAINTY if self.open_water
                             else min(max(MODEL_UNCERTAINTY, self.patch_disagreement), MAX_MODEL_UNCERTAINTY))
         options = {"background_uncertainty": self.uncertainty, **estimator_options}
+        # Open-water frames that told each pixel's response take its fixed pattern out of the
+        # background they model: what is left of it is counted, not the whole.
+        estimate = self.model.response_estimate
+        if estimate is not None:
+            options["background_fixed_pattern"] = estimate.residual_fixed_pattern(profile.array("fixed_pattern"))
+        # The open water's light at the block centres (scale 1): the modelled share beyond a
+        # surface is this less the level in front of it (:data:`OPEN_WATER_TAIL_UNCERTAINTY`).
+        self._open_grid = self._grid_levels(np.full(self._grid, np.nan), 1.0) if self.open_water else None
         self.estimator = RangeEstimator(compensated, **options)
         # The intermediate iterations' estimator: frames reduced COARSE times (COARSE×COARSE means),
         # whose pixel rays are those of the full frame's COARSE×COARSE block centres.
@@ -250,14 +272,28 @@ class BackscatterCompensator:
 
     def _level_at(self, block_depth: NDArray, coarse: bool = False, scale: NDArray | float = 1.0) -> NDArray[np.float32]:
         """:meth:`level` for surfaces at these block depths ((gh, gw) m, NaN: open water)."""
+        return self._level_and_doubt(block_depth, coarse, scale)[0]
+
+    def _level_and_doubt(self, block_depth: NDArray, coarse: bool = False,
+                         scale: NDArray | float = 1.0) -> tuple[NDArray[np.float32], NDArray[np.float32] | None]:
+        """:meth:`_level_at`, and the variance (DN², same shape) of the share of it the physics
+        modelled beyond each block's depth (:data:`OPEN_WATER_TAIL_UNCERTAINTY`; None without an
+        open-water frame, whose model's doubt is all relative: :attr:`uncertainty`)."""
         h, w = self.shape
         small = self._grid_levels(block_depth, scale)
         size = self._coarse_size if coarse else (w, h)
         out = cv2.resize(small, size, interpolation=cv2.INTER_LINEAR).reshape(size[1], size[0], -1)
+        doubt = None
+        if self._open_grid is not None:
+            tail = np.maximum(self._open_grid * np.asarray(scale, np.float32) - small, np.float32(0.0))
+            tail *= np.float32(OPEN_WATER_TAIL_UNCERTAINTY)
+            doubt = cv2.resize(tail * tail, size, interpolation=cv2.INTER_LINEAR).reshape(size[1], size[0], -1)
         response = self._response_coarse if coarse else self._response
         if response is not None:
             out *= response
-        return out
+            if doubt is not None:
+                doubt *= response * response
+        return out, doubt
 
     def _grid_levels(self, block_depth: NDArray, scale: NDArray | float,
                      window: tuple[slice, slice] = (slice(None), slice(None))) -> NDArray[np.float32]:
@@ -301,10 +337,10 @@ class BackscatterCompensator:
             # two settle on different depths, both explain the frame and nothing tells them apart.
             far, far_settled = self._settle(small, small_ambient, scale, np.full_like(depth, np.nan), most)
             settled &= far_settled & _same_depth(far, depth)
-        background = self._level_at(depth, scale=scale)
+        background, doubt = self._level_and_doubt(depth, scale=scale)
         if ambient is not None:
             background += ambient
-        result = self.estimator(frame, background=background, samples=samples)
+        result = self.estimator(frame, background=background, samples=samples, background_variance=doubt)
         drop_unresolved(result)
         self._name_the_water(result, frame, ambient)
         if self.iterations > 1:
@@ -323,14 +359,14 @@ class BackscatterCompensator:
         model's uncertainty, and interpolated (within 9 % of the full-resolution difference there,
         tests/test_backscatter_common_variance.py); where that frame has no range to tell, all of
         the pixel's variance counts as common (a mean then reduces none of it)."""
-        background = self._level_at(depth, coarse=True, scale=scale)
+        background, doubt = self._level_and_doubt(depth, coarse=True, scale=scale)
         if small_ambient is not None:
             background += small_ambient
         h, w = self.shape
         small_samples = None if samples is None else cv2.resize(
             np.ascontiguousarray(np.broadcast_to(np.asarray(samples, np.float32), (h, w, small.shape[-1]))),
             self._coarse_size, interpolation=cv2.INTER_AREA).reshape(small.shape)
-        doubted = self._coarse(small, background=background, samples=small_samples).variance
+        doubted = self._coarse(small, background=background, samples=small_samples, background_variance=doubt).variance
         exact = self._coarse_exact(small, background=background, samples=small_samples).variance
         coarse_share = np.maximum((doubted - exact).astype(np.float32), np.float32(0.0))
         unranged = np.isnan(coarse_share)
@@ -361,10 +397,10 @@ class BackscatterCompensator:
         for passes in range(1, most):
             if passes >= self.iterations and settled.all():
                 break
-            background = self._level_at(depth, coarse=True, scale=scale)
+            background, doubt = self._level_and_doubt(depth, coarse=True, scale=scale)
             if small_ambient is not None:
                 background += small_ambient
-            found = self._resolved_depth(self._coarse(small, background=background))
+            found = self._resolved_depth(self._coarse(small, background=background, background_variance=doubt))
             # Settled: the depth found is the one whose backscatter was subtracted (or both open water).
             settled = _same_depth(found, depth)
             depth = found
