@@ -12,7 +12,6 @@ import math
 
 from collections.abc import Callable, Sequence
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -20,14 +19,13 @@ from uwcam.compute.jit import kernel_array
 from uwcam.fileio import UserInputError
 
 from uwcam.optics import kernels
-from uwcam.optics.calibration_variance import calibration_path_variance
-from uwcam.optics.geometry import camera_range_derivative, pixel_rays
 from uwcam.optics.noise import signal_variance
 from uwcam.optics.validity import ChannelState, Reason, channel_states
 from uwcam.calibration.profile import CalibrationProfile
 from uwcam.ranging.result import RangeResult
 from uwcam.ranging.adaptive import adaptive_windows
-from uwcam.ranging.smoothing import block_means, smooth_frame, smooth_range_map
+from uwcam.ranging.calibration_share import calibration_variance_map
+from uwcam.ranging.smoothing import smooth_frame, smooth_range_map
 
 # A channel state the kernel neither uses nor counts (channels outside a chosen pair).
 _IGNORED = 4
@@ -385,82 +383,9 @@ class RangeEstimator:
 
     def calibration_variance(self, frame: NDArray, background: NDArray | None = None,
                              block: int = CALIBRATION_VARIANCE_BLOCK) -> NDArray[np.float32]:
-        """(H, W) variance of camera range (m²) due to the calibration's uncertainty, for ``frame`` (H, W, N).
-
-        Computed on block averages (``block`` pixels a side; 1: every pixel) with the fusion
-        weights of the noise model (see :mod:`uwcam.optics.calibration_variance`), then
-        interpolated bilinearly; blocks without a range take their neighbours' largest value.
-        """
-        h, w = frame.shape[:2]
-        if self.response is not None and np.issubdtype(frame.dtype, np.integer):
-            frame = self.response.linearise(frame)
-        gh, gw = max(h // block, 1), max(w // block, 1)
-        if block > 1:
-            small = block_means(frame, (gw, gh)).astype(np.float64)
-            if small.ndim == 2:
-                small = small[:, :, None]
-            bg = None if background is None else cv2.resize(np.asarray(background, np.float32), (gw, gh),
-                                                            interpolation=cv2.INTER_AREA).reshape(gh, gw, -1)
-        else:
-            small, bg = frame.astype(np.float64), background
-        # Channel planes (N, gh, gw): every operation below runs over whole planes.
-        raw = np.moveaxis(small, -1, 0)
-        e = raw - self.dark[:, None, None]
-        if bg is not None:
-            e = e - np.moveaxis(bg, -1, 0)
-        n = self.n_channels
-        q = self.profile.quantisation_step
-        total = e if bg is None else e + np.moveaxis(bg, -1, 0)
-        weight, y = [], []
-        r, f = self.background_fixed_pattern, self.fixed_pattern
-        for k in range(n):
-            ek = e[k]
-            var = signal_variance(total[k], self.read_noise[k], self.shot_gain[k], q, f[k] if bg is None else r[k])
-            if bg is not None and r[k] != f[k]:  # as background_signal_variance
-                var = var + (f[k] ** 2 - r[k] ** 2) * np.maximum(ek, 0.0) ** 2
-            usable = (ek > max(self.floor[k], 0.0)) & (raw[k] < self.profile.saturation_level) & bool(self.active[k])
-            with np.errstate(divide="ignore", invalid="ignore"):
-                weight.append(np.where(usable, ek * ek / np.where(var > 0, var, 1.0), 0.0))
-                y.append(np.where(usable, np.log(np.where(usable, ek, 1.0)) - self.effective_log_constant[k], 0.0))
-        c = self.attenuation
-        with np.errstate(divide="ignore", invalid="ignore"):
-            sw = sum(weight)
-            c_mean = sum(weight[k] * c[k] for k in range(n)) / sw
-            y_mean = sum(weight[k] * y[k] for k in range(n)) / sw
-            spread = sum(weight[k] * (c[k] - c_mean) ** 2 for k in range(n))
-            path = -sum(weight[k] * (c[k] - c_mean) * (y[k] - y_mean) for k in range(n)) / spread
-        cvv, cvb, cbb = self.covariance
-        var_path = calibration_path_variance(np.stack(weight, axis=-1), c, path, cvv, cvb, cbb)
-        deriv = camera_range_derivative(path, self.profile.lamp_position_m, self._rays_for(gh, gw, h, w))
-        # A path length at the lamp's own distance makes the derivative, hence the variance, exceed
-        # float32: it stays the largest float32 (still no range worth the name), not inf, which the
-        # filling below would take for a block without a range and give its neighbours' value.
-        cal = np.minimum(deriv * deriv * var_path, np.finfo(np.float32).max).astype(np.float32)
-        bad = ~np.isfinite(cal)
-        if bad.all():
-            return np.zeros((h, w), np.float32)
-        if bad.any():
-            # Blocks without a range (dark, saturated, out of bounds) take their neighbours' largest value, so no
-            # valid pixel next to them gets less than its share or a NaN from the interpolation.
-            filled = np.where(bad, 0.0, cal).astype(np.float32)
-            for _ in range(3):
-                grown = cv2.dilate(filled, np.ones((3, 3), np.uint8))
-                filled = np.where(bad & (filled == 0), grown, filled)
-            cal = filled
-        if block == 1:
-            return cal
-        return cv2.resize(cal, (w, h), interpolation=cv2.INTER_LINEAR)
-
-    def _rays_for(self, gh: int, gw: int, h: int, w: int) -> NDArray | None:
-        """Unit rays of the block centres (gh, gw, 3), or None (optical axis) without intrinsics."""
-        key = (gh, gw, h, w)
-        if key not in self._low_res_rays:
-            intr = self.profile.camera_intrinsics()
-            rays = None
-            if intr is not None and np.any(self.profile.lamp_position_m):
-                rays = pixel_rays(intr.reduced(w / gw, h / gh), gh, gw)
-            self._low_res_rays[key] = rays
-        return self._low_res_rays[key]
+        """(H, W) variance of camera range (m²) due to the calibration's uncertainty, for ``frame``
+        (H, W, N): :func:`uwcam.ranging.calibration_share.calibration_variance_map`."""
+        return calibration_variance_map(self, frame, background, block)
 
 
 def range_frame(estimator: RangeEstimator, frame: NDArray, smoothing: str = "none", stage: str = "after",
