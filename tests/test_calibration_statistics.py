@@ -388,13 +388,14 @@ def test_black_patch_edges_do_not_leak_into_the_single_frame_noise_model():
 def test_calibration_variance_blocks_use_the_rays_through_their_centres():
     """The calibration's share is evaluated on 8×8 block averages: at each block's centre pixel
     position ((j + ½)·8 − ½, (i + ½)·8 − ½), whose ray is written out here from the pinhole."""
+    from uwcam.ranging.calibration_share import block_rays
     from uwcam.ranging.estimator import RangeEstimator
 
     fx, fy, cx, cy = 150.0, 118.0, 71.3, 66.8
     _, with_cov, _ = covariance_profile(lamp=(0.4, -0.35, 0.05))
     profile = with_cov.model_copy(update={"intrinsics": {"fx": fx, "fy": fy, "cx": cx, "cy": cy}})
     h, w, block = 120, 160, 8
-    rays = RangeEstimator(profile)._rays_for(h // block, w // block, h, w)
+    rays = block_rays(RangeEstimator(profile), h // block, w // block, h, w)
     i, j = np.mgrid[0 : h // block, 0 : w // block]
     u = np.stack([((j + 0.5) * block - 0.5 - cx) / fx, ((i + 0.5) * block - 0.5 - cy) / fy, np.ones(i.shape)], axis=-1)
     np.testing.assert_allclose(rays, u / np.linalg.norm(u, axis=-1, keepdims=True), rtol=1e-12, atol=1e-12)

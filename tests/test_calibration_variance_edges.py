@@ -130,7 +130,7 @@ def test_a_share_beyond_float32_stays_the_largest_float32_not_its_neighbours(mon
     """A block whose ∂d_c/∂d_T is enormous (a path at the lamp's own distance) has an enormous
     calibration share: it must not become inf, which the filling of blocks without a range would
     replace with the neighbours' (small) share."""
-    import uwcam.ranging.estimator as ranging
+    import uwcam.ranging.calibration_share as ranging
 
     _, profile, _ = covariance_profile(lamp=(0.0, 0.0, 0.0))
     path = np.full((32, 32), 4.0)
