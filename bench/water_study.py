@@ -401,8 +401,7 @@ def main() -> None:
                     why.append("rms: the shot noise of the backscatter under the seabed's light (it averages down with frames)")
                 if c["valid"] < 0.85:
                     why.append("valid: red's surface light within the backscatter's uncertainty (reason 3), invalid rather than wrong")
-                lines.append(f"- jerlov-II, lamp {offset:g} m, {kind}, {d:g} m: median {pct(c['median'])} %, rms "
-                             f"{100 * c['rms']:.1f} %, valid {100 * c['valid']:.0f} %, beyond 3σ {100 * c['beyond']:.1f} % "
+                lines.append(f"- jerlov-II, lamp {offset:g} m, {kind}, {d:g} m: {goal_cell_text(c)} "
                              f"(goal |median| ≤ 2 %, rms ≤ 5 %, ≥ 85 % valid): {'met' if ok else 'NOT met: ' + '; '.join(why)}")
     for rig, cells in sensors.items():
         lines.extend(sensor_lines(cells, rig))

@@ -52,13 +52,16 @@ def calibration_variance_map(estimator: RangeEstimator, frame: NDArray, backgrou
     n = estimator.n_channels
     q = estimator.profile.quantisation_step
     total = e if bg is None else e + np.moveaxis(bg, -1, 0)
+    # Each value's variance as the estimator counts it (channels last there), back to planes.
+    if bg is None:
+        variance = signal_variance(np.moveaxis(total, 0, -1), estimator.read_noise, estimator.shot_gain, q,
+                                   estimator.fixed_pattern)
+    else:
+        variance = estimator.background_signal_variance(np.moveaxis(total, 0, -1), np.moveaxis(e, 0, -1))
+    variance = np.moveaxis(variance, -1, 0)
     weight, y = [], []
-    r, f = estimator.background_fixed_pattern, estimator.fixed_pattern
     for k in range(n):
-        ek = e[k]
-        var = signal_variance(total[k], estimator.read_noise[k], estimator.shot_gain[k], q, f[k] if bg is None else r[k])
-        if bg is not None and r[k] != f[k]:  # as background_signal_variance
-            var = var + (f[k] ** 2 - r[k] ** 2) * np.maximum(ek, 0.0) ** 2
+        ek, var = e[k], variance[k]
         usable = (ek > max(estimator.floor[k], 0.0)) & (raw[k] < estimator.profile.saturation_level) & bool(estimator.active[k])
         with np.errstate(divide="ignore", invalid="ignore"):
             weight.append(np.where(usable, ek * ek / np.where(var > 0, var, 1.0), 0.0))

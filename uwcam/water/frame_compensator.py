@@ -272,19 +272,20 @@ class BackscatterCompensator:
 
     def _level_at(self, block_depth: NDArray, coarse: bool = False, scale: NDArray | float = 1.0) -> NDArray[np.float32]:
         """:meth:`level` for surfaces at these block depths ((gh, gw) m, NaN: open water)."""
-        return self._level_and_doubt(block_depth, coarse, scale)[0]
+        return self._level_and_doubt(block_depth, coarse, scale, with_doubt=False)[0]
 
-    def _level_and_doubt(self, block_depth: NDArray, coarse: bool = False,
-                         scale: NDArray | float = 1.0) -> tuple[NDArray[np.float32], NDArray[np.float32] | None]:
+    def _level_and_doubt(self, block_depth: NDArray, coarse: bool = False, scale: NDArray | float = 1.0,
+                         with_doubt: bool = True) -> tuple[NDArray[np.float32], NDArray[np.float32] | None]:
         """:meth:`_level_at`, and the variance (DN², same shape) of the share of it the physics
         modelled beyond each block's depth (:data:`OPEN_WATER_TAIL_UNCERTAINTY`; None without an
-        open-water frame, whose model's doubt is all relative: :attr:`uncertainty`)."""
+        open-water frame, whose model's doubt is all relative: :attr:`uncertainty`, or when not
+        ``with_doubt``: the level alone costs no full-frame resize more)."""
         h, w = self.shape
         small = self._grid_levels(block_depth, scale)
         size = self._coarse_size if coarse else (w, h)
         out = cv2.resize(small, size, interpolation=cv2.INTER_LINEAR).reshape(size[1], size[0], -1)
         doubt = None
-        if self._open_grid is not None:
+        if with_doubt and self._open_grid is not None:
             tail = np.maximum(self._open_grid * np.asarray(scale, np.float32) - small, np.float32(0.0))
             tail *= np.float32(OPEN_WATER_TAIL_UNCERTAINTY)
             doubt = cv2.resize(tail * tail, size, interpolation=cv2.INTER_LINEAR).reshape(size[1], size[0], -1)
