@@ -275,17 +275,20 @@ class BackscatterModel:
         shares: (gh, gw, T, N) F at the grid points, or (1, 1, T, N) when uniform over the image.
         pattern: (H, W, N) open-water backscatter in DN, smoothed, or (1, 1, N).
         grid_step: pixels between the grid points of ``shares``; 0 when uniform over the image.
-        response: (H, W, N) each pixel's response relative to the smoothed pattern (from several
-            open-water frames), or None (1 everywhere).
-        response_estimate: how ``response`` was estimated (its weights and noise), or None.
+        response_estimate: each pixel's response relative to the smoothed pattern (from several
+            open-water frames) and how well it is known, or None (1 everywhere).
     """
 
     depths: NDArray[np.float64]
     shares: NDArray[np.float64]
     pattern: NDArray[np.float64]
     grid_step: int
-    response: NDArray[np.float64] | None = None
     response_estimate: ResponseEstimate | None = None
+
+    @property
+    def response(self) -> NDArray[np.float64] | None:
+        """(H, W, N) each pixel's response relative to the smoothed pattern, or None (1 everywhere)."""
+        return None if self.response_estimate is None else self.response_estimate.response
 
     @classmethod
     def from_profile(cls, profile: CalibrationProfile, open_water: NDArray | None = None,
@@ -365,7 +368,7 @@ class BackscatterModel:
                 q = profile.quantisation_step
                 noise = signal_variance(water, profile.array("read_noise"), profile.array("shot_gain"), q) / frames_averaged
                 estimate = response_of_mean_estimate(water, pattern, noise)
-            return cls(depths, shares, pattern, step, None if estimate is None else estimate.response, estimate)
+            return cls(depths, shares, pattern, step, estimate)
         # No open-water frame: scale F so the model meets the last patch measurement; uniform in
         # space, or, with the physics of the column, following the lamp's place across the view.
         shape_across = np.ones((1, 1, n))
