@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from uwcam.water.backscatter import _column_shares
+from uwcam.water.column import _column_shares
 from uwcam.optics.validity import Reason
 from uwcam.ranging.images import range_images
 from uwcam.ranging.estimator import RangeEstimator

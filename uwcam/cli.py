@@ -22,6 +22,14 @@ def add_channels_and_lamp(parser: argparse.ArgumentParser, channels: str, channe
     parser.add_argument("--lamp-offset", metavar="X,Y,Z", help=f"lamp position in metres, camera frame {lamp_help}")
 
 
+def add_exposure(parser: argparse.ArgumentParser, whose: str, prefix: str = "--") -> None:
+    """--exposure-us and --gain-db (after ``prefix``): per channel, as docs/exposure.md describes."""
+    parser.add_argument(f"{prefix}exposure-us", metavar="T|T1,T2,..|R=T1,..",
+                        help=f"{whose} exposure time in µs: one for all channels, one per channel, or by channel name")
+    parser.add_argument(f"{prefix}gain-db", metavar="G|G1,G2,..|R=G1,..",
+                        help=f"{whose} analogue gain in dB, given with the exposure time, in the same forms")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="uwcam", description="Underwater ranging camera: calibrate, range, simulate, run.")
     parser.add_argument("--version", action="version", version=f"uwcam {__version__}")
@@ -53,6 +61,11 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--response", metavar="srgb|rec709|FILE",
                      help="the camera's response curve (a gamma-encoded 8-bit camera): frames are linearised "
                           "through it and the profile keeps it; FILE from 'uwcam response'")
+    cal.add_argument("--flat-field", nargs="+", metavar="IMAGE",
+                     help="frames of an evenly lit view (a diffuser over the port, a white target filling the view, "
+                          "lamp or daylight even across it): the lens's shading (vignetting) is measured from them "
+                          "and kept in the profile (needs --intrinsics)")
+    add_exposure(cal, "the calibration frames' (all alike; recorded in the profile)")
     cal.set_defaults(func=cmd_calibrate)
 
     resp = sub.add_parser("response", help="recover an 8-bit camera's response curve from an exposure bracket")
@@ -90,8 +103,12 @@ def build_parser() -> argparse.ArgumentParser:
     rng.add_argument("--compensate-backscatter", action="store_true",
                      help="insist on subtracting modelled backscatter (done anyway whenever the profile was calibrated "
                      "with a black patch; with this flag a profile without one is refused)")
-    rng.add_argument("--open-water", metavar="IMAGE", help="lamp-lit frame of open water, same exposure: the backscatter "
-                     "pattern, and the light each pixel must be clearly above to have a range")
+    rng.add_argument("--open-water", metavar="IMAGE", nargs="+", action="extend",
+                     help="lamp-lit frame(s) of open water (after the images, or the flag repeated): the backscatter "
+                     "pattern, and the light each pixel must be clearly above to have a range; several are averaged "
+                     "as the daemon's capture is, which also finds each pixel's response")
+    add_exposure(rng, "the images'")
+    add_exposure(rng, "the open-water frames'", "--open-water-")
     rng.set_defaults(func=cmd_range)
 
     sim = sub.add_parser("simulate", help="render a physically modelled underwater frame (and its ground truth)")

@@ -130,6 +130,20 @@ class Provenance(Strict):
     """Root mean square of all residuals (natural-log units)."""
 
 
+class LensShading(Strict):
+    """The lens's shading (vignetting), radially about the principal point: ln V = a·ln(1 + ρ²) + b·ρ⁴
+    with ρ = tan of a pixel's ray's angle off the axis (:mod:`uwcam.optics.lens_shading`; cos⁴ is
+    a = −2, b = 0). Needs the profile's intrinsics."""
+
+    coefficients: tuple[Annotated[float, Field(ge=-20, le=20, allow_inf_nan=False, strict=True)],
+                        Annotated[float, Field(ge=-20, le=20, allow_inf_nan=False, strict=True)]]
+    """(a, b) of ln V."""
+    rms: Bounded(0.0, 1.0) = 0.0
+    """What the radial model left of the flat-field frames' light, rms in ln."""
+    source: Literal["flat-field"] = "flat-field"
+    """How it was measured: frames of an evenly lit view (``uwcam calibrate --flat-field``)."""
+
+
 class BackscatterSamples(Strict):
     """Backscatter measured at the calibration plate's black patch, for compensation in ranging."""
 
@@ -222,6 +236,9 @@ class CalibrationProfile(Strict):
     """Backscatter measured during calibration (when the target had a black patch)."""
     covariance: CalibrationCovariance | None = None
     """Joint covariance of attenuation differences and log constants; None: uncorrelated, from the stds."""
+    lens_shading: LensShading | None = None
+    """The lens's shading (vignetting), where measured; None: not measured (the backscatter model then
+    estimates it from the open-water frames, or counts what it could be in σ)."""
     response: ResponseRecord | None = None
     """The camera's response curve; None: a linear camera. With one, every integer frame is
     linearised through it before anything else, and the noise model, dark level and saturation
@@ -261,6 +278,9 @@ class CalibrationProfile(Strict):
                 raise ValueError(f"intrinsics need exactly fx, fy, cx, cy, got {sorted(self.intrinsics)}")
             if not (self.intrinsics["fx"] > 0 and self.intrinsics["fy"] > 0):
                 raise ValueError("intrinsics fx and fy must be positive")
+        if self.lens_shading is not None and self.intrinsics is None:
+            raise ValueError("lens_shading needs the camera's intrinsics (fx, fy, cx, cy): its model is in the angle "
+                             "of each pixel's ray off the axis")
         for c in self.channels:
             for key in ("dark_level", "noise_floor", "read_noise"):
                 if getattr(c, key) >= self.saturation_level:

@@ -87,3 +87,43 @@ def resolve_rig_path(text: str) -> Path:
     if path.exists() or path.suffix in (".yaml", ".yml") or "/" in text:
         return path
     return builtin_rig_path(text)
+
+
+MAX_EXPOSURE_US = 1e9
+"""The longest exposure time a profile holds (µs)."""
+
+MAX_GAIN_DB = 100.0
+"""The largest analogue gain, either way, a profile holds (dB)."""
+
+
+def parse_exposure(text: str | None, what: str, names: list[str], gain: bool = False) -> np.ndarray | None:
+    """Per channel, in channel order: one value for every channel ('5000'), one per channel
+    ('5000,4000,8000'), or every channel by name ('R=5000,G=4000,B=8000'); None where not given.
+    Exposure times (``gain`` False) are microseconds, positive, at most :data:`MAX_EXPOSURE_US`;
+    gains are decibels from −:data:`MAX_GAIN_DB` to :data:`MAX_GAIN_DB`. UserInputError names ``what``."""
+    if text is None:
+        return None
+    items = [s.strip() for s in text.split(",")]
+    if any("=" in s for s in items):
+        given: dict[str, float] = {}
+        for item in items:
+            name, _, value = (s.strip() for s in item.partition("="))
+            if name not in names or name in given:
+                raise UserInputError(f"{what} takes NAME=VALUE once for each of the channels {','.join(names)}, "
+                                     f"got '{text}'")
+            given[name] = parse_floats(value, f"{what} of channel {name}", 1)[0]
+        missing = [n for n in names if n not in given]
+        if missing:
+            raise UserInputError(f"{what} gives no value for channel(s) {','.join(missing)} in '{text}'")
+        values = [given[n] for n in names]
+    else:
+        values = parse_floats(text, what)
+        if len(values) not in (1, len(names)):
+            raise UserInputError(f"{what} takes one value, {len(names)} comma-separated values or NAME=VALUE for the "
+                                 f"channels {','.join(names)}, got '{text}'")
+    out = np.broadcast_to(np.array(values, dtype=np.float64), (len(names),)).copy()
+    if gain and np.any(np.abs(out) > MAX_GAIN_DB):
+        raise UserInputError(f"{what} must be decibels from −{MAX_GAIN_DB:g} to {MAX_GAIN_DB:g}, got '{text}'")
+    if not gain and (np.any(out <= 0) or np.any(out > MAX_EXPOSURE_US)):
+        raise UserInputError(f"{what} must be positive microseconds, at most {MAX_EXPOSURE_US:g}, got '{text}'")
+    return out

@@ -3,12 +3,20 @@
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 
 import numpy as np
 
 from uwcam.fileio import UserInputError
 from uwcam.optics.geometry import Intrinsics
-from uwcam.commands.arguments import checked_output, parse_box, parse_channels, parse_floats, resolve_rig_path
+from uwcam.commands.arguments import (
+    checked_output,
+    parse_box,
+    parse_channels,
+    parse_exposure,
+    parse_floats,
+    resolve_rig_path,
+)
 
 
 def default_saturation(dtype: np.dtype) -> float:
@@ -38,6 +46,63 @@ def check_calibration_frames(paths: list, frames: list[np.ndarray], distances: l
                              "measured; image the lit target at each distance")
 
 
+def with_exposure(profile, exposure_us: np.ndarray, gain_db: np.ndarray | None):
+    """``profile`` recording, per channel, the exposure (µs) and gain (dB; None: not recorded) of
+    its calibration frames, as the daemon's calibration session records them."""
+    channels = [c.model_copy(update={"exposure_us": float(exposure_us[k]),
+                                     "gain_db": None if gain_db is None else float(gain_db[k])})
+                for k, c in enumerate(profile.channels)]
+    return profile.model_copy(update={"channels": channels})
+
+
+def with_lens_shading(profile, paths: list[str], curve=None):
+    """``profile`` with the lens's shading measured from the flat-field frames at ``paths`` (an evenly
+    lit view: a diffuser over the port, a white target filling the view), linearised through
+    ``curve`` where the camera has one (:func:`uwcam.optics.lens_shading.fit_shading`)."""
+    from uwcam.calibration.profile import LensShading
+    from uwcam.imaging.imageio import read_frame
+    from uwcam.optics.lens_shading import fit_shading, shading_map
+
+    intrinsics = profile.camera_intrinsics()
+    if intrinsics is None:
+        raise UserInputError("--flat-field needs --intrinsics: the lens's shading is modelled in the angle of each "
+                             "pixel's ray off the axis")
+    frames = []
+    n = len(profile.channels)
+    for path in paths:
+        frame = read_frame(path)
+        if frame.ndim != 3 or frame.shape[-1] != n:
+            raise UserInputError(f"flat-field image {path} must have {n} channels like the calibration images")
+        if curve is not None and np.issubdtype(frame.dtype, np.integer):
+            frame = curve.linearise(frame)
+        if frames and frame.shape != frames[0].shape:
+            raise UserInputError(f"flat-field image {path} is {frame.shape[1]}×{frame.shape[0]}, the first "
+                                 f"{frames[0].shape[1]}×{frames[0].shape[0]}; take them with one camera and its settings")
+        frames.append(np.asarray(frame, np.float64))
+    check_intrinsics_fit_or_refuse(profile, frames[0].shape[1], frames[0].shape[0])
+    try:
+        coefficients, rms = fit_shading(np.stack(frames), intrinsics, profile.array("dark_level"),
+                                        profile.saturation_level)
+    except UserInputError as exc:
+        raise UserInputError(f"--flat-field: {exc}") from None
+    shading = LensShading(coefficients=(float(coefficients[0]), float(coefficients[1])), rms=min(rms, 1.0))
+    h, w = frames[0].shape[:2]
+    corner = float(shading_map(coefficients, intrinsics, h, w)[[0, 0, -1, -1], [0, -1, 0, -1]].min())
+    print(f"lens shading from {len(frames)} flat-field frame(s): the corners pass {corner:.0%} of the centre's light "
+          f"(radial model, {rms:.2%} rms left)")
+    return profile.model_copy(update={"lens_shading": shading})
+
+
+def check_intrinsics_fit_or_refuse(profile, width: int, height: int) -> None:
+    """UserInputError unless the profile's intrinsics suit flat-field frames of ``width`` × ``height``."""
+    from uwcam.calibration.profile import check_intrinsics_fit
+
+    try:
+        check_intrinsics_fit(profile.intrinsics, width, height)
+    except ValueError as exc:
+        raise UserInputError(f"--flat-field: {exc}") from None
+
+
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from uwcam.calibration.fit import CalibrationInputs, calibrate_with_details, project_plate_box
     from pydantic import ValidationError
@@ -63,6 +128,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     check_calibration_frames(args.images, frames, distances)
     n = frames[0].shape[-1]
     names, wavelengths = parse_channels(args.channels, n)
+    exposure_us = parse_exposure(args.exposure_us, "--exposure-us", names)
+    gain_db = parse_exposure(args.gain_db, "--gain-db", names, gain=True)
+    if gain_db is not None and exposure_us is None:
+        raise UserInputError("--gain-db needs --exposure-us: a profile records the light its frames gathered, "
+                             "exposure × gain")
     curve = None
     if args.response:
         from uwcam.imaging.response import load_response
@@ -178,11 +248,15 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     except np.linalg.LinAlgError as exc:
         raise UserInputError(f"the images do not give a usable calibration ({exc}); check that the target region "
                              "holds finite, lit values in every image") from None
+    if exposure_us is not None:
+        details = replace(details, profile=with_exposure(details.profile, exposure_us, gain_db))
     profile = details.profile
     if curve is not None:
         from uwcam.calibration.profile import ResponseRecord
 
         profile = profile.model_copy(update={"response": ResponseRecord(**curve.to_record())})
+    if args.flat_field:
+        profile = with_lens_shading(profile, args.flat_field, curve)
     save_profile(profile, out)
     if report is not None:
         from uwcam.calibration.report import html_report

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -11,10 +12,14 @@ from uwcam.fileio import UserInputError
 from uwcam.commands.arguments import (
     checked_output,
     parse_channels,
+    parse_exposure,
     parse_floats,
     parse_per_channel,
     resolve_rig_path,
 )
+
+if TYPE_CHECKING:
+    from uwcam.ranging.images import Exposure
 
 
 def cmd_range(args: argparse.Namespace) -> int:
@@ -22,7 +27,7 @@ def cmd_range(args: argparse.Namespace) -> int:
     from uwcam.config import BackscatterConfig
     from uwcam.calibration.profile import load_profile
     from uwcam.ranging.estimator import DEFAULT_SMOOTHING_TARGET
-    from uwcam.ranging.images import range_images
+    from uwcam.ranging.images import open_water_mean, range_images
 
     outputs = [(args.output, "-o")] + [(p, f) for p, f in ((args.variance, "--variance"), (args.reasons, "--reasons")) if p]
     for path, flag in outputs:
@@ -45,7 +50,12 @@ def cmd_range(args: argparse.Namespace) -> int:
     if args.open_water and profile.backscatter is None:
         raise UserInputError("--open-water needs a profile with backscatter measurements; calibrate with a rig that "
                              "has a black patch (e.g. --rig grey-plate)")
-    open_water = read_frame(args.open_water) if args.open_water else None
+    exposure, open_water_exposure = exposures_of(args, profile.channel_names)
+    open_water, open_water_frames = None, 1
+    if args.open_water:
+        water_frames = [read_frame(path) for path in args.open_water]
+        open_water_frames = len(water_frames)  # as the daemon's capture: their mean, and how many
+        open_water = water_frames[0] if open_water_frames == 1 else open_water_mean(profile, water_frames)
     target = DEFAULT_SMOOTHING_TARGET
     if args.smoothing_target is not None:
         if (args.smooth or "none") != "adaptive":
@@ -57,7 +67,8 @@ def cmd_range(args: argparse.Namespace) -> int:
     result = range_images(profile, frames, pair=pair, surface_reflectance=surface,  # type: ignore[arg-type]
                           path_length_bounds=bounds, smoothing=args.smooth or "none", smoothing_target=target,
                           compensate=args.compensate_backscatter, iterations=BackscatterConfig().iterations,
-                          open_water=open_water)
+                          open_water=open_water, open_water_frames=open_water_frames, exposure=exposure,
+                          open_water_exposure=open_water_exposure)
     write_map(args.output, result.range)
     if args.variance:
         write_map(args.variance, result.variance)
@@ -69,6 +80,21 @@ def cmd_range(args: argparse.Namespace) -> int:
         summary += f", range {np.nanmin(result.range):.3f}–{np.nanmax(result.range):.3f} m"
     print(f"wrote {args.output}: {summary}")
     return 0
+
+
+def exposures_of(args: argparse.Namespace, names: list[str]) -> tuple[Exposure, Exposure]:
+    """(the frames' :class:`~uwcam.ranging.images.Exposure`, the open-water frames') from
+    --exposure-us, --gain-db, --open-water-exposure-us and --open-water-gain-db."""
+    from uwcam.ranging.images import Exposure
+
+    if not args.open_water and (args.open_water_exposure_us is not None or args.open_water_gain_db is not None):
+        raise UserInputError("--open-water-exposure-us and --open-water-gain-db are the exposure of --open-water "
+                             "frames: give those frames too")
+    frames = Exposure(parse_exposure(args.exposure_us, "--exposure-us", names),
+                      parse_exposure(args.gain_db, "--gain-db", names, gain=True))
+    water = Exposure(parse_exposure(args.open_water_exposure_us, "--open-water-exposure-us", names),
+                     parse_exposure(args.open_water_gain_db, "--open-water-gain-db", names, gain=True))
+    return frames, water
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:

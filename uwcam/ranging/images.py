@@ -10,11 +10,18 @@ range, variance and reasons, bit for bit, whichever way it is ranged.
 Several frames of one static scene are fused before ranging: their per-pixel mean, whose noise is
 that of the noise model with the temporal part (read, shot, quantisation) divided by the number of
 frames and the fixed pattern (each pixel's own response, the same in every frame) not.
+
+The frames' exposure (:class:`Exposure`) is used as the frame loop uses each frame's: the estimator
+ranges at it (:meth:`~uwcam.ranging.estimator.RangeEstimator.set_exposure`) and the modelled
+backscatter is scaled to it (:func:`uwcam.water.frame_compensator.light_scale`); where it cannot be
+related to the light the backscatter model came from, the frames are refused (:func:`relate_exposures`).
+Several open-water frames are taken as the daemon takes its capture (:func:`open_water_mean`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -24,6 +31,83 @@ from uwcam.optics.noise import signal_variance, temporal_variance
 from uwcam.calibration.profile import CalibrationProfile
 from uwcam.ranging.result import RangeResult
 from uwcam.ranging.estimator import DEFAULT_SMOOTHING_TARGET, RangeEstimator, range_frame
+
+
+@dataclass(frozen=True)
+class Exposure:
+    """How a set of frames was exposed, per channel, as a frame says it
+    (:meth:`uwcam.drivers.base.Frame.exposures`): exposure_us (µs, (N,)) and gain_db (dB, (N,)),
+    each None where not stated."""
+
+    exposure_us: NDArray | None = None
+    gain_db: NDArray | None = None
+
+    def light_gathered(self) -> NDArray[np.float64] | None:
+        """Per channel, exposure × linear gain (µs), as :meth:`uwcam.drivers.base.Frame.light_gathered`:
+        None without an exposure time (a gain not stated counts as 0 dB)."""
+        if self.exposure_us is None:
+            return None
+        gain = 0.0 if self.gain_db is None else self.gain_db
+        return np.asarray(self.exposure_us, dtype=np.float64) * 10.0 ** (np.asarray(gain, dtype=np.float64) / 20.0)
+
+
+def _values(values: NDArray) -> str:
+    return ",".join(f"{v:g}" for v in values)
+
+
+def relate_exposures(profile: CalibrationProfile, exposure: Exposure, open_water: Exposure | None) -> None:
+    """UserInputError unless the backscatter model can be scaled to frames exposed ``exposure``.
+
+    The model is in the counts of the light it came from: the open-water frames (exposed
+    ``open_water``) or, without them (None), the calibration's black-patch measurements (the
+    profile's recorded exposure). Each of exposure time and gain must be stated for the frames
+    and for that light alike, or for neither (then both are taken as alike, as before exposures
+    were recorded); and the gain only with the time (the light gathered is exposure × gain)."""
+    for exp, prefix in ((exposure, ""), (open_water, "open-water-")):
+        if exp is not None and exp.gain_db is not None and exp.exposure_us is None:
+            raise UserInputError(f"--{prefix}gain-db needs --{prefix}exposure-us: the backscatter is scaled by the "
+                                 "light gathered, exposure × gain")
+    if open_water is not None:
+        for flag, ours, theirs in (("exposure-us", exposure.exposure_us, open_water.exposure_us),
+                                   ("gain-db", exposure.gain_db, open_water.gain_db)):
+            if (ours is None) != (theirs is None):
+                given, missing = (f"--{flag}", f"--open-water-{flag}") if theirs is None else (f"--open-water-{flag}", f"--{flag}")
+                raise UserInputError(f"{given} is given but not {missing}: the open-water frames' backscatter is scaled "
+                                     "by the frames' exposure over theirs; give both (the same where they were taken "
+                                     "alike) or neither")
+        return
+    cal_t, cal_g = profile.calibration_exposure()
+    for flag, what, ours, cal in (("exposure-us", "exposure (µs)", exposure.exposure_us, cal_t),
+                                  ("gain-db", "gain (dB)", exposure.gain_db, cal_g)):
+        if ours is not None and cal is None:
+            raise UserInputError(f"--{flag} is given but the profile records no calibration {what}, and without "
+                                 "--open-water the backscatter subtracted is the calibration's, in its counts; give "
+                                 f"--open-water frames of this water (with --open-water-{flag}) or a profile "
+                                 f"calibrated with --{flag}")
+        if ours is None and cal is not None:
+            raise UserInputError(f"the profile was calibrated at {what} {_values(cal)}, and without --open-water the "
+                                 f"backscatter subtracted is in those counts; give the frames' --{flag}")
+
+
+def open_water_mean(profile: CalibrationProfile, frames: Sequence[NDArray]) -> NDArray[np.float32]:
+    """The open-water frame the daemon keeps of a capture of K lamp-lit frames (H, W, N) raw, taken
+    at one exposure: their mean, summed in float32 in order as
+    :meth:`uwcam.runtime.stages.compensation.CompensationStage._take_open_water` sums them (a gamma
+    camera's codes linearised first, as the frame loop does every frame). Ranged with
+    ``open_water_frames=K``, each pixel's response is estimated from it with the noise model's
+    noise over K (:meth:`uwcam.water.backscatter.BackscatterModel.from_profile`), as in the daemon."""
+    first = frames[0]
+    for k, f in enumerate(frames[1:], start=2):
+        if f.shape != first.shape or f.dtype != first.dtype:
+            raise UserInputError(f"open-water image {k} is {f.shape[1]}×{f.shape[0]}×{f.shape[-1]} {f.dtype} but "
+                                 f"open-water image 1 is {first.shape[1]}×{first.shape[0]}×{first.shape[-1]} "
+                                 f"{first.dtype}; take them with one camera and its settings")
+    curve = profile.response_curve()
+    total = None
+    for f in frames:
+        light = (curve.linearise(f) if curve is not None and np.issubdtype(f.dtype, np.integer) else f).astype(np.float32)
+        total = light if total is None else total + light
+    return total / len(frames)
 
 
 def fuse_frames(estimator: RangeEstimator, frames: Sequence[NDArray]) -> tuple[NDArray, NDArray | None]:
@@ -77,6 +161,9 @@ def range_images(
     compensate: bool = False,
     iterations: int = 2,
     open_water: NDArray | None = None,
+    open_water_frames: int = 1,
+    exposure: Exposure | None = None,
+    open_water_exposure: Exposure = Exposure(),
 ) -> RangeResult:
     """Range, variance and reasons of a static scene seen in ``frames`` (K ≥ 1 raw frames (H, W, N)).
 
@@ -88,11 +175,21 @@ def range_images(
     profile has backscatter measurements, a pixel not clearly above the open water's light has no
     range (reason 3). smoothing: "none", "mean" or "median", of the range map (as the loop's
     smoothing stage "after"), or "adaptive", windows reaching ``smoothing_target`` (σ/range) as the
-    loop's ``processing.smoothing_target``."""
-    from uwcam.water.frame_compensator import BackscatterCompensator, compensation, compensation_iterations
+    loop's ``processing.smoothing_target``. open_water_frames: how many frames the one open-water
+    frame (H, W, N) is the mean of (:func:`open_water_mean`: the daemon's capture).
+    exposure: the frames' own, as stated (the estimator ranges at it and the backscatter is scaled to
+    it); UserInputError where the backscatter subtracted cannot be related to it
+    (:func:`relate_exposures`); None: the calibration's, unchecked (as
+    :meth:`~uwcam.ranging.estimator.RangeEstimator.set_exposure`'s None). open_water_exposure: the
+    open-water frames'."""
+    from uwcam.water.frame_compensator import BackscatterCompensator, compensation, compensation_iterations, light_scale
 
     options = dict(pair=pair, surface_reflectance=surface_reflectance, path_length_bounds=path_length_bounds)
     estimator = RangeEstimator(profile, **options)
+    try:  # as the frame loop, every frame
+        estimator.set_exposure(*((None, None) if exposure is None else (exposure.exposure_us, exposure.gain_db)))
+    except ValueError as exc:
+        raise UserInputError(f"the frames' exposure: {exc}") from None
     frame, samples = fuse_frames(estimator, list(frames))
     if frame.ndim != 3 or frame.shape[-1] != len(profile.channels):
         got = frame.shape[-1] if frame.ndim == 3 else 1
@@ -106,7 +203,13 @@ def range_images(
     transform, water = None, None
     passes = compensation_iterations(iterations if compensate else None, profile)
     if compensate or passes is not None:
-        comp = BackscatterCompensator(profile, shape, passes or iterations, open_water, **options)
-        transform, water = compensation(comp, estimator), comp.water
+        if exposure is not None:
+            relate_exposures(profile, exposure, None if open_water is None else open_water_exposure)
+        comp = BackscatterCompensator(profile, shape, passes or iterations, open_water,
+                                      open_water_frames=open_water_frames, **options)
+        # The modelled backscatter is in the counts of the light it came from: scaled to the frames' exposure.
+        scale = light_scale(profile, estimator, None if exposure is None else exposure.light_gathered(), comp.open_water,
+                            open_water_exposure.light_gathered())
+        transform, water = compensation(comp, estimator, None, scale), comp.water
     return range_frame(estimator, frame, smoothing, "after", None, (), transform, water, None, samples,
                        smoothing_target)

@@ -34,6 +34,9 @@ from numpy.typing import NDArray
 
 from uwcam.fileio import UserInputError
 from uwcam.optics.geometry import pixel_rays
+from uwcam.optics.lens_shading import shading_map
+from uwcam.water.column import (_DEPTH_SAMPLES, _PORT, ColumnFit, _column_shares, _column_totals, _tail_disagreement,
+                                column_fit_agrees, fit_column)
 from uwcam.optics.noise import signal_variance
 from uwcam.calibration.profile import CalibrationProfile
 from uwcam.compute.jit import HAVE_NUMBA, njit
@@ -59,10 +62,8 @@ _interpolate_table = njit(cache=True, nogil=True)(_interpolate_table_py) if HAVE
 OPEN_WATER_SMOOTHING = 15
 
 
-# Depth samples of the physical model and the coarse pixel grid it is evaluated on.
-_DEPTH_SAMPLES = 96
+# The coarse pixel grid the physical model is evaluated on.
 _GRID_STEP = 16
-_PORT = 0.05  # water starts at the camera port, metres
 
 
 def pixel_response(frames: NDArray, smooth: NDArray) -> NDArray[np.float64]:
@@ -142,91 +143,7 @@ def response_of_mean_estimate(mean: NDArray, smooth: NDArray, noise: NDArray) ->
     return ResponseEstimate(np.maximum(1.0 + q * weight, 0.0), weight, noise_var)
 
 
-# The column's attenuation and the lamp's beam, fitted to an open-water frame: the grids searched.
-_FIT_ATTENUATIONS = np.geomspace(0.01, 2.0, 64)  # 1/m
-_FIT_BEAM_SCALES = np.linspace(0.0, 8.0, 33)  # k in the beam pattern exp(−k·(1 − cos θ))
-_FIT_DEPTH_SAMPLES = 160
-_FIT_MARGIN = 2 * OPEN_WATER_SMOOTHING  # pixels kept clear of the image border (the smoothing's edge)
-FIT_TOLERANCE = 0.002
-"""rms in log level (0.2 %) within which column shapes are not told apart: the model's own
-simplifications (one c for the light's way out and back, forward scatter folded into it) depart
-from real columns by about that much."""
-
-
-def _column_geometry(rays: NDArray, lamp: NDArray, radius: float, z: NDArray) -> tuple[NDArray, NDArray, NDArray]:
-    """Along each ray (P, 3) at depths z (Z,): the light path ds + t (m), the cosine of the angle
-    off the beam's axis (camera z) as seen from the lamp, and the spreading × dt (P, Z) each."""
-    t = z[None, :] / rays[:, 2:3]  # (P, Z) distance along each ray
-    offset = t[..., None] * rays[:, None, :] - lamp
-    ds = np.linalg.norm(offset, axis=-1)
-    # Irradiance falls as (r/(d_s + r))²: up to the constant r², which no use of the column's shape
-    # keeps, 1/(d_s + r)², so a point lamp (r = 0) spreads as 1/d_s² instead of vanishing.
-    spread = np.gradient(t, axis=1) / np.maximum(ds + radius, 1e-3) ** 2
-    return ds + t, offset[..., 2] / np.maximum(ds, 1e-12), spread
-
-
-def fit_column(level: NDArray, rays: NDArray, lamp: NDArray, radius: float,
-               prior: NDArray | None = None) -> tuple[NDArray, NDArray]:
-    """The column attenuation c (1/m) and beam k of :func:`_column_shares` that best give the
-    open-water backscatter's shape across the view.
-
-    level: (P, N) smoothed open-water backscatter (DN) along rays (P, 3). The open-water level of a
-    ray is ∫ exp(−k(1 − cos θ)) (r/(d_s + r))² exp(−c (d_s + t)) dt: how it changes across the view
-    (toward the lamp and away from it, toward the beam's edge) depends on c and k, its scale not.
-    Least squares in log level, up to a constant per channel, over grids of c and k. Where the shape
-    does not tell c (a lamp at the camera: every ray's column is lit alike), every c whose best
-    fit is within :data:`FIT_TOLERANCE` of the best is as good: then the one nearest (in log) to
-    ``prior`` (N,), the calibration's c. Returns (N,), (N,).
-    """
-    z = np.geomspace(_PORT, 200.0, _FIT_DEPTH_SAMPLES)
-    path, cos_beam, spread = _column_geometry(rays, lamp, radius, z)
-    decay = np.exp(-_FIT_ATTENUATIONS[:, None, None] * path[None])  # (C, P, Z)
-    target = np.log(np.maximum(level, 1e-30))  # (P, N)
-    target = target - target.mean(axis=0)
-    costs = []
-    for k in _FIT_BEAM_SCALES:
-        model = np.log(np.einsum("cpz,pz->cp", decay, spread * np.exp(-k * (1.0 - cos_beam))))  # (C, P)
-        model -= model.mean(axis=1, keepdims=True)
-        costs.append(((model[:, :, None] - target[None]) ** 2).mean(axis=1))  # (C, N)
-    cost = np.array(costs)  # (K, C, N)
-    profile = cost.min(axis=0)  # (C, N): each c with its best beam
-    n = level.shape[1]
-    if prior is None:
-        pick = profile.argmin(axis=0)
-    else:
-        allowed = profile <= profile.min(axis=0) + FIT_TOLERANCE**2
-        distance = np.abs(np.log(_FIT_ATTENUATIONS)[:, None] - np.log(np.maximum(np.asarray(prior, np.float64), _FIT_ATTENUATIONS[0])))
-        pick = np.where(allowed, distance, np.inf).argmin(axis=0)
-    beam = cost[:, pick, np.arange(n)].argmin(axis=0)
-    return _FIT_ATTENUATIONS[pick], _FIT_BEAM_SCALES[beam]
-
-
-def _column_shares(rays: NDArray, lamp: NDArray, radius: float, attenuation: NDArray, depths: NDArray,
-                   beam: NDArray | None = None) -> NDArray:
-    """(P, T, N) share of each ray's lit-column backscatter closer than each depth (T,); beam: (N,)
-    k of the beam pattern exp(−k(1 − cos θ)) per channel (None: an even beam)."""
-    z = np.geomspace(_PORT, max(depths[-1], _PORT * 2), _DEPTH_SAMPLES * 4)
-    path, cos_beam, spread = _column_geometry(rays, lamp, radius, z)
-    shares = []
-    for j, c in enumerate(attenuation):
-        f = spread * np.exp(-c * path)
-        if beam is not None:
-            f = f * np.exp(-beam[j] * (1.0 - cos_beam))
-        cum = np.cumsum(f, axis=1)
-        cum /= cum[:, -1:]
-        shares.append(np.stack([np.interp(depths, z, row) for row in cum]))
-    return np.stack(shares, axis=-1)
-
-
-def _column_totals(rays: NDArray, lamp: NDArray, radius: float, attenuation: NDArray) -> NDArray:
-    """(P, N) each ray's whole lit-column backscatter ∫ exp(−c(d_s + t))/(d_s + r)² dt, up to a
-    constant, with an even beam: how open water's light changes across the view with the lamp's
-    place (brighter toward the lamp's side)."""
-    z = np.geomspace(_PORT, 200.0, _DEPTH_SAMPLES * 4)
-    path, _, spread = _column_geometry(rays, lamp, radius, z)
-    return np.stack([np.sum(spread * np.exp(-c * path), axis=1) for c in attenuation], axis=-1)
-
-
+_FIT_MARGIN = 2 * OPEN_WATER_SMOOTHING  # pixels of the open-water frame kept clear of its border (the smoothing's edge)
 _PATTERN_STEP = 8  # pixels between the rays the physical open-water pattern is evaluated on
 
 
@@ -284,6 +201,13 @@ class BackscatterModel:
     pattern: NDArray[np.float64]
     grid_step: int
     response_estimate: ResponseEstimate | None = None
+    column_fit: ColumnFit | None = None
+    """What the open-water frame's shape told of the column (None: no open-water frame, or no
+    physics of the column in the profile)."""
+    tail_uncertainty: NDArray[np.float64] | None = None
+    """(N,) relative uncertainty of the modelled share of the open water's light beyond a surface,
+    where the column fit was not used (:func:`column_fit_agrees`): how far the fit's column and the
+    calibration's part on it; 0 where the fit was used; None where every channel's was."""
 
     @property
     def response(self) -> NDArray[np.float64] | None:
@@ -329,6 +253,8 @@ class BackscatterModel:
             water = frames.mean(axis=0)
             pattern = np.maximum(cv2.blur(water, (OPEN_WATER_SMOOTHING, OPEN_WATER_SMOOTHING), borderType=cv2.BORDER_REFLECT), 0.0)
         beam = None
+        column_fit = None
+        tail_uncertainty = None
         if physical and pattern is not None:
             # The open-water frame's shape across the view gives the column's attenuation and the
             # beam (the calibration's c is that of the plate's light, which a lamp beside the
@@ -339,14 +265,48 @@ class BackscatterModel:
             fx = np.unique(np.linspace(m, w - 1 - m, 16).round().astype(int))
             fit_rays = pixel_rays(intr, h, w)[np.ix_(fy, fx)].reshape(-1, 3)
             fit_level = pattern[np.ix_(fy, fx)].reshape(-1, n)
+            if profile.lens_shading is not None:
+                fit_level = fit_level / shading_map(profile.lens_shading.coefficients, intr, h, w)[np.ix_(fy, fx)].reshape(-1, 1)
             usable = np.all(fit_level > 0, axis=0)
             if usable.any():
-                c_fit, k_fit = fit_column(fit_level[:, usable], fit_rays, np.array(profile.lamp_position_m),
-                                          profile.lamp_radius_m, prior=c[usable])
-                c = c.copy()
-                c[usable] = c_fit
+                # The smoothed level's noise, in ln at the rays fitted: the frames' spread (or the
+                # camera's noise model) over the frames and the smoothing's box.
+                if frames.shape[0] >= 2:
+                    spread = frames.var(axis=0, ddof=1).reshape(-1, n).mean(axis=0) / frames.shape[0]
+                else:
+                    spread = signal_variance(water, profile.array("read_noise"), profile.array("shot_gain"),
+                                             profile.quantisation_step).reshape(-1, n).mean(axis=0) / max(frames_averaged, 1)
+                relative = spread / OPEN_WATER_SMOOTHING**2 / np.maximum(pattern[np.ix_(fy, fx)].reshape(-1, n), 1e-30) ** 2
+                column = (fit_level[:, usable], fit_rays, np.array(profile.lamp_position_m), profile.lamp_radius_m)
+                noise = np.sqrt(relative.mean(axis=0))[usable]
+                column_fit = fit_column(*column, prior=c[usable], noise=noise)
+                trusted = column_fit_agrees(column_fit, c[usable])
+                if profile.lens_shading is None and not trusted.all():
+                    # A lens's unmeasured shading reads as a column of almost no attenuation (its fall-off
+                    # toward the edge, like a long column's): fitted with the column, it is told apart by
+                    # all that is not radial about the centre. Only then: where the view's radial shape is
+                    # the column's, it tells c better than the calibration (a lamp far aside).
+                    shaded = fit_column(*column, prior=c[usable], estimate_shading=True, noise=noise)
+                    shaded_trusted = column_fit_agrees(shaded, c[usable])
+                    if shaded_trusted.sum() > trusted.sum():
+                        column_fit, trusted = shaded, shaded_trusted
+                fitted = c.copy()
+                fitted[usable] = column_fit.attenuation
+                chosen = c.copy()
+                chosen[usable] = np.where(trusted, column_fit.attenuation, c[usable])
+                fitted_beam = np.zeros(n)
+                fitted_beam[usable] = column_fit.beam
                 beam = np.zeros(n)
-                beam[usable] = k_fit
+                beam[usable] = np.where(trusted, column_fit.beam, 0.0)
+                if not trusted.all():
+                    # The fit and the calibration tell different columns: the share beyond a surface is
+                    # then known only as well as the two agree on it.
+                    doubted = np.zeros(n, bool)
+                    doubted[np.flatnonzero(usable)[~trusted]] = True
+                    tail_uncertainty = np.where(doubted, _tail_disagreement(
+                        intr, shape, np.array(profile.lamp_position_m), profile.lamp_radius_m,
+                        (chosen, beam), (fitted, fitted_beam)), 0.0)
+                c = chosen
         if physical:
             h, w = shape if shape is not None else (int(2 * intr.cy + 1), int(2 * intr.cx + 1))
             gy = np.minimum(np.arange(0, h + _GRID_STEP, _GRID_STEP), h - 1)
@@ -368,7 +328,7 @@ class BackscatterModel:
                 q = profile.quantisation_step
                 noise = signal_variance(water, profile.array("read_noise"), profile.array("shot_gain"), q) / frames_averaged
                 estimate = response_of_mean_estimate(water, pattern, noise)
-            return cls(depths, shares, pattern, step, estimate)
+            return cls(depths, shares, pattern, step, estimate, column_fit, tail_uncertainty)
         # No open-water frame: scale F so the model meets the last patch measurement; uniform in
         # space, or, with the physics of the column, following the lamp's place across the view.
         shape_across = np.ones((1, 1, n))
@@ -381,6 +341,11 @@ class BackscatterModel:
             totals = _column_totals(rays, np.array(profile.lamp_position_m), profile.lamp_radius_m, c).reshape(gh, gw, n)
             totals = totals / totals.max(axis=(0, 1))
             shape_across = cv2.resize(totals.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR).reshape(h, w, n)
+        if intr is not None and profile.lens_shading is not None:
+            # The lens passes less of the water's light toward the edge of the view, as it does the plate's.
+            h, w = shape if shape is not None else (int(2 * intr.cy + 1), int(2 * intr.cx + 1))
+            lens = shading_map(profile.lens_shading.coefficients, intr, h, w)[..., None]
+            shape_across = np.broadcast_to(shape_across, (h, w, n)) * lens
         at_patch = cls(depths, shares, shape_across, step).level_at_pixel(measured_depths[-1], *patches[-1])
         scale = np.where(at_patch > 0, levels[-1] / np.where(at_patch > 0, at_patch, 1.0), 0.0)
         return cls(depths, shares, (shape_across * scale).astype(np.float64), step)

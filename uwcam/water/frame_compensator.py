@@ -194,6 +194,8 @@ class BackscatterCompensator:
         # The open water's light at the block centres (scale 1): the modelled share beyond a
         # surface is this less the level in front of it (:data:`OPEN_WATER_TAIL_UNCERTAINTY`).
         self._open_grid = self._grid_levels(np.full(self._grid, np.nan), 1.0) if self.open_water else None
+        self._tail_uncertainty = np.maximum(OPEN_WATER_TAIL_UNCERTAINTY, 0.0 if self.model.tail_uncertainty is None
+                                            else self.model.tail_uncertainty).astype(np.float32)  # column_fit_agrees
         self.estimator = RangeEstimator(compensated, **options)
         # The intermediate iterations' estimator: frames reduced COARSE times (COARSE×COARSE means),
         # whose pixel rays are those of the full frame's COARSE×COARSE block centres.
@@ -287,7 +289,7 @@ class BackscatterCompensator:
         doubt = None
         if with_doubt and self._open_grid is not None:
             tail = np.maximum(self._open_grid * np.asarray(scale, np.float32) - small, np.float32(0.0))
-            tail *= np.float32(OPEN_WATER_TAIL_UNCERTAINTY)
+            tail *= self._tail_uncertainty
             doubt = cv2.resize(tail * tail, size, interpolation=cv2.INTER_LINEAR).reshape(size[1], size[0], -1)
         response = self._response_coarse if coarse else self._response
         if response is not None:
