@@ -75,7 +75,7 @@ LABEL company='{\
   "email": "uwcam@users.noreply.github.com"\
 }'
 LABEL readme="https://raw.githubusercontent.com/${REPO}/{tag}/README.md"
-LABEL links="{\"website\": \"https://github.com/${REPO}\", \"source\": \"https://github.com/${REPO}\", \"support\": \"https://github.com/${REPO}/issues\", \"documentation\": \"https://github.com/${REPO}#blueos-extension\"}"
+LABEL links="{\"website\": \"https://github.com/${REPO}\", \"source\": \"https://github.com/${REPO}\", \"support\": \"https://github.com/${REPO}/issues\", \"documentation\": \"https://github.com/${REPO}#on-the-vehicle-ardusub-the-ping-through-blueos-a-blueos-extension\"}"
 LABEL type="device-integration"
 LABEL tags='["camera", "rangefinder", "sonar", "mavlink", "navigation", "data-collection"]'
 LABEL requirements="core >= 1.1"

@@ -3,6 +3,17 @@
 # seabed image into a range map and compare it with the simulator's ground truth.
 # Usage: bash examples/walkthrough.sh [WORK_FOLDER]   (default: a new temporary folder)
 set -euo pipefail
+# The checkout's .venv (where deploy/install.sh installs uwcam), else uwcam and python3 on PATH.
+repo=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+if [ -x "$repo/.venv/bin/uwcam" ]; then
+  uwcam() { "$repo/.venv/bin/uwcam" "$@"; }
+  python=$repo/.venv/bin/python
+elif command -v uwcam > /dev/null; then
+  python=python3  # with numpy, as uwcam's own
+else
+  echo "uwcam is not installed: run 'bash deploy/install.sh' in $repo first" >&2
+  exit 1
+fi
 work=${1:-$(mktemp -d -t uwcam-walkthrough.XXXX)}
 mkdir -p "$work" && cd "$work"
 echo "working in $work"
@@ -32,7 +43,7 @@ uwcam range profile.yaml brick.png -o range_raw.npy --smooth mean
 uwcam range profile.yaml brick.png -o range.npy --variance variance.npy --reasons reasons.npy --smooth mean \
       --compensate-backscatter --open-water open_water.png
 
-python3 - <<'PY'
+"$python" - <<'PY'
 import numpy as np
 t = np.load("truth.npy")
 for name in ("range_raw.npy", "range.npy"):

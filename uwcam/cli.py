@@ -7,7 +7,7 @@ import sys
 from collections.abc import Sequence
 
 from uwcam import __version__
-from uwcam.drivers.base import ConfigurationError
+from uwcam.drivers.base import DriverError
 from uwcam.fileio import UserInputError
 from uwcam.commands.calibrate import cmd_calibrate, cmd_response, cmd_rig_print
 from uwcam.commands.daemon import cmd_config_check, cmd_run, cmd_warmup
@@ -30,12 +30,19 @@ def add_exposure(parser: argparse.ArgumentParser, whose: str, prefix: str = "--"
                         help=f"{whose} analogue gain in dB, given with the exposure time, in the same forms")
 
 
+def add_command(sub: argparse._SubParsersAction, name: str, summary: str,
+                description: str | None = None) -> argparse.ArgumentParser:
+    """A subcommand: ``summary`` is its line in the parent's ``--help``, ``description`` (default:
+    ``summary`` as a sentence) opens its own ``--help``."""
+    return sub.add_parser(name, help=summary, description=description or f"{summary[0].upper()}{summary[1:]}.")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="uwcam", description="Underwater ranging camera: calibrate, range, simulate, run.")
     parser.add_argument("--version", action="version", version=f"uwcam {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    cal = sub.add_parser("calibrate", help="make a calibration profile from a target imaged at known distances")
+    cal = add_command(sub, "calibrate", "make a calibration profile from a target imaged at known distances")
     cal.add_argument("images", nargs="+", metavar="IMAGE",
                      help="target images (.npy, .tif, .png), one per --distance; several at one distance are averaged")
     cal.add_argument("--distance", type=float, action="append", metavar="D",
@@ -68,7 +75,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_exposure(cal, "the calibration frames' (all alike; recorded in the profile)")
     cal.set_defaults(func=cmd_calibrate)
 
-    resp = sub.add_parser("response", help="recover an 8-bit camera's response curve from an exposure bracket")
+    resp = add_command(sub, "response", "recover an 8-bit camera's response curve from an exposure bracket")
     resp.add_argument("images", nargs="+", metavar="BRACKET",
                       help="8-bit frames of one still, lit scene at different exposures (fixed gain and white balance)")
     resp.add_argument("--exposure-ms", required=True, metavar="T1,T2,...", help="exposure of each frame in ms, in order")
@@ -78,15 +85,16 @@ def build_parser() -> argparse.ArgumentParser:
                       help="response file, for 'uwcam calibrate --response'")
     resp.set_defaults(func=cmd_response)
 
-    rig = sub.add_parser("rig", help="calibration rig tools")
+    rig = add_command(sub, "rig", "calibration rig tools")
     rig_sub = rig.add_subparsers(dest="rig_command", required=True, metavar="ACTION")
-    rig_print = rig_sub.add_parser("print", help="draw a rig's plate (markers, target, black patch) at true scale as PDF")
+    rig_print = add_command(rig_sub, "print", "draw a rig's plate (markers, target, black patch) at true scale as PDF")
     rig_print.add_argument("rig", metavar="RIG", help="rig file or built-in rig name (e.g. charuco-plate)")
     rig_print.add_argument("-o", "--output", required=True, metavar="BOARD.pdf")
     rig_print.set_defaults(func=cmd_rig_print)
 
-    rng = sub.add_parser("range", help="turn an image into a range map with a calibration profile")
-    rng.add_argument("profile", metavar="PROFILE.yaml")
+    rng = add_command(sub, "range", "turn an image into a range map with a calibration profile")
+    rng.add_argument("profile", metavar="PROFILE.yaml",
+                     help="calibration profile of this camera, lamp and water (from 'uwcam calibrate' or the daemon)")
     rng.add_argument("image", metavar="IMAGE", nargs="+",
                      help="image to range; several of one static scene are fused first (their mean, noise from their count)")
     rng.add_argument("-o", "--output", required=True, metavar="RANGE.(npy|tif)", help="float32 camera range in metres, NaN invalid")
@@ -111,7 +119,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_exposure(rng, "the open-water frames'", "--open-water-")
     rng.set_defaults(func=cmd_range)
 
-    sim = sub.add_parser("simulate", help="render a physically modelled underwater frame (and its ground truth)")
+    sim = add_command(sub, "simulate", "render a physically modelled underwater frame (and its ground truth)")
     sim.add_argument("--list", action="store_true", help="list scenes and water presets")
     sim.add_argument("--scene", metavar="NAME", help="seabed, brick, pipe, ball, ring, tilted-plane, plate or open-water")
     sim.add_argument("--range", type=float, metavar="METRES", help="camera-to-seabed (or plate) distance along the optical axis")
@@ -144,7 +152,12 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--truth", metavar="TRUTH.npy", help="write camera range per pixel (m, NaN where no surface)")
     sim.set_defaults(func=cmd_simulate)
 
-    run = sub.add_parser("run", help="run the camera daemon (default: simulated rig, API on 127.0.0.1:8080)")
+    run = add_command(sub, "run", "run the camera daemon (default: simulated rig, API on 127.0.0.1:8080)",
+                      "Run the camera daemon: open the camera, lamp and rangefinder of the configuration (default: "
+                      "the embedded simulated rig), range every frame, and serve the operator page and the API "
+                      "(default http://127.0.0.1:8080/, the API's reference at /docs). Ctrl-C or SIGTERM stops it "
+                      "and switches the lamp off. 'uwcam config check FILE' validates a configuration without "
+                      "starting anything.")
     run.add_argument("--config", metavar="FILE", help="rig configuration (YAML); default: the embedded simulated rig")
     run.add_argument("--simulate", choices=("vehicle", "tank"),
                      help="run an embedded simulation: vehicle (the default: a survey over a varied seabed) or tank "
@@ -154,7 +167,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--record", metavar="FILE.mcap", help="record the dive into this MCAP file from start to stop")
     run.set_defaults(func=cmd_run)
 
-    mon = sub.add_parser("monitor", help="topside fleet view: every vehicle publishing on Zenoh, on one page")
+    mon = add_command(sub, "monitor", "topside fleet view: every vehicle publishing on Zenoh, on one page")
     mon.add_argument("--connect", nargs="+", default=[], metavar="ENDPOINT",
                      help="Zenoh endpoints of the vehicles (or of a router), e.g. tcp/192.168.2.2:7447")
     mon.add_argument("--listen", nargs="+", default=[], metavar="ENDPOINT",
@@ -168,8 +181,9 @@ def build_parser() -> argparse.ArgumentParser:
     mon.add_argument("--root", default="uwcam", help="key root the vehicles publish under (default uwcam)")
     mon.set_defaults(func=cmd_monitor)
 
-    warm = sub.add_parser("warmup", help="compile the ranging and simulation kernels now (deploy/install.sh runs it), "
-                                         "so the first start compiles nothing")
+    warm = add_command(sub, "warmup", "compile the ranging and simulation kernels now, so that no later start "
+                                      "compiles any ('bash deploy/install.sh test' runs it; 'uwcam run' starts it in "
+                                      "the background, once per install)")
     warm.add_argument("--timeout", type=float, default=600.0, metavar="S", help="give up after S seconds (default 600)")
     warm.add_argument("--profile", metavar="PROFILE.yaml",
                       help="only the ranging kernels, for this calibration profile's channels (uwcam run starts this "
@@ -178,7 +192,7 @@ def build_parser() -> argparse.ArgumentParser:
                       help="with --profile: processing settings (as GET /api/v1/config gives them) whose kernels come first")
     warm.set_defaults(func=cmd_warmup)
 
-    rep = sub.add_parser("reprocess", help="range recorded dives (MCAP) again, here or on a Dask cluster")
+    rep = add_command(sub, "reprocess", "range recorded dives (MCAP) again, here or on a Dask cluster")
     rep.add_argument("inputs", nargs="+", metavar="IN.mcap", help="recordings made by uwcam run")
     rep.add_argument("-o", "--output", required=True, metavar="OUT",
                      help="output .mcap for one input, else a folder (one file per input, same names)")
@@ -195,14 +209,15 @@ def build_parser() -> argparse.ArgumentParser:
                           "without it such a recording is refused")
     rep.set_defaults(func=cmd_reprocess)
 
-    fix = sub.add_parser("repair", help="make unfinished recordings (writer killed, disk full) readable, in place")
-    fix.add_argument("recordings", nargs="+", metavar="FILE.mcap")
+    fix = add_command(sub, "repair", "make unfinished recordings (writer killed, disk full) readable, in place")
+    fix.add_argument("recordings", nargs="+", metavar="FILE.mcap",
+                     help="recordings made by uwcam run; complete ones are left as they are")
     fix.set_defaults(func=cmd_repair)
 
-    cfg = sub.add_parser("config", help="configuration tools")
+    cfg = add_command(sub, "config", "configuration tools")
     cfg_sub = cfg.add_subparsers(dest="config_command", required=True, metavar="ACTION")
-    check = cfg_sub.add_parser("check", help="validate a configuration file without starting anything")
-    check.add_argument("file", metavar="FILE")
+    check = add_command(cfg_sub, "check", "validate a configuration file without starting anything")
+    check.add_argument("file", metavar="FILE", help="rig configuration (YAML), as given to 'uwcam run --config'")
     check.set_defaults(func=cmd_config_check)
     return parser
 
@@ -212,7 +227,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.func(args))
-    except (UserInputError, ConfigurationError) as exc:
+    except (UserInputError, DriverError) as exc:  # a device's own errors say what happened and what to do
         print(f"uwcam {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -44,9 +45,42 @@ SAFE_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 profile upload held the interpreter for seconds and the frame rate fell), the same safe types."""
 
 
+class UniqueKeyLoader(SAFE_LOADER):  # type: ignore[misc, valid-type]
+    """:data:`SAFE_LOADER` that refuses a key given twice in one mapping. PyYAML would keep the
+    last silently (an ``api:`` section written twice loses the first), and strict parsers (BlueOS's,
+    YAML 1.2's) refuse such a file; a key that a merge (``<<: *anchor``) brings in may still be
+    given again, as YAML intends."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        if isinstance(node, yaml.MappingNode):
+            seen: dict[Any, yaml.Mark] = {}
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    first = seen.setdefault(key, key_node.start_mark)
+                except TypeError:  # unhashable: the constructor below says so
+                    continue
+                if first is not key_node.start_mark:
+                    raise yaml.constructor.ConstructorError(
+                        "while constructing a mapping", node.start_mark,
+                        f"key {key!r} is given twice (first at line {first.line + 1}); keep one", key_node.start_mark)
+        return super().construct_mapping(node, deep=deep)
+
+
+# YAML 1.1 (PyYAML's) reads a number without a dot, such as 1e-5, as a string; YAML 1.2 and JSON read
+# it as a number, and users write it so. Numbers are strict where users give them (a string is refused,
+# not coerced), so read those as floats.
+UniqueKeyLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"))
+
+
 def safe_load(text: str | bytes) -> Any:
-    """``yaml.safe_load`` with :data:`SAFE_LOADER`."""
-    return yaml.load(text, Loader=SAFE_LOADER)  # noqa: S506 (a safe loader)
+    """``yaml.safe_load`` with :data:`SAFE_LOADER`, refusing duplicate keys (:class:`UniqueKeyLoader`)."""
+    return yaml.load(text, Loader=UniqueKeyLoader)  # noqa: S506 (a safe loader)
 
 
 def load_yaml_mapping(path: str | os.PathLike[str], what: str) -> dict[str, Any]:

@@ -24,6 +24,7 @@ from fastapi.responses import HTMLResponse, Response
 from pydantic import BaseModel, ConfigDict, Field
 
 from uwcam.api.common import get_daemon, latest
+from uwcam.api.profiles import NAME as PROFILE_NAME
 from uwcam.calibration.session import CalibrationSession, SessionError
 from uwcam.calibration.session_store import load_session, remove_session, save_session
 from uwcam.config import Flag, Real, Whole  # numbers are numbers: "1" and true are refused, as docs/api.md says
@@ -62,8 +63,9 @@ class CaptureRequest(BaseModel):
 
 class Accept(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    name: Annotated[str, Field(pattern=r"^[A-Za-z0-9._-]{1,64}$")]
-    """Name the new profile is saved and activated under."""
+    name: Annotated[str, Field(pattern=f"^{PROFILE_NAME.pattern}$")]
+    """Name the new profile is saved and activated under: the profiles route's rule (letters, digits,
+    '.', '_' and '-', 1–64, not starting with '.': such a file is hidden and skipped at the next start)."""
 
 
 def session_folder(d: Daemon) -> str:

@@ -27,7 +27,7 @@ def default_saturation(dtype: np.dtype) -> float:
 
 def check_calibration_frames(paths: list, frames: list[np.ndarray], distances: list[float]) -> None:
     """UserInputError, naming the image, unless the frames can be calibrated from: one camera's
-    (same channels, same data type), each holding finite values, and not all alike when their
+    (same channels, same data type), each holding finite values only, and not all alike when their
     distances differ (no attenuation can be seen then: the lamp did not light the target)."""
     first, n = paths[0], frames[0].shape[-1]
     for p, f in zip(paths, frames):
@@ -36,10 +36,14 @@ def check_calibration_frames(paths: list, frames: list[np.ndarray], distances: l
         if f.dtype != frames[0].dtype:
             raise UserInputError(f"image {p} holds {f.dtype} values but {first} holds {frames[0].dtype}; use images "
                                  "from one camera, saved the same way")
-        finite = float(np.isfinite(f).mean()) if np.issubdtype(f.dtype, np.floating) else 1.0
-        if finite < 0.5:  # the fit averages regions: NaN in them leaves nothing to fit
-            raise UserInputError(f"image {p} holds {100 * (1 - finite):.0f} % NaN or infinite values; use the camera's "
-                                 "frames, with finite values at the target")
+        # Before the fit: a single NaN in a region it averages reaches LAPACK, which prints its own
+        # line ("On entry to DLASCL ...") and fails with a message about SVD naming no image.
+        bad = ~np.isfinite(f).all(axis=-1) if np.issubdtype(f.dtype, np.floating) else None
+        if bad is not None and bad.any():
+            rows, cols = np.flatnonzero(bad.any(axis=1)), np.flatnonzero(bad.any(axis=0))
+            raise UserInputError(f"image {p} holds NaN or infinite values in {int(bad.sum())} pixels "
+                                 f"({100 * bad.mean():.2g} %, rows {rows[0]}–{rows[-1]}, columns {cols[0]}–{cols[-1]}); "
+                                 "use the camera's frames, with finite values in every pixel")
     if len(set(distances)) > 1 and all(f.shape == frames[0].shape and np.array_equal(f, frames[0], equal_nan=True)
                                        for f in frames[1:]):
         raise UserInputError("the images are all alike although their distances differ, so no attenuation can be "

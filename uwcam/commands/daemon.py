@@ -68,6 +68,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     from uwcam.api import create_app
     from uwcam.config import SIMULATED_SETUPS, DaemonConfig, load_config
+    from uwcam.drivers.base import DeviceLost
     from uwcam.runtime.daemon import Daemon, check_devices
     from uwcam.fileio import explain_validation_error
 
@@ -103,7 +104,14 @@ def cmd_run(args: argparse.Namespace) -> int:
     daemon.warm_up_in_background = True  # numba's cache filled for every setting, once per install
     try:
         app = create_app(config, daemon)
-        daemon.start()  # devices and calibration: a configuration that cannot work fails here, in one line
+        try:
+            daemon.start()  # devices and calibration: a configuration that cannot work fails here, in one line
+        except DeviceLost as exc:
+            # The camera's first open (a missing /dev/video*, a stream server that is down) is made
+            # here, not by its supervisor, which retries only a camera lost after the start: the start
+            # ends in one line, and systemd (deploy/uwcam.service) or BlueOS start the service again.
+            raise UserInputError(f"a device cannot be opened at start: {exc}; connect it (or start the camera's "
+                                 "stream) and start uwcam run again") from None
         where = args.config or ("embedded simulated tank" if args.simulate == "tank" else "embedded default (simulated rig)")
         shown = f"[{host}]" if ":" in host else host  # IPv6 literal
         root = f"http://{shown}:{sock.getsockname()[1]}"

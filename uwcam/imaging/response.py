@@ -195,7 +195,9 @@ def load_response(name_or_path: str, channels: int, bits: int = 8) -> ResponseCu
         return ResponseCurve.standard(name_or_path, bits, channels)
     from pathlib import Path
 
-    from uwcam.fileio import load_yaml_mapping
+    from pydantic import ValidationError
+
+    from uwcam.fileio import explain_validation_error, load_yaml_mapping
     from uwcam.calibration.profile import ResponseRecord
 
     path = Path(name_or_path)
@@ -206,8 +208,8 @@ def load_response(name_or_path: str, channels: int, bits: int = 8) -> ResponseCu
     if data.get("format") != RESPONSE_FORMAT:
         raise UserInputError(f"{path} is not a response file (its format is {data.get('format')!r}, "
                              f"expected {RESPONSE_FORMAT!r})")
-    try:
-        record = ResponseRecord(**{k: v for k, v in data.items() if k not in ("format", "version")})
-    except Exception as exc:
-        raise UserInputError(f"{path}: {str(exc).splitlines()[0]}") from None
+    try:  # the key at fault and what it may hold, as for a profile
+        record = ResponseRecord.model_validate({k: v for k, v in data.items() if k not in ("format", "version")})
+    except ValidationError as exc:
+        raise UserInputError(explain_validation_error(exc, f"response file {path}")) from None
     return ResponseCurve.from_record(record, channels)

@@ -339,7 +339,7 @@ function wire() {
   $("tank-fit").onclick = () => act("Fit", `${TANK}/fit`, { method: "POST" });
   $("tank-accept").onclick = async () => {
     const name = $("tank-name").value.trim();
-    if (!/^[A-Za-z0-9._-]{1,64}$/.test(name)) { io.message("name the new calibration with letters, digits, '.', '_' or '-' (up to 64)"); return; }
+    if (!/^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$/.test(name)) { io.message("name the new calibration with letters, digits, '.', '_' or '-' (up to 64), starting with a letter or digit"); return; }
     const done = await act(`Accept ${name}`, `${TANK}/accept`, { method: "POST", body: { name } });
     if (done) { io.message(`Calibration ${name} is active: the camera ranges with it from now on.`, true); io.onProfilesChanged?.(); }
   };
