@@ -185,12 +185,12 @@ def test_oversized_and_malformed_profiles_are_refused(server):
     assert "junk" not in [p["name"] for p in server.http.get("/api/v1/calibration/profiles").json()]
 
 
-def test_a_lamp_that_stops_answering_is_a_502_and_errors_carry_no_links(server):
+def test_a_lamp_that_stops_answering_is_a_503_and_errors_carry_no_links(server):
     device = server.app.state.daemon.lamp.device
     device.disconnect()
     try:
         r = put_lamp(server, {"on": True})
-        assert r.status_code == 502 and r.json()["detail"].startswith("lamp did not accept the command: ")
+        assert r.status_code == 503 and r.json()["detail"].startswith("the lamp does not answer: ")
     finally:
         device.reconnect()
     assert wait_for(lambda: put_lamp(server, {"on": True}).status_code == 200, 20.0)

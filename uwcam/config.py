@@ -10,11 +10,13 @@ writes, section by section, so that every key, its bounds and its default read i
 
 from __future__ import annotations
 
+import ipaddress
 import os
 import re
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator, StrictInt
+from pydantic import (AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator,
+                      StrictInt)
 from pydantic import Strict as NoCoercion
 
 from uwcam.fileio import UserInputError, explain_validation_error, load_yaml_mapping
@@ -259,7 +261,7 @@ class ApiConfig(Strict):
     """Web origins (``http://host:port``) besides the daemon's own whose pages may change state
     and call the API from the browser (CORS), e.g. Cockpit served from another port; and that
     may show uwcam's pages in a frame."""
-    cockpit_actions_token: bool = False
+    cockpit_actions_token: Flag = False
     """Put the API token into the lamp actions of ``/cockpit_extras.json`` so that Cockpit's
     actions are authorised. Anyone who can reach the daemon can read that document, so set this
     only where they could read the token anyway: on BlueOS, whose terminal and file browser
@@ -267,7 +269,8 @@ class ApiConfig(Strict):
     and get 401 while a token is set (add the header in Cockpit's action editor)."""
 
 
-FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+FiniteFloat = Real
+"""Kept for the sections written before :data:`Real`: the same strict finite number."""
 
 
 class RecordingConfig(Strict):
@@ -281,13 +284,13 @@ class RecordingConfig(Strict):
     """Start a new file (rotation) when one reaches this size in megabytes; None: no limit."""
     max_duration_s: Annotated[FiniteFloat, Field(gt=0, le=1e7)] | None = None
     """Start a new file when one has recorded this long; None: no limit."""
-    queue_frames: Annotated[int, Field(ge=1, le=10000)] = 32
+    queue_frames: Annotated[Whole, Field(ge=1, le=10000)] = 32
     """Frames waiting for the disk; beyond this the oldest is dropped and counted."""
     queue_mb: Annotated[FiniteFloat, Field(gt=0, le=1e6)] = 128.0
     """Most megabytes of frames (raw frame, range, variance, reasons) waiting for the disk: at
     1920×1080 a frame and its results are 31 MB, so this, not queue_frames, bounds the memory
     a slow disk can take; beyond it the oldest is dropped and counted."""
-    results: bool = False
+    results: Flag = False
     """Record each ranged frame's depth, variance and reasons too (19 MB of a 1920×1080 16-bit
     frame's 31 MB, 560 MB/s at 30 frames/s). False (the default): the raw frames with their
     metadata, the ranging records and the ambient light only, from which ``uwcam reprocess``
@@ -310,7 +313,7 @@ class RecordingConfig(Strict):
     """Colour previews per second on ``/uwcam/image/preview`` (foxglove.CompressedImage, JPEG,
     display-stretched like the operator page, half resolution): what Foxglove draws, since it
     cannot draw the 16-bit raw frames. 0: none."""
-    preview_quality: Annotated[int, Field(ge=1, le=100)] = 80
+    preview_quality: Annotated[Whole, Field(ge=1, le=100)] = 80
     """JPEG quality of the previews."""
 
 
@@ -335,18 +338,55 @@ class MountingConfig(Strict):
 class FoxgloveConfig(Strict):
     """Live view in Foxglove over its WebSocket protocol (opt-in; see docs/recording.md)."""
 
-    enabled: bool = False
+    enabled: Flag = False
     host: Annotated[str, Field(min_length=1)] = "127.0.0.1"
     """Address to listen on; the protocol has no authentication, so keep it on a trusted network."""
-    port: Annotated[int, Field(ge=0, le=65535)] = 8765
+    port: Annotated[Whole, Field(ge=0, le=65535)] = 8765
     rate_hz: Annotated[FiniteFloat, Field(gt=0, le=120)] = 10.0
     """Most frames per second sent."""
-    point_stride: Annotated[int, Field(ge=1, le=64)] = 2
+    point_stride: Annotated[Whole, Field(ge=1, le=64)] = 2
     """Every this many pixels in x and y becomes a point of the point cloud."""
 
 
-_ZENOH_ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")
+ZENOH_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream")
+"""The Zenoh link protocols an endpoint may name: ``<protocol>/<host>:<port>``, or
+``unixsock-stream/<path>``; Zenoh's ``?metadata`` and ``#config`` may follow."""
+_PORT = r"(?:6553[0-5]|655[0-2][0-9]|65[0-4][0-9]{2}|6[0-4][0-9]{3}|[1-5][0-9]{4}|[1-9][0-9]{0,3})"
+"""1–65535, without leading zeros."""
+_HOST = r"(?:\[[0-9A-Fa-f:.]+(?:%[A-Za-z0-9_.-]+)?\]|[A-Za-z0-9][A-Za-z0-9.-]*)"
+"""An [IPv6] address (a zone allowed), an IPv4 address or a host name."""
+_ZENOH_ENDPOINT = re.compile(r"^(?:(?:tcp|udp|tls|quic|ws)/" + _HOST + ":" + _PORT + r"|unixsock-stream/[^\s?#]+)"
+                             r"(?:\?[^\s#]*)?(?:#\S*)?$")
+"""A whole Zenoh endpoint, its port within 1–65535 (uwcam monitor checks its options with it too)."""
+_ENDPOINT_PARTS = re.compile(r"^(?P<protocol>[^/\s]*)/(?P<address>[^?#]*)")
 _KEY_SEGMENT = re.compile(r"^[A-Za-z0-9_.~+-]+$")
+
+
+def check_zenoh_endpoint(endpoint: str) -> str:
+    """``endpoint`` if Zenoh can open it (a known protocol, a host and a port 1–65535); else
+    ValueError saying which part is wrong. Checked here, so that ``uwcam config check`` finds
+    what would otherwise stop ``uwcam run`` when Zenoh opens its session."""
+    example = "e.g. tcp/192.168.2.1:7447"
+    parts = _ENDPOINT_PARTS.match(endpoint)
+    if _ZENOH_ENDPOINT.match(endpoint):
+        host = parts["address"].rpartition(":")[0]
+        if parts["protocol"] != "unixsock-stream" and (host.startswith("[") or re.fullmatch(r"[0-9.]+", host)):
+            try:  # an address, not a name: one Zenoh can bind or reach
+                ipaddress.ip_address(host.strip("[]"))
+            except ValueError:
+                raise ValueError(f"'{endpoint}': {host} is not an IP address; {example}") from None
+        return endpoint
+    if parts is None or parts["protocol"] not in ZENOH_PROTOCOLS:
+        raise ValueError(f"'{endpoint}' is not a Zenoh endpoint <protocol>/<host>:<port> with a protocol of "
+                         f"{', '.join(ZENOH_PROTOCOLS)}; {example}")
+    host, _, port = parts["address"].rpartition(":")
+    if parts["protocol"] != "unixsock-stream" and host and port.isdigit() and not 1 <= int(port) <= 65535:
+        raise ValueError(f"'{endpoint}': port {int(port)} is not 1–65535; {example}")
+    raise ValueError(f"'{endpoint}' is not a Zenoh endpoint <protocol>/<host>:<port> (port 1–65535); {example}")
+
+
+ZenohEndpoint = Annotated[str, AfterValidator(check_zenoh_endpoint)]
+"""A Zenoh endpoint, checked by :func:`check_zenoh_endpoint`."""
 
 
 class ZenohConfig(Strict):
@@ -355,9 +395,9 @@ class ZenohConfig(Strict):
 
     mode: Literal["peer", "client"] = "peer"
     """peer: talk to other peers directly (and listen); client: go through a Zenoh router."""
-    listen: list[Annotated[str, Field(pattern=_ZENOH_ENDPOINT.pattern)]] = []
+    listen: list[ZenohEndpoint] = []
     """Endpoints to listen on, e.g. tcp/0.0.0.0:7447; empty: Zenoh's default for the mode."""
-    connect: list[Annotated[str, Field(pattern=_ZENOH_ENDPOINT.pattern)]] = []
+    connect: list[ZenohEndpoint] = []
     """Endpoints to connect to, e.g. tcp/192.168.2.1:7447 (a router, or the topside peer)."""
     scouting: Flag = True
     """Multicast scouting: find peers and routers on the LAN without endpoints."""
@@ -480,35 +520,35 @@ class MavlinkConfig(Strict):
 
     connection: Annotated[str, Field(min_length=1)] = "udpout:127.0.0.1:14550"
     """udpout:HOST:PORT, tcp:HOST:PORT or a serial device path (/dev/ttyACM0)."""
-    baud: Annotated[int, Field(ge=1200, le=4_000_000)] = 115200
+    baud: Annotated[Whole, Field(ge=1200, le=4_000_000)] = 115200
     """Baud rate when ``connection`` is a serial device."""
-    source_system: Annotated[int, Field(ge=1, le=255)] = 1
+    source_system: Annotated[Whole, Field(ge=1, le=255)] = 1
     """MAVLink system id to send as: the vehicle's (ArduSub's SYSID_THISMAV, 1 by default)."""
-    source_component: Annotated[int, Field(ge=1, le=255)] = 158
+    source_component: Annotated[Whole, Field(ge=1, le=255)] = 158
     """MAVLink component id to send as; 158 is MAV_COMP_ID_PERIPHERAL."""
-    rate_hz: Annotated[float, Field(gt=0, le=50, allow_inf_nan=False)] = 10.0
+    rate_hz: Annotated[Real, Field(gt=0, le=50)] = 10.0
     """DISTANCE_SENSOR (and OBSTACLE_DISTANCE) messages per second; ArduPilot drops a MAVLink
     rangefinder after 500 ms without one."""
-    region: tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0)], Annotated[int, Field(gt=0)],
-                  Annotated[int, Field(gt=0)]] | None = None
+    region: tuple[Annotated[Whole, Field(ge=0)], Annotated[Whole, Field(ge=0)], Annotated[Whole, Field(gt=0)],
+                  Annotated[Whole, Field(gt=0)]] | None = None
     """x, y, width, height in pixels whose valid ranges make the distance; None: the whole image."""
     statistic: Literal["median", "minimum"] = "median"
     """median (altitude over a seabed) or minimum (nearest obstacle, forward-looking)."""
-    minimum_block: Annotated[int, Field(ge=1, le=64)] = 8
+    minimum_block: Annotated[Whole, Field(ge=1, le=64)] = 8
     """The "minimum" is the smallest median over square tiles of this many pixels a side (at
     least half of them valid), so that single noisy pixels do not set it; 1 takes the smallest
     pixel."""
-    min_valid_fraction: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = 0.05
+    min_valid_fraction: Annotated[Real, Field(gt=0, le=1)] = 0.05
     """Below this fraction of valid pixels in the region nothing is sent."""
-    max_age_s: Annotated[float, Field(gt=0, le=10, allow_inf_nan=False)] = 0.5
+    max_age_s: Annotated[Real, Field(gt=0, le=10)] = 0.5
     """Nothing is sent while the newest processed frame is older than this (seconds)."""
     orientation: str | StrictInt = "PITCH_270"
     """MAV_SENSOR_ORIENTATION name (with or without MAV_SENSOR_ROTATION_) or number, as ArduPilot's
     RNGFNDx_ORIENT takes it: PITCH_270 (25) looks down, NONE (0) forward; it must equal the
     autopilot's RNGFNDx_ORIENT. Kept as the name."""
-    sensor_id: Annotated[int, Field(ge=0, le=255)] = 0
+    sensor_id: Annotated[Whole, Field(ge=0, le=255)] = 0
     """DISTANCE_SENSOR ``id``, distinct from the vehicle's other rangefinders."""
-    obstacle_distance: bool = False
+    obstacle_distance: Flag = False
     """Also send OBSTACLE_DISTANCE: 72 sectors across the camera's whole horizontal field of view
     (over the rows of ``region``), for a camera looking horizontally (orientation NONE or YAW_*)."""
 

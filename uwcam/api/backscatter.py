@@ -12,7 +12,7 @@ from fastapi import APIRouter, Depends
 from pydantic import BaseModel, ConfigDict, Field
 
 from uwcam.api.common import get_daemon
-from uwcam.config import Whole
+from uwcam.config import Real, Whole
 from uwcam.runtime.daemon import Daemon
 
 router = APIRouter(prefix="/api/v1/backscatter", tags=["backscatter"])
@@ -22,7 +22,7 @@ class OpenWaterRequest(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     frames: Annotated[Whole, Field(ge=1, le=64)] = 4
     """Lamp-lit frames averaged into the open-water frame."""
-    timeout_s: Annotated[float, Field(ge=0.1, le=600)] = 10.0
+    timeout_s: Annotated[Real, Field(ge=0.1, le=600)] = 10.0
     """Frames that come later than this are not taken: the request lapses."""
 
 

@@ -10,7 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from uwcam.api.common import get_daemon
 from uwcam.config import Flag, Real
 from uwcam.runtime.daemon import Daemon
-from uwcam.drivers.base import DriverError
+from uwcam.drivers.base import DeviceLost, DriverError
 
 router = APIRouter(prefix="/api/v1/lamp", tags=["lamp"])
 
@@ -49,7 +49,9 @@ def put_lamp(command: LampCommand, d: Daemon = Depends(get_daemon)) -> dict:
             lamp.on()
         elif command.on is False:
             lamp.off()
-    except Exception as exc:
+    except DeviceLost as exc:  # silent or unplugged: 503, as GET says (docs/api.md, "Errors")
+        raise HTTPException(status_code=503, detail=f"the lamp does not answer: {exc}") from None
+    except Exception as exc:  # it answered, and refused
         raise HTTPException(status_code=502, detail=f"lamp did not accept the command: {exc}") from None
     d.save_state()
     return get_lamp(d)  # reads the lamp's status back, so status() shows it too

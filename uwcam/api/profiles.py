@@ -40,14 +40,34 @@ def get_profile(name: str, d: Daemon = Depends(get_daemon)) -> dict:
 PARSE_TIMEOUT_S = 30.0
 """An upload whose YAML takes longer than this to parse is refused (a real profile: under 0.5 s)."""
 
-# Run by ``python -c`` in a child process: reads YAML bytes on stdin, writes a pickle of
+# Run by ``python -c`` in a child process: reads YAML or JSON bytes on stdin, writes a pickle of
 # ("ok", data) or ("error", kind, message, line, column) to stdout. Only the parent's own child
-# writes what the parent unpickles, and safe_load makes nothing but plain values.
+# writes what the parent unpickles, and safe_load and json make nothing but plain values.
+# A JSON body is read as JSON: YAML 1.1 reads a JSON number such as 1e-300 or 1e+308 (no dot) as a
+# string, which the profile's strict numbers then refuse.
 _PARSER = """
-import pickle, sys, yaml
+import json, pickle, sys, yaml
 from uwcam.fileio import safe_load
+
+class Twice(Exception):
+    pass
+
+def unique(pairs):
+    out = {}
+    for key, value in pairs:
+        if key in out:
+            raise Twice(f"key {key!r} is given twice; keep one")
+        out[key] = value
+    return out
+
 try:
-    answer = ("ok", safe_load(sys.stdin.buffer.read().decode("utf-8")))
+    text = sys.stdin.buffer.read().decode("utf-8")
+    try:
+        answer = ("ok", json.loads(text, object_pairs_hook=unique))
+    except json.JSONDecodeError:  # not JSON: YAML
+        answer = ("ok", safe_load(text))
+except Twice as exc:
+    answer = ("error", "json", str(exc), None, None)
 except UnicodeDecodeError as exc:
     answer = ("error", "text", str(exc), None, None)
 except yaml.YAMLError as exc:
@@ -115,9 +135,10 @@ def profile_from_upload(data: object, name: str) -> CalibrationProfile:
         "application/x-yaml": {"schema": {"type": "string"}},
         "application/json": {"schema": {"type": "object", "description": "a uwcam calibration profile"}}}}})
 async def upload_profile(name: str, request: Request, d: Daemon = Depends(get_daemon)) -> dict:
-    """Upload a profile (YAML or JSON body, at most 1 MiB). It is validated in full; a bad one
-    is refused with the reason and changes nothing. Uploading does not activate it; uploading
-    over the active profile is checked as activating it would be, and applies at once."""
+    """Upload a profile (YAML or JSON body, at most 1 MiB). It is validated in full, and checked
+    as activating it would check it (this camera's channels and image, the live settings); a bad
+    one is refused with the reason and changes nothing. Uploading does not activate it; uploading
+    over the active profile applies at once."""
     if not NAME.fullmatch(name):
         raise HTTPException(status_code=422, detail="profile names use letters, digits, '.', '_' and '-' (1–64), "
                                                     "starting with a letter or digit")
@@ -130,6 +151,9 @@ async def upload_profile(name: str, request: Request, d: Daemon = Depends(get_da
     data = await parse_yaml(b"".join(chunks))
     profile = await asyncio.to_thread(profile_from_upload, data, name)
     try:
+        # The checks activation makes (Daemon.activate), here too: a profile that could never be put
+        # in use (fx of 1e-300 px, quantisation_step 0 for an integer camera) is refused now, not stored.
+        await asyncio.to_thread(d.check_profile, name, profile)
         await asyncio.to_thread(d.save_profile, name, profile)
     except UserInputError as exc:
         raise HTTPException(status_code=422, detail=str(exc)) from None

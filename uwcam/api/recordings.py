@@ -15,6 +15,7 @@ from uwcam.recording import format as rec
 from uwcam.api.common import get_daemon
 from uwcam.runtime.daemon import Daemon
 from uwcam.fileio import UserInputError
+from uwcam.recording.recorder import NoRoom
 
 router = APIRouter(prefix="/api/v1/recordings", tags=["recordings"])
 
@@ -57,6 +58,8 @@ def start_recording(d: Daemon = Depends(get_daemon)) -> dict:
         raise HTTPException(status_code=409, detail=f"already recording into {r.status()['file']}; stop it first")
     try:
         return r.start()
+    except NoRoom as exc:  # a full disk: 507 with the reason, and no file left behind
+        raise HTTPException(status_code=507, detail=str(exc)) from None
     except UserInputError as exc:
         raise HTTPException(status_code=409, detail=str(exc)) from None
     except OSError as exc:

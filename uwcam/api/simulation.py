@@ -16,7 +16,7 @@ from fastapi import APIRouter, Depends, HTTPException
 from pydantic import BaseModel, ConfigDict, Field
 
 from uwcam.api.common import get_daemon
-from uwcam.config import TANK_RAIL_M
+from uwcam.config import TANK_RAIL_M, Real
 from uwcam.runtime.daemon import Daemon
 
 router = APIRouter(prefix="/api/v1/simulation", tags=["simulation"])
@@ -29,7 +29,7 @@ FIRST_FRAME_TIMEOUT_S = 10.0
 
 class PlateMove(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-    distance_m: Annotated[float, Field(ge=TANK_RAIL_M[0], le=TANK_RAIL_M[1], allow_inf_nan=False)]
+    distance_m: Annotated[Real, Field(ge=TANK_RAIL_M[0], le=TANK_RAIL_M[1])]
     """Camera-to-plate distance along the optical axis (m), within the rail."""
 
 

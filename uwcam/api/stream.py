@@ -12,11 +12,11 @@ import asyncio
 import json
 import struct
 import time
-from typing import Literal
+from typing import Annotated, Literal
 
 import cv2
 import numpy as np
-from fastapi import APIRouter, WebSocket, WebSocketDisconnect
+from fastapi import APIRouter, Query, WebSocket, WebSocketDisconnect
 
 from uwcam import __version__
 from uwcam.api.backpressure import SCOPE_KEY, Pace, unsent_bytes
@@ -66,8 +66,8 @@ WINDOW = 1
 
 
 @router.websocket("/stream")
-async def stream(ws: WebSocket, rate: float = 30.0, encoding: Literal["float16", "mm"] = "float16",
-                 ack: bool = False) -> None:
+async def stream(ws: WebSocket, rate: Annotated[float, Query(gt=0, allow_inf_nan=False)] = 30.0,
+                 encoding: Literal["float16", "mm"] = "float16", ack: bool = False) -> None:
     """Hello (JSON), then the newest range map per frame (binary) and telemetry (JSON, ~10 Hz).
 
     A client only ever gets the newest frame: while the previous message is still on its way
@@ -76,7 +76,9 @@ async def stream(ws: WebSocket, rate: float = 30.0, encoding: Literal["float16",
     hold no backlog either (:mod:`uwcam.api.backpressure`). With ``ack=true`` the client asks for each
     map: ``{"ack": 0}`` for the first, ``{"ack": N}`` after the map of frame N when it wants the
     next; it is sent at most one map it has not acknowledged, so whatever its pace the map it
-    gets was the newest when it asked (its own buffers can hold no backlog).
+    gets was the newest when it asked (its own buffers can hold no backlog). ``rate``: frames per
+    second, above 0 and finite (at most ``api.stream_rate_hz`` is sent); a bad query (NaN, 0, an
+    unknown ``encoding``) is refused before the connection is accepted, as FastAPI refuses it (HTTP 403).
     """
     await ws.accept()
     # Clients connected now, for /metrics; changed only on the event loop, so no lock.

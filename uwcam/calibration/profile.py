@@ -28,8 +28,12 @@ from uwcam.optics.geometry import Intrinsics
 PROFILE_FORMAT = "uwcam-calibration-profile"
 PROFILE_VERSION = 2
 
-NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
-Finite = Annotated[float, Field(allow_inf_nan=False)]
+# Every number strict: an integer is a number, but ``true`` or ``"1108"`` is refused, never read
+# as 1 or 1108 (docs/api.md, "Errors").
+NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False, strict=True)]
+Finite = Annotated[float, Field(allow_inf_nan=False, strict=True)]
+Count = Annotated[int, Field(strict=True)]
+"""A whole number; booleans, floats and strings are refused."""
 
 # Physical bounds of every number a profile holds: a finite but absurd value (fx = 1e308, a
 # backscatter distance of 1e300) is refused with the key and the bound, on upload, on load and
@@ -52,9 +56,10 @@ MAX_LAMP_OFFSET_M = 10.0
 
 
 def Bounded(low: float, high: float, low_open: bool = False) -> Any:  # noqa: N802 (a type factory)
-    """A finite float in [low, high] (or (low, high] with ``low_open``)."""
-    return Annotated[float, Field(gt=low, le=high, allow_inf_nan=False) if low_open
-                     else Field(ge=low, le=high, allow_inf_nan=False)]
+    """A finite number in [low, high] (or (low, high] with ``low_open``); an integer is accepted,
+    a boolean or a string is refused."""
+    return Annotated[float, Field(gt=low, le=high, allow_inf_nan=False, strict=True) if low_open
+                     else Field(ge=low, le=high, allow_inf_nan=False, strict=True)]
 
 
 Attenuation = Bounded(-MAX_ATTENUATION_PER_M, MAX_ATTENUATION_PER_M)
@@ -86,7 +91,7 @@ class ChannelCalibration(Strict):
     """Standard uncertainty of log_constant."""
     attenuation: Bounded(0.0, MAX_ATTENUATION_PER_M) | None = None
     """Absolute beam attenuation c_k in 1/m, when a lamp spreading model was given."""
-    target_reflectance: Annotated[float, Field(gt=0, le=1)] = 1.0
+    target_reflectance: Bounded(0.0, 1.0, low_open=True) = 1.0
     """Reflectance of the calibration target in this channel (only ratios matter)."""
     dark_level: DigitalNumber = 0.0
     """Dark/black level in DN, subtracted from raw values before anything else."""
@@ -101,7 +106,7 @@ class ChannelCalibration(Strict):
     exposure_us: Bounded(0.0, 1e9, low_open=True) | None = None
     """Exposure time (µs) of this channel in the calibration frames; None: not recorded (then
     every channel is taken to have had the same exposure)."""
-    gain_db: Annotated[float, Field(ge=-100, le=100, allow_inf_nan=False)] | None = None
+    gain_db: Bounded(-100.0, 100.0) | None = None
     """Analogue gain (dB) of this channel in the calibration frames; None: not recorded (0 dB)."""
 
 
@@ -114,7 +119,7 @@ class Provenance(Strict):
     """How attenuation differences were found."""
     distances_m: list[Distance] = []
     """Camera-to-target distances along the optical axis, metres (one per distance imaged)."""
-    frames_per_distance: list[Annotated[int, Field(ge=1, le=1_000_000)]] = []
+    frames_per_distance: list[Annotated[Count, Field(ge=1, le=1_000_000)]] = []
     """Frames averaged at each distance (empty: one each)."""
     path_lengths_m: list[Bounded(0.0, 2 * MAX_DISTANCE_M)] = []
     """Mean lamp→target→camera path length over the target region at each distance, metres."""
@@ -122,7 +127,7 @@ class Provenance(Strict):
     """The images used, in order."""
     target: str = "spectrally flat target"
     """What was imaged."""
-    roi: list[Annotated[int, Field(ge=0, le=int(MAX_PIXELS))]] | None = None
+    roi: list[Annotated[Count, Field(ge=0, le=int(MAX_PIXELS))]] | None = None
     """Target region x, y, width, height in pixels; None: the whole image."""
     residuals: dict[str, list[Bounded(-1e3, 1e3)]] = {}
     """Per channel, residual of ln(E_k/E_ref) at each distance after the fit."""
@@ -197,7 +202,7 @@ class ResponseRecord(Strict):
     """Bit depth of the codes the curve applies to."""
     method: str = ""
     """How the curve was found."""
-    table: list[list[Annotated[float, Field(ge=0, allow_inf_nan=False)]]] | None = None
+    table: list[list[NonNegative]] | None = None
     """For ``table``: per channel, the linear value (DN) of every code, non-decreasing."""
 
     @model_validator(mode="after")

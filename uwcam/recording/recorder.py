@@ -48,6 +48,14 @@ SUMMARIES_PER_FRAME = 64
 WRITER_NICENESS = 10
 """How much less CPU priority the writer thread has than the frame loop (Linux nice levels)."""
 
+START_MARGIN_BYTES = 1 << 20
+"""Free disk a recording needs to start besides one chunk: the file's header and its calibration
+attachment (a profile is 3-300 kB). With less, not one chunk of frames would reach the disk."""
+
+
+class NoRoom(UserInputError):
+    """Too little free disk to start a recording (the API answers 507 Insufficient Storage)."""
+
 
 def lower_this_threads_priority(niceness: int) -> bool:
     """Raise the nice level of the calling thread alone by ``niceness``; False where the system
@@ -228,6 +236,11 @@ class Recorder:
         folder = os.path.dirname(os.path.abspath(path))
         if not os.path.isdir(folder):
             raise UserInputError(f"folder {folder} does not exist; create it or record elsewhere")
+        free, _ = disk_space_bytes(folder)
+        need = int(self.config.chunk_kb * 1024) + START_MARGIN_BYTES
+        if free is not None and free < need:  # a full disk: refused, rather than an empty file and a stop
+            raise NoRoom(f"no room to record in {folder}: {free / 1e6:.1f} MB free, a recording needs at least "
+                         f"{need / 1e6:.1f} MB to start; free space on that disk or record elsewhere")
         self._base = path
         self._part = 1
         try:
@@ -235,6 +248,10 @@ class Recorder:
         except FileExistsError:
             raise UserInputError(f"{path} exists; give a new file name (recordings are never overwritten)") from None
         except OSError as exc:
+            self._discard(path)  # no empty or half-begun file is left behind
+            if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+                raise NoRoom(f"no room to record in {folder}: {exc.strerror}; free space on that disk or record "
+                             "elsewhere") from None
             raise UserInputError(f"cannot create {path}: {exc.strerror}") from None
         with self._lock:
             self._files = [path]
@@ -257,6 +274,16 @@ class Recorder:
         self._thread.start()
         log.info("recording into %s", path)
         return self.status()
+
+    def _discard(self, path: str) -> None:
+        """Close and remove ``path``, a file :meth:`_open` created but could not begin."""
+        if self._file is not None and self._file.path == path:
+            self._file.abandon()
+            self._file = None
+        try:
+            os.unlink(path)
+        except OSError:
+            pass  # never created, or already gone
 
     def stop(self, reason: str = "stopped on request") -> dict:
         """Stop: write what is queued, finish the file. Returns the final status."""
@@ -404,6 +431,9 @@ class Recorder:
                 rec.repair(path)
             except OSError as err:
                 reason += f"; could not close the file ({err.strerror}); run uwcam again to repair it"
+            except rec.RecordingError:  # not even its header reached the disk: nothing to keep
+                self._discard(path)
+                reason += "; nothing of it reached the disk, so the empty file was removed"
         log.error("recording stopped: %s", reason)
         return reason
 

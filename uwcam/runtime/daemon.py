@@ -380,7 +380,7 @@ class Daemon:
             except UserInputError as exc:  # one bad file must not stop the vehicle's camera
                 log.warning("skipping calibration profile: %s", exc)
 
-    def _fits(self, name: str, profile: CalibrationProfile) -> None:
+    def check_profile(self, name: str, profile: CalibrationProfile) -> None:
         """UserInputError unless ``profile`` can range this camera's frames with the live settings."""
         active = self.profiles[self.profile_name]
         if len(profile.channels) != len(active.channels):
@@ -399,7 +399,7 @@ class Daemon:
         with self._profiles_lock:
             active = name == self.profile_name
             if active:
-                self._fits(name, profile)
+                self.check_profile(name, profile)
             if self.config.profiles_dir is not None:
                 save_profile(profile, os.path.join(self.config.profiles_dir, f"{name}.yaml"))
             if active:
@@ -415,7 +415,7 @@ class Daemon:
         refusal (UserInputError) changes nothing."""
         with self._profiles_lock:
             profile = self.profiles[name]
-            self._fits(name, profile)
+            self.check_profile(name, profile)
             try:
                 self.pipeline.set_profile(profile)
             except ValueError as exc:
