@@ -64,13 +64,16 @@ def test_k_open_water_frames_range_as_the_daemon_ranges_them(setting):
 
     camera = QueuedCamera()
     pipeline = FramePipeline(camera, profile, ProcessingConfig(backscatter=None, smoothing="none"))
-    published = []
+    published, unranged = [], []
     pipeline.subscribe(published.append)
+    # The profile records no exposure: until the open-water frame relates the frames' exposure to
+    # the water's light, frames are not ranged (they are still captured).
+    pipeline.subscribe_unranged(lambda frame, why: unranged.append(why))
 
     def put(data: np.ndarray, sequence: int, exposure: float) -> None:  # one at a time: none is skipped as stale
         camera.put(Frame(data=data.copy(), sequence=sequence, host_monotonic_ns=time.monotonic_ns(),
                          wall_time=time.time(), lamp_on=True, exposure_us=exposure))
-        assert wait_for(lambda: len(published) == sequence + 1, 60.0)
+        assert wait_for(lambda: len(published) + len(unranged) == sequence + 1, 60.0)
 
     pipeline.start()
     try:
@@ -81,6 +84,7 @@ def test_k_open_water_frames_range_as_the_daemon_ranges_them(setting):
         put(np.load(folder / "scene.npy"), K, exposure_us)
     finally:
         pipeline.stop()
+    assert unranged == ["exposure unknown to the backscatter model"] * K
     loop = published[-1]
     assert loop.open_water_frames == K and loop.water_source == "open-water frame"
     assert loop.light_scale == pytest.approx((2.0, 2.0, 2.0))

@@ -29,7 +29,7 @@ from uwcam.runtime.memory import release_compiler_pages, release_free_memory
 from uwcam.calibration.profile import CalibrationProfile, check_intrinsics_fit
 from uwcam.ranging.estimator import RangeEstimator, range_frame
 from uwcam.runtime.published import Published
-from uwcam.runtime.stages.compensation import CompensationStage
+from uwcam.runtime.stages.compensation import CompensationStage, UnrelatedExposure
 from uwcam.runtime.stages.orientation import OrientationEstimator
 from uwcam.runtime.stages.patch_tracker import PatchTracker
 from uwcam.runtime.stages.reflectance import ReflectanceCorrector
@@ -76,6 +76,7 @@ class FramePipeline(CompensationStage):
         self._open_water_capture: str | None = None
         """How the last open-water request ended (None: none made)."""
         self._compensation_ms: collections.deque[float] = collections.deque(maxlen=100)
+        self._exposure_refusal: str | None = None  # why frames are not ranged: see CompensationStage._compensation
         self._frame_shape: tuple[int, ...] | None = None
         """(H, W, N) of the last frame taken, for building the compensator before it is needed."""
         self._frame_kind: tuple[np.dtype, bool, bool] | None = None
@@ -376,7 +377,13 @@ class FramePipeline(CompensationStage):
             estimator.set_attenuation_differences(tracker.tracked)
         attenuation = tracker.tracked if tracker is not None else profile.array("attenuation_difference")
         # (The transform reads the estimator's log constants when it runs, after the corrector's.)
-        transform, water, scale = self._compensation(frame, processing, profile, estimator, ambient)
+        try:
+            transform, water, scale = self._compensation(frame, processing, profile, estimator, ambient)
+        except UnrelatedExposure:  # an open-water frame asked for is what relates it: still taken
+            if frame.lamp_on is not False:
+                self._take_open_water(frame, ambient, "taken on request")
+            self._unranged(frame, "exposure unknown to the backscatter model")
+            return
         if corrector is not None:
             background = self._light_before_footprint(frame, corrector, transform, ambient, scale)
             b = corrector.update(frame, attenuation, background, estimator.exposure_shift)

@@ -23,6 +23,17 @@ from uwcam.ranging.estimator import RangeEstimator
 log = logging.getLogger(__name__)
 
 
+UNRELATED_CALIBRATION = ("the camera says its exposure but the profile records none, so the calibration's backscatter "
+                         "cannot be scaled to it: take an open-water frame (POST /api/v1/backscatter/open-water) or use a "
+                         "profile calibrated with its exposure (uwcam calibrate --exposure-us)")
+UNRELATED_OPEN_WATER = ("the camera says its exposure but the open-water frame does not, so its backscatter cannot be "
+                        "scaled to it: take the open-water frame again (POST /api/v1/backscatter/open-water)")
+
+
+class UnrelatedExposure(Exception):
+    """A frame whose exposure the backscatter model's light cannot be related to: not ranged."""
+
+
 def _same_inputs(a: tuple, b: tuple) -> bool:
     """Compensator inputs alike: the same profile and open-water objects (immutable once in use),
     equal shape, passes, pair and bounds."""
@@ -194,7 +205,14 @@ class CompensationStage:
                         current is None or current.shape != comp.shape):
                     self._compensator = comp
         # The modelled backscatter is in the counts of the light it came from: scaled to this frame's exposure.
-        scale = light_scale(profile, estimator, frame.light_gathered(), comp.open_water, exposure)
+        gathered = frame.light_gathered()
+        scale = light_scale(profile, estimator, gathered, comp.open_water, exposure)
+        if scale is None and gathered is not None:
+            # A frame that says its exposure, a model whose light does not: subtracted as it is, the
+            # water's light of another exposure ranged 19–80 % short with every pixel valid.
+            self._exposure_refusal = (UNRELATED_OPEN_WATER if comp.open_water else UNRELATED_CALIBRATION)
+            raise UnrelatedExposure(self._exposure_refusal)
+        self._exposure_refusal = None
         return compensation(comp, estimator, ambient, scale, self._compensation_ms), comp.water, scale
 
     def _light_before_footprint(self, frame: Frame, corrector, transform, ambient: NDArray | None,
@@ -226,6 +244,7 @@ class CompensationStage:
         # Compensated wherever the profile knows the water's light, asked for or not (a range with
         # that light left in reads short): "configured" says whether the settings asked for it.
         return {"enabled": iterations is not None, "iterations": iterations,
+                "refused": self._exposure_refusal,
                 "configured": self.processing.backscatter is not None,
                 "open_water": info or None,
                 "model": None if iterations is None else ("open-water frame and black-patch measurements" if self.open_water is not None
