@@ -407,6 +407,8 @@ def profile_to_yaml(profile: CalibrationProfile) -> str:
         for key in ("exposure_us", "gain_db"):
             if channel.get(key) is None:
                 channel.pop(key, None)
+    if data.get("lens_shading") is None:  # not measured: left out, as files made before it existed
+        data.pop("lens_shading", None)
     return yaml.safe_dump(data, sort_keys=False, allow_unicode=True)
 
 

@@ -156,8 +156,9 @@ def figure(details: CalibrationDetails, name: str) -> bytes:
     return _png(fig)
 
 
-def html_report(details: CalibrationDetails, title: str | None = None) -> str:
-    """One self-contained HTML page: summary tables and every plot embedded as a base64 PNG."""
+def html_report(details: CalibrationDetails, title: str | None = None, advice: str | None = None) -> str:
+    """One self-contained HTML page: summary tables and every plot embedded as a base64 PNG; ``advice``:
+    what the water asks of the rig (:func:`uwcam.calibration.rig_advice.calibration_rig_advice`), shown first."""
     p = details.profile
     title = title or f"uwcam calibration {p.name}"
     esc = html.escape
@@ -188,6 +189,7 @@ td,th{{border:1px solid #ccc;padding:2px 6px;text-align:right}}img{{max-width:10
 <body><h1>{esc(title)}</h1>
 <p>Created {esc(p.provenance.created)}; method: {esc(p.provenance.method)}; reference channel {esc(p.reference_channel)};
 rms residual {p.provenance.rms_residual:.2e}.</p>
+{"" if advice is None else f"<h2>The rig for this water</h2><p class='advice'>{esc(advice)}</p>"}
 <h2>Channels</h2><table><tr><th>channel</th><th>c − c_ref (1/m)</th><th>log constant</th><th>read (DN)</th>
 <th>shot (DN/e⁻)</th><th>fixed pattern</th><th>floor (DN)</th></tr>{rows}</table>
 <h2>Distances</h2><table><tr><th>distance (m)</th><th>frames</th><th>path length (m)</th><th>backscatter at patch (DN)</th></tr>{dist}</table>

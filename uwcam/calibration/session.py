@@ -366,6 +366,11 @@ class CalibrationSession:
             if c.drift > MAX_DRIFT:
                 out.append(f"the plate's light changed colour by {c.drift:.1%} during the capture at {c.distance_m:g} m "
                            "(lamp warming up, water stirred, something moving): capture it again")
+        from uwcam.calibration.rig_advice import calibration_rig_advice
+
+        advice = calibration_rig_advice(self.details, self.rig)
+        if advice is not None:
+            out.append(advice)
         for v in self.validation:
             if not v["passed"]:
                 why = v.get("reason") or (f"the new profile ranges the plate {v['median_range_error_m']:+.3f} m off, "
@@ -379,7 +384,10 @@ class CalibrationSession:
 
         if self.details is None:
             raise SessionError(409, "no fit yet: POST …/fit first")
-        return html_report(self.details, f"uwcam tank calibration {self.id} (rig {self.rig_name})")
+        from uwcam.calibration.rig_advice import calibration_rig_advice
+
+        return html_report(self.details, f"uwcam tank calibration {self.id} (rig {self.rig_name})",
+                           advice=calibration_rig_advice(self.details, self.rig))
 
     def plot(self, name: str) -> bytes:
         from uwcam.calibration.report import figure

@@ -262,16 +262,21 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     if args.flat_field:
         profile = with_lens_shading(profile, args.flat_field, curve)
     save_profile(profile, out)
+    from uwcam.calibration.rig_advice import calibration_rig_advice
+
+    advice = calibration_rig_advice(details, rig)
     if report is not None:
         from uwcam.calibration.report import html_report
         from uwcam.fileio import atomic_write
 
         with atomic_write(report, "w") as fh:
-            fh.write(html_report(details))
+            fh.write(html_report(details, advice=advice))
         print(f"wrote {report}")
     v = ", ".join(f"{c.name}−{profile.reference_channel} {c.attenuation_difference:+.4f}±{c.attenuation_difference_std:.4f}"
                   for c in profile.channels if c.name != profile.reference_channel)
     print(f"wrote {out}: attenuation differences (1/m) {v}; rms residual {profile.provenance.rms_residual:.2e}")
+    if advice is not None:
+        print(f"note: {advice}")
     return 0
 
 
