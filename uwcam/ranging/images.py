@@ -182,7 +182,8 @@ def range_images(
     (:func:`relate_exposures`); None: the calibration's, unchecked (as
     :meth:`~uwcam.ranging.estimator.RangeEstimator.set_exposure`'s None). open_water_exposure: the
     open-water frames'."""
-    from uwcam.water.frame_compensator import BackscatterCompensator, compensation, compensation_iterations, light_scale
+    from uwcam.water.frame_compensator import BackscatterCompensator, compensation, compensation_iterations
+    from uwcam.water.light_scale import light_scale
 
     options = dict(pair=pair, surface_reflectance=surface_reflectance, path_length_bounds=path_length_bounds)
     estimator = RangeEstimator(profile, **options)

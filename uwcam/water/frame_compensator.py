@@ -466,23 +466,6 @@ def _bilinear(small: NDArray[np.float32], taps_y: tuple, taps_x: tuple) -> NDArr
     return (top * (1 - fy) + bottom * fy).astype(np.float32)
 
 
-def light_scale(profile: CalibrationProfile, estimator: RangeEstimator, gathered: NDArray | None,
-                from_open_water: bool, open_water_exposure: NDArray | list[float] | None = None) -> NDArray | None:
-    """(N,) the frame's exposure × gain over that of the light the backscatter model came from
-    (None: taken as 1): ``gathered`` the frame's light gathered per channel (None: unknown);
-    ``from_open_water``: the model came from an open-water frame, taken at ``open_water_exposure``
-    (None: unknown), else from the calibration, whose exposure the estimator's shift is relative to."""
-    if gathered is None:
-        return None
-    if from_open_water:
-        if open_water_exposure is None or len(open_water_exposure) != np.size(gathered):
-            return None
-        return gathered / np.asarray(open_water_exposure, dtype=np.float64)
-    if profile.calibration_exposure()[0] is not None:
-        return np.exp(estimator.exposure_shift)
-    return None
-
-
 def compensation(comp: BackscatterCompensator, estimator: RangeEstimator, ambient: NDArray | None = None,
                  scale: NDArray | None = None, timings: list | None = None):
     """The transform of :func:`uwcam.ranging.estimator.range_frame` that ranges with ``comp``: the estimator's

@@ -187,7 +187,8 @@ class CompensationStage:
                       estimator: RangeEstimator, ambient: NDArray | None) -> tuple:
         """(the transform of range_frame that subtracts backscatter or None, the open-water light
         each pixel is judged against or None, the frame's light over the model's per channel or None)."""
-        from uwcam.water.frame_compensator import compensation, light_scale
+        from uwcam.water.frame_compensator import compensation
+        from uwcam.water.light_scale import light_scale
 
         exposure = self.open_water_info.get("exposure")
         if self._iterations(processing, profile) is None:
