@@ -9,6 +9,7 @@ import pytest
 
 from tests.synthetic import RGB_ATTENUATION, plate_frame
 from uwcam.calibration.profile import load_profile, save_profile
+from uwcam.calibration.rig import builtin_rig_path, load_rig
 from uwcam.cli import main
 from uwcam.commands.calibrate import with_exposure
 from uwcam.simulation import CameraModel, Lamp, SimulatedWorld, water_preset
@@ -77,8 +78,11 @@ def water(tmp_path_factory):
     exposure (in µs: the simulator's exposure / UNIT), one not; a seabed at 3 m exposed 13 times as
     long as the calibration; an open-water frame at the seabed's exposure and one at half of it."""
     folder = tmp_path_factory.mktemp("exposure")
-    plain = calibrate_in_simulation(WATER, LAMP, SIZE, CameraModel(), frames_per_distance=2)
-    recorded = calibrate_in_simulation(WATER, LAMP, SIZE, CameraModel(), frames_per_distance=2, record_exposure=True)
+    # The plate for scattering water (docs/calibration.md), its black patch at the view's centre.
+    rig = load_rig(builtin_rig_path("grey-plate-large-patch"))
+    plain = calibrate_in_simulation(WATER, LAMP, SIZE, CameraModel(), frames_per_distance=2, rig=rig)
+    recorded = calibrate_in_simulation(WATER, LAMP, SIZE, CameraModel(), frames_per_distance=2, record_exposure=True,
+                                       rig=rig)
     calibration_us = recorded.channels[0].exposure_us / UNIT
     save_profile(plain, folder / "plain.yaml")
     save_profile(with_exposure(plain, np.full(3, calibration_us), None), folder / "recorded.yaml")
@@ -98,7 +102,9 @@ def ranged(folder, profile: str, *flags: str) -> np.ndarray:
 
 def median_error(r, truth) -> float:
     valid = np.isfinite(r)
-    assert valid.mean() > 0.95
+    # Without open-water frames the black patch's level carried across the view is doubted toward the
+    # edges (BackscatterModel.spread_doubt): 93 % of this seabed keeps a range.
+    assert valid.mean() > 0.9
     return float(np.median(r[valid] / truth[valid] - 1))
 
 

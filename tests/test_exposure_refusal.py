@@ -48,7 +48,7 @@ def test_a_frame_whose_exposure_the_calibration_cannot_be_related_to_is_not_rang
     unrecorded = calibrate_in_simulation(WATER, LAMP, SIZE, CameraModel(), frames_per_distance=2)
     recorded = calibrate_in_simulation(WATER, LAMP, SIZE, CameraModel(), frames_per_distance=2, record_exposure=True)
     assert unrecorded.calibration_exposure()[0] is None and recorded.calibration_exposure()[0] is not None
-    scene = SimulatedWorld(scene="seabed", distance=5.0, size=SIZE, water=WATER, lamp=LAMP, camera=CameraModel(),
+    scene = SimulatedWorld(scene="seabed", distance=3.0, size=SIZE, water=WATER, lamp=LAMP, camera=CameraModel(),
                            material="grey", seed=5)
     frame = scene.frame(0)
     # The camera says its exposure, the profile's calibration does not: refused, and the status says why.
@@ -65,7 +65,7 @@ def test_a_frame_whose_exposure_the_calibration_cannot_be_related_to_is_not_rang
     assert published[0].light_scale == pytest.approx(tuple(ratio))
     assert np.isfinite(published[0].result.range).mean() > 0.5
     # An open-water frame of unknown exposure cannot relate it either.
-    water = SimulatedWorld(scene="open-water", distance=5.0, size=SIZE, water=WATER, lamp=LAMP, camera=CameraModel(),
+    water = SimulatedWorld(scene="open-water", distance=3.0, size=SIZE, water=WATER, lamp=LAMP, camera=CameraModel(),
                            fixed_exposure=scene.exposure, seed=6).frame(0).astype(np.float32)
     published, unranged, status = run_frames(unrecorded, [(frame, 1000.0)], open_water=(water, {}))
     assert not published and "open-water frame does not" in status["refused"]

@@ -13,7 +13,7 @@ frames and the fixed pattern (each pixel's own response, the same in every frame
 
 The frames' exposure (:class:`Exposure`) is used as the frame loop uses each frame's: the estimator
 ranges at it (:meth:`~uwcam.ranging.estimator.RangeEstimator.set_exposure`) and the modelled
-backscatter is scaled to it (:func:`uwcam.water.frame_compensator.light_scale`); where it cannot be
+backscatter is scaled to it (:func:`uwcam.water.light_scale.light_scale`); where it cannot be
 related to the light the backscatter model came from, the frames are refused (:func:`relate_exposures`).
 Several open-water frames are taken as the daemon takes its capture (:func:`open_water_mean`).
 """

@@ -208,6 +208,12 @@ class BackscatterModel:
     """(N,) relative uncertainty of the modelled share of the open water's light beyond a surface,
     where the column fit was not used (:func:`column_fit_agrees`): how far the fit's column and the
     calibration's part on it; 0 where the fit was used; None where every channel's was."""
+    spread_doubt: NDArray[np.float64] | None = None
+    """(H, W) relative uncertainty of the level at each pixel where no open-water frame measured the
+    water's light across the view: the black patch measured it at the patch's pixel, and the lamp's
+    beam and the lens's shading, which the patch cannot see, move it elsewhere by up to 1 − cos⁴ of
+    the angle between that pixel's ray and the patch's (a 30° Gaussian beam 25° off its axis passes
+    71 % of its light there, cos⁴ 25° is 67 %). None with an open-water frame or without intrinsics."""
 
     @property
     def response(self) -> NDArray[np.float64] | None:
@@ -346,9 +352,16 @@ class BackscatterModel:
             h, w = shape if shape is not None else (int(2 * intr.cy + 1), int(2 * intr.cx + 1))
             lens = shading_map(profile.lens_shading.coefficients, intr, h, w)[..., None]
             shape_across = np.broadcast_to(shape_across, (h, w, n)) * lens
+        spread_doubt = None
+        if intr is not None:
+            h, w = shape if shape is not None else (int(2 * intr.cy + 1), int(2 * intr.cx + 1))
+            rays = pixel_rays(intr, h, w)
+            x, y = patches[-1]
+            at_patch = rays[int(round(min(max(y, 0), h - 1))), int(round(min(max(x, 0), w - 1)))]
+            spread_doubt = 1.0 - np.clip(rays @ at_patch, 0.0, 1.0) ** 4
         at_patch = cls(depths, shares, shape_across, step).level_at_pixel(measured_depths[-1], *patches[-1])
         scale = np.where(at_patch > 0, levels[-1] / np.where(at_patch > 0, at_patch, 1.0), 0.0)
-        return cls(depths, shares, (shape_across * scale).astype(np.float64), step)
+        return cls(depths, shares, (shape_across * scale).astype(np.float64), step, spread_doubt=spread_doubt)
 
     def corners(self, rows: NDArray, cols: NDArray) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
         """For pixels at (rows, cols) (any shape S, full-resolution coordinates): the rows of the

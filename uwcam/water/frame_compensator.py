@@ -194,6 +194,9 @@ class BackscatterCompensator:
         # The open water's light at the block centres (scale 1): the modelled share beyond a
         # surface is this less the level in front of it (:data:`OPEN_WATER_TAIL_UNCERTAINTY`).
         self._open_grid = self._grid_levels(np.full(self._grid, np.nan), 1.0) if self.open_water else None
+        spread = self.model.spread_doubt
+        self._spread_doubt = None if self.open_water or spread is None else spread[
+            np.clip(np.rint(rows).astype(int), 0, h - 1), np.clip(np.rint(cols).astype(int), 0, w - 1)][..., None].astype(np.float32)
         self._tail_uncertainty = np.maximum(OPEN_WATER_TAIL_UNCERTAINTY, 0.0 if self.model.tail_uncertainty is None
                                             else self.model.tail_uncertainty).astype(np.float32)  # column_fit_agrees
         self.estimator = RangeEstimator(compensated, **options)
@@ -287,10 +290,13 @@ class BackscatterCompensator:
         size = self._coarse_size if coarse else (w, h)
         out = cv2.resize(small, size, interpolation=cv2.INTER_LINEAR).reshape(size[1], size[0], -1)
         doubt = None
-        if with_doubt and self._open_grid is not None:
-            tail = np.maximum(self._open_grid * np.asarray(scale, np.float32) - small, np.float32(0.0))
-            tail *= self._tail_uncertainty
-            doubt = cv2.resize(tail * tail, size, interpolation=cv2.INTER_LINEAR).reshape(size[1], size[0], -1)
+        if with_doubt and (self._open_grid is not None or self._spread_doubt is not None):
+            if self._open_grid is not None:
+                spread = np.maximum(self._open_grid * np.asarray(scale, np.float32) - small, np.float32(0.0))
+                spread *= self._tail_uncertainty
+            else:  # the black patch's level carried across the view (BackscatterModel.spread_doubt)
+                spread = small * self._spread_doubt
+            doubt = cv2.resize(spread * spread, size, interpolation=cv2.INTER_LINEAR).reshape(size[1], size[0], -1)
         response = self._response_coarse if coarse else self._response
         if response is not None:
             out *= response
