@@ -15,7 +15,7 @@ from uwcam.recording import format as rec
 from uwcam.api.common import get_daemon
 from uwcam.runtime.daemon import Daemon
 from uwcam.fileio import UserInputError
-from uwcam.recording.recorder import NoRoom
+from uwcam.recording.disk import NoRoom
 
 router = APIRouter(prefix="/api/v1/recordings", tags=["recordings"])
 

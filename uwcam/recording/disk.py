@@ -7,6 +7,12 @@ import os
 import shutil
 import time
 
+from uwcam.fileio import UserInputError
+
+
+class NoRoom(UserInputError):
+    """Too little free disk to start a recording (the API answers 507 Insufficient Storage)."""
+
 
 
 

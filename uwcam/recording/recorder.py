@@ -35,7 +35,7 @@ from uwcam.fileio import UserInputError
 from uwcam.runtime.pipeline import FramePipeline
 from uwcam.runtime.published import Published
 from uwcam.calibration.profile import CalibrationProfile
-from uwcam.recording.disk import DiskBudget, disk_space_bytes, time_name, unique_path
+from uwcam.recording.disk import DiskBudget, NoRoom, disk_space_bytes, time_name, unique_path
 from uwcam.recording.records import BUDGET, frame_metadata, ranging_record, summary_of, to_depth
 
 log = logging.getLogger(__name__)
@@ -51,10 +51,6 @@ WRITER_NICENESS = 10
 START_MARGIN_BYTES = 1 << 20
 """Free disk a recording needs to start besides one chunk: the file's header and its calibration
 attachment (a profile is 3-300 kB). With less, not one chunk of frames would reach the disk."""
-
-
-class NoRoom(UserInputError):
-    """Too little free disk to start a recording (the API answers 507 Insufficient Storage)."""
 
 
 def lower_this_threads_priority(niceness: int) -> bool:
