@@ -215,6 +215,7 @@ class SupervisedCamera:
         last_frame = time.monotonic()
         lost_since: float | None = None
         delay = self.backoff_s[0]
+        fresh = False
         self._report(HealthState.RECOVERING, "started, waiting for the first frame")
         while not self._worker.stopping.is_set():
             if not self._connected:
@@ -222,7 +223,7 @@ class SupervisedCamera:
                     self._connect()
                     self.stats.reconnects += 1
                     last_frame = time.monotonic()
-                    delay = self.backoff_s[0]
+                    fresh = True  # no frame yet since this open
                 except Exception as exc:  # absent device, SDK error: retry later
                     gone = time.monotonic() - (lost_since or time.monotonic())
                     state = HealthState.LOST if gone >= self.lost_after_s else HealthState.RECOVERING
@@ -254,6 +255,8 @@ class SupervisedCamera:
                 self.stats.captured += 1
                 last_frame = time.monotonic()
                 lost_since = None
+                fresh = False
+                delay = self.backoff_s[0]
                 self._report(HealthState.OK, "streaming")
                 self._push(frame)
                 continue
@@ -262,3 +265,6 @@ class SupervisedCamera:
             self._report(HealthState.RECOVERING, reason)
             log.warning("camera %s: %s; reconnecting", self.driver.serial_number, reason)
             self._disconnect()
+            if fresh:  # lost again before a frame since it opened (a stream that ends at once): back off
+                self._worker.stopping.wait(delay)
+                delay = min(delay * 2, self.backoff_s[1])
