@@ -14,6 +14,7 @@ import websockets
 
 from tests.served import Server
 from tests.test_api import small_config
+from tests.test_hardening_second import active_profile, altered
 from tests.waiting import wait_for
 from uwcam.cli import main
 from uwcam.config import RecordingConfig, load_config
@@ -91,18 +92,6 @@ def test_whole_numbers_where_the_configuration_takes_any_number(tmp_path):
 
 # --------------------------------------------------- 15: a profile is checked at upload in full
 
-def active_profile(s: Server) -> tuple[str, dict]:
-    name = s.daemon.profile_name
-    return name, s.http.get(f"/api/v1/calibration/profiles/{name}").json()
-
-
-def with_value(profile: dict, path: tuple, value) -> dict:
-    out = json.loads(json.dumps(profile))
-    node = out
-    for key in path[:-1]:
-        node = node[key]
-    node[path[-1]] = value
-    return out
 
 
 @pytest.mark.parametrize("path, value, words", [
@@ -117,7 +106,7 @@ def with_value(profile: dict, path: tuple, value) -> dict:
 def test_a_profile_that_activation_would_refuse_is_refused_at_upload(server, path, value, words):
     name, original = active_profile(server)
     assert original["intrinsics"] is not None
-    r = send(server, "PUT", "/api/v1/calibration/profiles/upload-43", with_value(original, path, value))
+    r = send(server, "PUT", "/api/v1/calibration/profiles/upload-43", altered(original, path, value))
     assert r.status_code == 422, (path, value, r.status_code, r.text)
     assert words in r.json()["detail"] and "\n" not in r.json()["detail"], r.text
     assert "upload-43" not in server.daemon.profiles  # not stored

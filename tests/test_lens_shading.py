@@ -58,7 +58,7 @@ def test_a_profile_s_lens_shading_is_typed_bounded_and_needs_intrinsics():
         with pytest.raises(ValidationError):
             LensShading(coefficients=bad)
     from uwcam.calibration.profile import profile_from_mapping
-    profile = seabed_cell(distance=3.0, vignetting=None, frames=1, open_water_frames=1, size=(160, 120))[0]
+    profile = seabed_cell(distance=3.0, vignetting=None, frames=1, size=(160, 120))[0]
     data = profile.model_dump(mode="json")
     data["lens_shading"] = {"coefficients": [-2.0, 0.0]}
     assert profile_from_mapping(data).lens_shading.coefficients == (-2.0, 0.0)
@@ -67,24 +67,16 @@ def test_a_profile_s_lens_shading_is_typed_bounded_and_needs_intrinsics():
         profile_from_mapping(data)
 
 
-def seabed_cell(distance: float, vignetting: str | None, frames: int = 16, open_water_frames: int = 16,
-                size: tuple[int, int] = (WIDTH, HEIGHT), water_name: str = "jerlov-II", lamp_x: float = 0.3):
-    """uwcam's simulator's grey seabed and open water seen through a lens with ``vignetting`` (None,
-    "cos4", "decentred": cos⁴ about a point a fifth of the width right of the centre, or "one side":
-    a port that passes half the light at the left edge, all at the right), the profile calibrated in
-    the same water through a lens without it: (profile, frames, open water, truth)."""
-    from uwcam.calibration.rig import builtin_rig_path, load_rig
-    from uwcam.simulation import CameraModel, Lamp, SimulatedWorld, water_preset
-    from uwcam.simulation.tank import calibrate_in_simulation
+def seabed_cell(distance: float, vignetting: str | None, frames: int = 16, size: tuple[int, int] = (WIDTH, HEIGHT),
+                water_name: str = "jerlov-II", lamp_x: float = 0.3):
+    """uwcam's simulator's grey seabed and 16 open-water frames (:func:`tests.test_backscatter_unresolved.murky_cell`)
+    seen through a lens with ``vignetting`` (None, "cos4", "decentred": cos⁴ about a point a fifth of
+    the width right of the centre, or "one side": a port that passes half the light at the left edge,
+    all at the right), the profile calibrated in the same water through a lens without it:
+    (profile, frames, open water, truth)."""
+    from tests.test_backscatter_unresolved import murky_cell
 
-    water = water_preset(water_name, [675.0, 575.0, 475.0])
-    lamp, camera = Lamp(position=(lamp_x, 0.0, 0.0)), CameraModel()
-    profile = calibrate_in_simulation(water, lamp, size, camera, frames_per_distance=4,
-                                      rig=load_rig(builtin_rig_path("grey-plate-large-patch")))
-    scene = SimulatedWorld(scene="seabed", distance=distance, size=size, water=water, lamp=lamp, camera=camera,
-                           material="grey", seed=5)
-    view = SimulatedWorld(scene="open-water", distance=distance, size=size, water=water, lamp=lamp, camera=camera,
-                          fixed_exposure=scene.exposure, seed=6)
+    profile, scene, open_water, truth = murky_cell(size, distance, water_name, lamp_x, frames)
     dark = profile.array("dark_level")
     shading = np.ones(size[::-1])
     if vignetting == "one side":
@@ -96,8 +88,7 @@ def seabed_cell(distance: float, vignetting: str | None, frames: int = 16, open_
     def lens(frame):
         return (frame.astype(np.float64) - dark) * shading[..., None] + dark
 
-    return (profile, [lens(scene.frame(i)) for i in range(frames)],
-            np.stack([lens(view.frame(i)) for i in range(open_water_frames)]), scene.camera_range)
+    return profile, [lens(f) for f in scene], np.stack([lens(f) for f in open_water]), truth
 
 
 def errors(result, truth):
@@ -177,7 +168,7 @@ def test_a_measured_shading_shapes_the_water_s_light_without_open_water():
     lamp's geometry. With the lens's shading in the profile, it takes the shading with it."""
     from uwcam.water.backscatter import BackscatterModel
 
-    profile = seabed_cell(3.0, None, frames=1, open_water_frames=1)[0]
+    profile = seabed_cell(3.0, None, frames=1)[0]
     intr = profile.camera_intrinsics()
     plain = BackscatterModel.from_profile(profile, shape=(HEIGHT, WIDTH))
     shaded_profile = profile.model_copy(update={"lens_shading": LensShading(coefficients=(-2.0, 0.0))})

@@ -89,6 +89,18 @@ def relate_exposures(profile: CalibrationProfile, exposure: Exposure, open_water
                                  f"backscatter subtracted is in those counts; give the frames' --{flag}")
 
 
+def check_alike(frames: Sequence[NDArray], label: str, advice: str) -> None:
+    """UserInputError unless every frame has the first's shape and pixel type, naming the first that
+    differs as ``label`` k (counted from 1) and ending with ``advice``."""
+    def size(f: NDArray) -> str:
+        return f"{f.shape[1]}×{f.shape[0]}×{f.shape[2] if f.ndim == 3 else 1} {f.dtype}"
+
+    first = frames[0]
+    for k, f in enumerate(frames[1:], start=2):
+        if f.shape != first.shape or f.dtype != first.dtype:
+            raise UserInputError(f"{label} {k} is {size(f)} but {label} 1 is {size(first)}; {advice}")
+
+
 def open_water_mean(profile: CalibrationProfile, frames: Sequence[NDArray]) -> NDArray[np.float32]:
     """The open-water frame the daemon keeps of a capture of K lamp-lit frames (H, W, N) raw, taken
     at one exposure: their mean, summed in float32 in order as
@@ -96,12 +108,7 @@ def open_water_mean(profile: CalibrationProfile, frames: Sequence[NDArray]) -> N
     camera's codes linearised first, as the frame loop does every frame). Ranged with
     ``open_water_frames=K``, each pixel's response is estimated from it with the noise model's
     noise over K (:meth:`uwcam.water.backscatter.BackscatterModel.from_profile`), as in the daemon."""
-    first = frames[0]
-    for k, f in enumerate(frames[1:], start=2):
-        if f.shape != first.shape or f.dtype != first.dtype:
-            raise UserInputError(f"open-water image {k} is {f.shape[1]}×{f.shape[0]}×{f.shape[-1]} {f.dtype} but "
-                                 f"open-water image 1 is {first.shape[1]}×{first.shape[0]}×{first.shape[-1]} "
-                                 f"{first.dtype}; take them with one camera and its settings")
+    check_alike(frames, "open-water image", "take them with one camera and its settings")
     curve = profile.response_curve()
     total = None
     for f in frames:
@@ -117,12 +124,8 @@ def fuse_frames(estimator: RangeEstimator, frames: Sequence[NDArray]) -> tuple[N
     f the fixed pattern of the noise model (see :meth:`RangeEstimator.channel_terms`'s ``samples``)."""
     if len(frames) == 0:
         raise UserInputError("give at least one image to range")
+    check_alike(frames, "image", "fuse only frames of one camera and scene")
     first = frames[0]
-    for k, f in enumerate(frames[1:], start=2):
-        if f.shape != first.shape or f.dtype != first.dtype:
-            raise UserInputError(f"image {k} is {f.shape[1]}×{f.shape[0]}×{f.shape[2] if f.ndim == 3 else 1} {f.dtype} "
-                                 f"but image 1 is {first.shape[1]}×{first.shape[0]}×{first.shape[2] if first.ndim == 3 else 1} "
-                                 f"{first.dtype}; fuse only frames of one camera and scene")
     if len(frames) == 1:
         return first, None
     k = len(frames)
